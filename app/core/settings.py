@@ -1,0 +1,37 @@
+"""Process-wide settings, read from the environment (prefix `MMSCLEAN_`) and `.env`."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+from pydantic import Field, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="MMSCLEAN_", env_file=".env", extra="ignore")
+
+    data_dir: Path = Field(Path("var"), description="database, caches, imported surveys, exports")
+    database_url: str = Field("", description="SQLAlchemy URL; empty = SQLite file in data_dir")
+    weights_dir: Path = Field(Path("models"), description="pretrained image-model weights")
+    real_data: Path | None = Field(None, description="real KITTI/SemanticKITTI sample (tests)")
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=0, le=65535, description="web app (API, dashboard, viewer)")
+    viewer_port: int = Field(0, ge=0, le=65535, description="loopback viser port; 0 = free port")
+    admin_password: str | None = None
+
+    @model_validator(mode="after")
+    def _default_database(self) -> Settings:
+        if not self.database_url:
+            self.database_url = f"sqlite:///{(self.data_dir / 'mmsclean.sqlite3').resolve()}"
+        return self
+
+    @property
+    def cache_dir(self) -> Path:
+        return self.data_dir / "cache"
+
+
+@lru_cache
+def get_settings() -> Settings:
+    return Settings()
