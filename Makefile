@@ -1,0 +1,42 @@
+# Two commands: `make run` (set up and start the app) and `make test` (set up and run the checks).
+# Both are idempotent: the virtual environment is rebuilt only when pyproject.toml or
+# requirements.lock change, system libraries are installed only when missing.
+
+PYTHON ?= python3.11
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+HOST   ?= 127.0.0.1
+PORT   ?= 8000
+
+.PHONY: run test lint system-deps venv clean
+
+venv: $(STAMP)
+
+$(STAMP): pyproject.toml requirements.lock
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --disable-pip-version-check -c requirements.lock -e '.[dev]'
+	@touch $(STAMP)
+
+# open3d-cpu links libusb-1.0, which slim Debian images lack.
+system-deps:
+	@ldconfig -p | grep -q 'libusb-1.0.so.0' || { \
+	  echo "installing libusb-1.0-0 (needed by open3d)"; \
+	  apt-get install -y -q libusb-1.0-0 >/dev/null 2>&1 || \
+	  { apt-get update -q >/dev/null && apt-get install -y -q libusb-1.0-0 >/dev/null; }; }
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check app tests bench
+	$(VENV)/bin/ruff format --check app tests bench
+
+# pytest exits 5 when it collected no tests: that is a failure here, never a pass.
+test: system-deps $(STAMP) lint
+	@$(PY) -m pytest -q; rc=$$?; \
+	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing"; exit 1; fi; exit $$rc
+
+run: system-deps $(STAMP)
+	@echo "mmsclean: http://$(HOST):$(PORT)  (health: http://$(HOST):$(PORT)/health)"
+	$(VENV)/bin/mmsclean serve --host $(HOST) --port $(PORT)
+
+clean:
+	rm -rf $(VENV) var .pytest_cache .ruff_cache
