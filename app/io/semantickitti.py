@@ -78,13 +78,16 @@ def read_semantickitti(source: Path) -> Survey:
     calib_path = source / "calib.txt"
     calib = read_calib_file(calib_path)
     T_cam0_velo = rigid_4x4(calib, "Tr", calib_path)
+    projections = {key: matrix_3x4(calib, key, calib_path) for key in CAMERAS.values() if key in calib}
     cameras: dict[str, Camera] = {}
     images: dict[str, dict[str, Path]] = {}
     for folder, key in CAMERAS.items():
         files = {p.stem: p for p in (source / folder).glob("*.png")}
         if not files:
             continue
-        P = matrix_3x4(calib, key, calib_path)
+        if key not in projections:
+            raise InputError(calib_path, f"calibration entry {key} is missing (needed by {folder})")
+        P = projections[key]
         width, height = image_size(next(iter(files.values())))
         cameras[folder] = Camera(folder, P, T_cam0_velo, width, height)
         images[folder] = files

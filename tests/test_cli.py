@@ -1,0 +1,114 @@
+"""The `mmsclean` command as a user runs it: one-line errors, exit codes, the info summary."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.io.kitti_fixtures import make_semantickitti
+
+
+def mmsclean(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "app", *args],
+        capture_output=True,
+        text=True,
+        env={**os.environ, **(env or {})},
+        timeout=120,
+    )
+
+
+def assert_one_line_error(result: subprocess.CompletedProcess, *fragments: str) -> None:
+    assert result.returncode != 0
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    assert "Traceback" not in result.stderr
+    for fragment in fragments:
+        assert fragment in lines[0]
+
+
+def test_info_json(tmp_path: Path) -> None:
+    root = make_semantickitti(tmp_path / "seq", frames=4)
+    result = mmsclean("info", str(root), "--format", "semantickitti", "--json")
+    assert result.returncode == 0, result.stderr
+    summary = json.loads(result.stdout)
+    assert summary["frames"] == 4 and summary["points"] == 400
+    assert summary["reference_labels"] == ["semantic", "instance"]
+    assert summary["trajectory_length_m"] == pytest.approx(3.0)
+
+
+def test_info_table(tmp_path: Path) -> None:
+    root = make_semantickitti(tmp_path / "seq", frames=2)
+    result = mmsclean("info", str(root), "-f", "semantickitti")
+    assert result.returncode == 0, result.stderr
+    assert "frames" in result.stdout and "reference labels" in result.stdout
+
+
+def test_unknown_format(tmp_path: Path) -> None:
+    assert_one_line_error(mmsclean("info", str(tmp_path), "-f", "e57"), "unknown format 'e57'")
+
+
+def test_missing_source(tmp_path: Path) -> None:
+    missing = tmp_path / "nothing-here"
+    assert_one_line_error(mmsclean("info", str(missing), "-f", "las"), str(missing), "does not exist")
+
+
+def test_truncated_scan(tmp_path: Path) -> None:
+    root = make_semantickitti(tmp_path / "seq")
+    scan = root / "velodyne" / "000002.bin"
+    scan.write_bytes(scan.read_bytes()[:-5])
+    assert_one_line_error(
+        mmsclean("info", str(root), "-f", "semantickitti"), "000002.bin", "truncated"
+    )
+
+
+def test_malformed_calibration(tmp_path: Path) -> None:
+    root = make_semantickitti(tmp_path / "seq")
+    (root / "calib.txt").write_text("P2: 1 2 3\nTr: 1 0 0 0 0 1 0 0 0 0 1 0\n")
+    assert_one_line_error(
+        mmsclean("info", str(root), "-f", "semantickitti"), "calib.txt", "P2 has 3 values"
+    )
+
+
+def test_fewer_poses_than_frames(tmp_path: Path) -> None:
+    root = make_semantickitti(tmp_path / "seq", frames=4, poses=3)
+    assert_one_line_error(
+        mmsclean("info", str(root), "-f", "semantickitti"), "poses.txt", "fewer than the frames"
+    )
+
+
+def test_empty_las(tmp_path: Path) -> None:
+    import laspy
+
+    path = tmp_path / "empty.las"
+    laspy.create(point_format=6, file_version="1.4").write(path)
+    assert_one_line_error(mmsclean("info", str(path), "-f", "las"), "empty.las", "no points")
+
+
+def test_usage_error_is_not_a_traceback() -> None:
+    result = mmsclean("info")
+    assert result.returncode != 0 and "Traceback" not in result.stderr
+
+
+@pytest.mark.real_data
+def test_info_real_semantickitti(real_data: Path) -> None:
+    result = mmsclean(
+        "info", str(real_data / "semantickitti/sequences/04"), "-f", "semantickitti", "--json"
+    )
+    assert result.returncode == 0, result.stderr
+    summary = json.loads(result.stdout)
+    assert summary["frames"] == 10 and 1.15e6 < summary["points"] < 1.3e6
+    assert summary["reference_labels"] and summary["cameras"][0].startswith("image_2")
+
+
+@pytest.mark.real_data
+def test_info_real_kitti_raw(real_data: Path) -> None:
+    drive = real_data / "kitti_raw/2011_09_26/2011_09_26_drive_00xx_sync"
+    result = mmsclean("info", str(drive), "-f", "kitti-raw", "--json")
+    assert result.returncode == 0, result.stderr
+    assert json.loads(result.stdout)["frames"] == 20
