@@ -55,7 +55,9 @@ def test_unknown_format(tmp_path: Path) -> None:
 
 def test_missing_source(tmp_path: Path) -> None:
     missing = tmp_path / "nothing-here"
-    assert_one_line_error(mmsclean("info", str(missing), "-f", "las"), str(missing), "does not exist")
+    assert_one_line_error(
+        mmsclean("info", str(missing), "-f", "las"), str(missing), "does not exist"
+    )
 
 
 def test_truncated_scan(tmp_path: Path) -> None:

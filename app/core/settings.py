@@ -5,8 +5,10 @@ from __future__ import annotations
 from functools import lru_cache
 from pathlib import Path
 
-from pydantic import Field, model_validator
+from pydantic import Field, ValidationError, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from app.core.errors import ConfigError
 
 
 class Settings(BaseSettings):
@@ -34,4 +36,10 @@ class Settings(BaseSettings):
 
 @lru_cache
 def get_settings() -> Settings:
-    return Settings()
+    """The settings; an invalid environment variable is a one-line ConfigError naming it."""
+    try:
+        return Settings()
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        field = "MMSCLEAN_" + str(first["loc"][0]).upper() if first["loc"] else "settings"
+        raise ConfigError(field, f"{first['msg']} (got {first.get('input')!r})") from None

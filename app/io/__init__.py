@@ -1,4 +1,4 @@
-"""Readers and writers, one module per format, behind `open_survey`; the `Survey` and `Frame` types."""
+"""Readers and writers, one module per format, behind `open_survey`; Survey and Frame types."""
 
 from app.io.registry import FORMATS, open_survey
 from app.io.survey import MAP_FRAME_ID, Camera, Frame, PointCloud, Survey

@@ -39,7 +39,9 @@ def require(entries: dict[str, np.ndarray], key: str, count: int, path: Path) ->
         raise InputError(path, f"calibration entry {key} is missing")
     values = entries[key]
     if values.size != count:
-        raise InputError(path, f"calibration entry {key} has {values.size} values, expected {count}")
+        raise InputError(
+            path, f"calibration entry {key} has {values.size} values, expected {count}"
+        )
     if not np.isfinite(values).all():
         raise InputError(path, f"calibration entry {key} has NaN or infinite values")
     return values

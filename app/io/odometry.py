@@ -48,7 +48,9 @@ def kiss_icp_poses(scan_files: Sequence[Path], kitti_correction: bool = True) ->
     for i, path in enumerate(scan_files):
         xyz = read_velodyne_bin(path).xyz
         if kitti_correction:  # the HDL-64E intrinsic fix KISS-ICP applies to KITTI scans
-            xyz = np.asarray(kiss_icp_pybind._correct_kitti_scan(kiss_icp_pybind._Vector3dVector(xyz)))
+            xyz = np.asarray(
+                kiss_icp_pybind._correct_kitti_scan(kiss_icp_pybind._Vector3dVector(xyz))
+            )
         odometry.register_frame(xyz, _azimuth_times(xyz))
         poses[i] = odometry.last_pose
     return poses

@@ -16,7 +16,9 @@ from app.core.errors import InputError
 from app.geometry.transforms import euler_to_matrix, make_transform
 
 EARTH_RADIUS_M = 6378137.0
-OXTS_FIELD_COUNT = 30  # lat lon alt roll pitch yaw vn ve vf vl vu ax ... navstat numsats posmode ...
+OXTS_FIELD_COUNT = (
+    30  # lat lon alt roll pitch yaw vn ve vf vl vu ax ... navstat numsats posmode ...
+)
 
 
 def read_oxts_packet(path: Path) -> np.ndarray:

@@ -68,17 +68,23 @@ def read_label_file(path: Path, point_count: int) -> dict[str, np.ndarray]:
 def read_semantickitti(source: Path) -> Survey:
     scan_files = sorted((source / "velodyne").glob("*.bin"))
     if not scan_files:
-        raise InputError(source / "velodyne", "contains no .bin scans: not a SemanticKITTI sequence")
+        raise InputError(
+            source / "velodyne", "contains no .bin scans: not a SemanticKITTI sequence"
+        )
     try:
         numbers = [int(f.stem) for f in scan_files]
     except ValueError:
-        raise InputError(source / "velodyne", "scan names must be frame numbers (000123.bin)") from None
+        raise InputError(
+            source / "velodyne", "scan names must be frame numbers (000123.bin)"
+        ) from None
     counts = [bin_point_count(f) for f in scan_files]
 
     calib_path = source / "calib.txt"
     calib = read_calib_file(calib_path)
     T_cam0_velo = rigid_4x4(calib, "Tr", calib_path)
-    projections = {key: matrix_3x4(calib, key, calib_path) for key in CAMERAS.values() if key in calib}
+    projections = {
+        key: matrix_3x4(calib, key, calib_path) for key in CAMERAS.values() if key in calib
+    }
     cameras: dict[str, Camera] = {}
     images: dict[str, dict[str, Path]] = {}
     for folder, key in CAMERAS.items():

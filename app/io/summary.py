@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-
 from app.geometry.trajectory import total_length
 from app.io.survey import Survey
 
@@ -80,5 +79,3 @@ def summary_rows(s: SurveySummary) -> list[tuple[str, str]]:
         ("cameras", ", ".join(s.cameras) if s.cameras else "none"),
         ("reference labels", ", ".join(s.reference_labels) if s.reference_labels else "none"),
     ]
-
-

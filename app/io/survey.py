@@ -34,7 +34,11 @@ class PointCloud:
     def __post_init__(self) -> None:
         self.xyz = np.asarray(self.xyz, dtype=np.float64).reshape(-1, 3)
         n = len(self.xyz)
-        for name, values in [("intensity", self.intensity), ("time", self.time), *self.extra.items()]:
+        for name, values in [
+            ("intensity", self.intensity),
+            ("time", self.time),
+            *self.extra.items(),
+        ]:
             if values is not None and len(values) != n:
                 raise ValueError(f"PointCloud.{name} has {len(values)} entries, xyz has {n}")
 

@@ -13,7 +13,7 @@ BYTES_PER_POINT = 16
 
 
 def bin_point_count(path: Path) -> int:
-    """Points in a scan from its size; a size that is not a multiple of 16 means a truncated file."""
+    """Points in a scan from its size; a size not a multiple of 16 means a truncated file."""
     try:
         size = path.stat().st_size
     except FileNotFoundError:

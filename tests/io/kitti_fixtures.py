@@ -23,7 +23,9 @@ def make_semantickitti(root: Path, frames: int = 3, poses: int | None = None) ->
     for i in range(frames):
         pts = write_scan(root / "velodyne" / f"{i:06d}.bin", seed=i)
         (root / "labels").mkdir(exist_ok=True)
-        np.full(len(pts), (7 << 16) | 40, dtype=np.uint32).tofile(root / "labels" / f"{i:06d}.label")
+        np.full(len(pts), (7 << 16) | 40, dtype=np.uint32).tofile(
+            root / "labels" / f"{i:06d}.label"
+        )
     calib = [f"P{k}: {P_LINE}" for k in range(4)] + [f"Tr: {IDENTITY_3X4}"]
     (root / "calib.txt").write_text("\n".join(calib) + "\n")
     n_poses = frames if poses is None else poses

@@ -35,7 +35,9 @@ def test_truncated_bin_names_the_file(tmp_path: Path) -> None:
     root = make_semantickitti(tmp_path / "seq")
     bad = root / "velodyne" / "000001.bin"
     bad.write_bytes(bad.read_bytes()[:-3])
-    with pytest.raises(InputError, match=r"000001\.bin: truncated: \d+ bytes is not a multiple of 16"):
+    with pytest.raises(
+        InputError, match=r"000001\.bin: truncated: \d+ bytes is not a multiple of 16"
+    ):
         open_survey(root, "semantickitti")
 
 
@@ -54,7 +56,9 @@ def test_calibration_with_wrong_value_count(tmp_path: Path) -> None:
     root = make_semantickitti(tmp_path / "seq")
     text = (root / "calib.txt").read_text().replace("Tr: 1 0 0 0", "Tr: 1 0 0")
     (root / "calib.txt").write_text(text)
-    with pytest.raises(InputError, match=r"calib\.txt: calibration entry Tr has 11 values, expected 12"):
+    with pytest.raises(
+        InputError, match=r"calib\.txt: calibration entry Tr has 11 values, expected 12"
+    ):
         open_survey(root, "semantickitti")
 
 
@@ -96,7 +100,9 @@ def test_kitti_raw_with_oxts(tmp_path: Path) -> None:
         # 1e-5 degree of longitude at 49 deg latitude, devkit Mercator: scale * lon * pi * R / 180
         expected = mercator_scale(49.0) * np.deg2rad(1e-5) * 6378137.0
         assert step[0] == pytest.approx(expected, rel=1e-6) and abs(step[1]) < 1e-6
-        assert survey.frames[1].timestamp - survey.frames[0].timestamp == pytest.approx(1.0, abs=1e-6)
+        assert survey.frames[1].timestamp - survey.frames[0].timestamp == pytest.approx(
+            1.0, abs=1e-6
+        )
         assert survey.cameras["image_02"].width == 1242
 
 

@@ -1,0 +1,190 @@
+"""Engine and sessions (the `core/db.py` of fastapi/full-stack-fastapi-template).
+
+SQLite is the default backend: one file in the data directory, opened in WAL mode so the web
+app, the viewer and job workers read while one of them writes, with foreign keys enforced and
+a 30 s busy timeout instead of immediate "database is locked" errors.
+
+- `get_engine()`: the process's engine for a URL (default: settings), migrated on first use.
+- `session_scope()`: `with session_scope() as session:` commits on success, rolls back on error.
+- `get_session()`: the FastAPI dependency (`SessionDep`); the route commits.
+- Both turn a lost optimistic-concurrency race (`StaleDataError`) or a UNIQUE violation into
+  `ConflictError` (409); `commit(session)` does the same for sessions used directly.
+"""
+
+from __future__ import annotations
+
+import re
+import sqlite3
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import sqlalchemy as sa
+from sqlalchemy import event
+from sqlalchemy.engine import Engine
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm.exc import StaleDataError
+from sqlmodel import Session
+
+from app.core.errors import ConflictError
+from app.core.settings import get_settings
+from app.store.migrations import migrate
+
+SQLITE_PRAGMAS = (
+    "PRAGMA journal_mode=WAL",
+    "PRAGMA foreign_keys=ON",
+    "PRAGMA synchronous=NORMAL",
+    "PRAGMA busy_timeout=30000",
+)
+
+_engines: dict[str, Engine] = {}
+_engines_lock = threading.Lock()
+
+
+def _database_url(url: str | None) -> str:
+    return url or get_settings().database_url
+
+
+def _sqlite_file(url: sa.URL) -> Path | None:
+    database = url.database
+    if url.get_backend_name() != "sqlite" or not database or database == ":memory:":
+        return None
+    if database.startswith("file:"):  # URI filename
+        return None
+    return Path(database)
+
+
+def _set_sqlite_pragmas(dbapi_connection: sqlite3.Connection, _record: Any) -> None:
+    cursor = dbapi_connection.cursor()
+    try:
+        for pragma in SQLITE_PRAGMAS:
+            cursor.execute(pragma)
+    finally:
+        cursor.close()
+
+
+def make_engine(url: str | None = None, **kwargs: Any) -> Engine:
+    """A new engine for `url` (default: `settings.database_url`); does not touch the database.
+
+    For an SQLite file its folder is created; every new SQLite connection gets `SQLITE_PRAGMAS`.
+    Extra keyword arguments go to `sqlalchemy.create_engine`.
+    """
+    parsed = sa.make_url(_database_url(url))
+    if parsed.get_backend_name() == "sqlite":
+        path = _sqlite_file(parsed)
+        if path is not None:
+            path.resolve().parent.mkdir(parents=True, exist_ok=True)
+        connect_args = {"check_same_thread": False, "timeout": 30}
+        connect_args.update(kwargs.pop("connect_args", {}))
+        engine = sa.create_engine(parsed, connect_args=connect_args, **kwargs)
+        event.listen(engine, "connect", _set_sqlite_pragmas)
+        return engine
+    kwargs.setdefault("pool_pre_ping", True)
+    return sa.create_engine(parsed, **kwargs)
+
+
+def init_db(engine: Engine) -> int:
+    """Create the tables of a new database or migrate an old one; returns the schema version.
+
+    Raises `SchemaVersionError` for a database written by a newer mmsclean, `StoreError` for a
+    file that is not a database.
+    """
+    return migrate(engine)
+
+
+def get_engine(url: str | None = None) -> Engine:
+    """The shared engine for `url` (default: settings), created and migrated on first call."""
+    key = _database_url(url)
+    with _engines_lock:
+        engine = _engines.get(key)
+        if engine is None:
+            engine = make_engine(key)
+            try:
+                init_db(engine)
+            except BaseException:
+                engine.dispose()
+                raise
+            _engines[key] = engine
+        return engine
+
+
+def dispose_engines() -> None:
+    """Close every shared engine's connections and forget them (tests, shutdown)."""
+    with _engines_lock:
+        for engine in _engines.values():
+            engine.dispose()
+        _engines.clear()
+
+
+_STALE_TABLE = re.compile(r"on table '([^']+)'")
+_UNIQUE_SQLITE = re.compile(r"UNIQUE constraint failed: (.+)")
+
+
+def as_conflict(exc: BaseException) -> ConflictError | None:
+    """The `ConflictError` a stale version or a UNIQUE violation means; None for other errors."""
+    if isinstance(exc, StaleDataError):
+        match = _STALE_TABLE.search(str(exc))
+        what = match.group(1) if match else "the record"
+        return ConflictError(f"{what} was changed by someone else; reload it and try again")
+    if isinstance(exc, IntegrityError):
+        message = str(exc.orig)
+        match = _UNIQUE_SQLITE.search(message)
+        if match:
+            columns = [c.strip() for c in match.group(1).split(",")]
+            table = columns[0].split(".")[0]
+            fields = ", ".join(c.split(".")[-1] for c in columns)
+            return ConflictError(f"{table} with the same {fields} already exists")
+        if "duplicate key" in message or "unique constraint" in message.lower():
+            return ConflictError(message.splitlines()[0])
+    return None
+
+
+def commit(session: Session) -> None:
+    """`session.commit()`, raising `ConflictError` for a stale version or a duplicate."""
+    try:
+        session.commit()
+    except (StaleDataError, IntegrityError) as exc:
+        session.rollback()
+        conflict = as_conflict(exc)
+        if conflict is None:
+            raise
+        raise conflict from exc
+
+
+@contextmanager
+def session_scope(engine: Engine | None = None) -> Iterator[Session]:
+    """A session that commits when the block ends and rolls back if it raises.
+
+    Objects stay readable after the block (`expire_on_commit=False`). Conflicts (stale version,
+    duplicate) raise `ConflictError`; other errors propagate unchanged.
+    """
+    session = Session(engine or get_engine(), expire_on_commit=False)
+    try:
+        yield session
+        session.commit()
+    except (StaleDataError, IntegrityError) as exc:
+        session.rollback()
+        conflict = as_conflict(exc)
+        if conflict is None:
+            raise
+        raise conflict from exc
+    except BaseException:
+        session.rollback()
+        raise
+    finally:
+        session.close()
+
+
+def get_session() -> Iterator[Session]:
+    """FastAPI dependency: one session per request on the shared engine; the route commits."""
+    with Session(get_engine()) as session:
+        try:
+            yield session
+        except (StaleDataError, IntegrityError) as exc:
+            session.rollback()
+            conflict = as_conflict(exc)
+            if conflict is None:
+                raise
+            raise conflict from exc

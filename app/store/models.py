@@ -1,0 +1,403 @@
+"""SQLModel tables: everything mmsclean remembers between runs.
+
+One table per record kind; the shape follows fastapi/full-stack-fastapi-template (`models.py`).
+Conventions every table keeps:
+
+- Integer primary keys `id` (from `Record`), explicit snake_case table names.
+- Timestamps are timezone-aware UTC (`UTCDateTime`): naive datetimes are taken as UTC on write,
+  and every datetime read back carries `tzinfo=UTC`, whatever the backend stores.
+- Records a user edits (users, surveys, labels, decisions, slices, guardrail models, model
+  versions) carry `version: int`, wired as SQLAlchemy's `version_id_col`: every ORM UPDATE runs
+  `... WHERE id = ? AND version = <version loaded>` and bumps it, so two writers starting from
+  the same version cannot both win; the loser gets `StaleDataError` (`app.store.db` turns it
+  into `ConflictError`). Label operations compare the client's version with the loaded one
+  first; setting `version` by hand is honoured instead of the automatic bump. `Job` has no
+  version: workers write its progress while users only cancel it.
+- `updated_at` refreshes itself on every UPDATE.
+- Children of a survey go with it (`ON DELETE CASCADE`, enforced: the engine turns SQLite's
+  `foreign_keys` on); references to users, jobs and model versions become NULL instead.
+- JSON dict columns are `MutableDict`s, so `job.config["x"] = 1` is saved like an assignment
+  (top-level keys only; replace nested values whole).
+- Enums are stored as their string values in a VARCHAR (no native enum, no CHECK), so a new
+  member never needs a table rebuild; unknown strings are refused when written.
+- `Frame.pose` is the 4x4 sensor-to-world matrix in row-major order (16 floats, float64 exact
+  through JSON); `Survey.origin_*` is the float64 local origin subtracted before float32 work.
+"""
+
+import enum
+from datetime import UTC, datetime
+from typing import Any, Optional
+
+import sqlalchemy as sa
+from sqlalchemy.ext.mutable import MutableDict
+from sqlalchemy.orm import declared_attr
+from sqlmodel import Field, Relationship, SQLModel
+
+
+def utcnow() -> datetime:
+    """The current time, timezone-aware UTC."""
+    return datetime.now(UTC)
+
+
+class UTCDateTime(sa.types.TypeDecorator[datetime]):
+    """A datetime stored as UTC and always read back timezone-aware (SQLite keeps no offset)."""
+
+    impl = sa.DateTime
+    cache_ok = True
+
+    def __init__(self) -> None:
+        super().__init__(timezone=True)
+
+    def process_bind_param(self, value: datetime | None, dialect: sa.Dialect) -> datetime | None:
+        if value is None:
+            return None
+        value = value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
+        return value.replace(tzinfo=None) if dialect.name == "sqlite" else value
+
+    def process_result_value(self, value: datetime | None, dialect: sa.Dialect) -> datetime | None:
+        if value is None:
+            return None
+        return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
+
+
+def _enum_type(enum_cls: type[enum.StrEnum]) -> sa.Enum:
+    return sa.Enum(
+        enum_cls,
+        native_enum=False,
+        create_constraint=False,
+        length=32,
+        values_callable=lambda members: [m.value for m in members],
+        validate_strings=True,
+    )
+
+
+JSONDict = MutableDict.as_mutable(sa.JSON(none_as_null=True))
+JSONList = sa.JSON(none_as_null=True)
+
+
+# --- enums -------------------------------------------------------------------------------
+
+
+class Role(enum.StrEnum):
+    annotator = "annotator"
+    reviewer = "reviewer"
+    admin = "admin"
+
+
+class JobStatus(enum.StrEnum):
+    queued = "queued"
+    running = "running"
+    succeeded = "succeeded"
+    failed = "failed"
+    cancelled = "cancelled"
+    interrupted = "interrupted"  # the worker died (server restart); may be resumed
+
+    @property
+    def finished(self) -> bool:
+        return self in (JobStatus.succeeded, JobStatus.failed, JobStatus.cancelled)
+
+
+class LabelSource(enum.StrEnum):
+    human = "human"
+    model = "model"
+
+
+class PillarClass(enum.IntEnum):
+    """Pillar label values (Nagy & Benedek); same numbers as the phantom `labels/*.npy`."""
+
+    ground = 0
+    high_object = 1
+    short_object = 2
+    phantom = 3
+
+
+class Decision(enum.StrEnum):
+    pending = "pending"
+    approved = "approved"
+    rejected = "rejected"
+
+
+class GuardrailKind(enum.StrEnum):
+    pipe = "pipe"
+    beam = "beam"
+
+
+class ModelStatus(enum.StrEnum):
+    pending = "pending"
+    approved = "approved"
+    rejected = "rejected"
+
+
+class Pipeline(enum.StrEnum):
+    phantom = "phantom"
+    guardrail = "guardrail"
+    clutter = "clutter"
+
+
+# --- shared columns ----------------------------------------------------------------------
+
+
+class Record(SQLModel):
+    id: int | None = Field(default=None, primary_key=True)
+
+
+class Created(Record):
+    created_at: datetime = Field(default_factory=utcnow, sa_type=UTCDateTime, nullable=False)
+
+
+class Timestamped(Created):
+    updated_at: datetime = Field(
+        default_factory=utcnow,
+        sa_type=UTCDateTime,
+        nullable=False,
+        sa_column_kwargs={"onupdate": utcnow},
+    )
+
+
+class Versioned(Timestamped):
+    """Optimistic concurrency: `version` is the mapper's version_id_col (see module docstring)."""
+
+    version: int = Field(default=1, nullable=False)
+
+    @declared_attr  # type: ignore[misc]
+    def __mapper_args__(cls) -> dict[str, Any]:  # noqa: N805
+        return {"version_id_col": cls.__table__.c.version}
+
+
+def _user_fk(index: bool = False) -> Any:
+    return Field(default=None, foreign_key="user.id", ondelete="SET NULL", index=index)
+
+
+def _survey_fk() -> Any:
+    return Field(foreign_key="survey.id", ondelete="CASCADE", index=True)
+
+
+# --- tables ------------------------------------------------------------------------------
+
+
+class User(Versioned, table=True):
+    __tablename__ = "user"
+
+    username: str = Field(max_length=64, unique=True, index=True)
+    hashed_password: str
+    role: Role = Field(default=Role.annotator, sa_type=_enum_type(Role), nullable=False)
+    is_active: bool = Field(default=True)
+
+
+class Survey(Versioned, table=True):
+    __tablename__ = "survey"
+
+    name: str = Field(max_length=255, index=True)
+    format: str = Field(max_length=32)  # reader name: kitti-raw, semantickitti, las, ply, pcd, sim
+    source_path: str
+    frame_count: int = Field(default=0, ge=0)
+    point_count: int = Field(default=0, ge=0, sa_type=sa.BigInteger)
+    has_reference_labels: bool = Field(default=False)
+    poses_estimated: bool = Field(default=False)  # poses came from odometry, not GNSS/INS
+    origin_x: float = Field(default=0.0, sa_type=sa.Double)
+    origin_y: float = Field(default=0.0, sa_type=sa.Double)
+    origin_z: float = Field(default=0.0, sa_type=sa.Double)
+    created_by: int | None = _user_fk()
+
+
+class Frame(Created, table=True):
+    __tablename__ = "frame"
+    __table_args__ = (sa.UniqueConstraint("survey_id", "frame_id", name="uq_frame_survey_frame"),)
+
+    survey_id: int = _survey_fk()
+    frame_index: int = Field(default=0, ge=0)  # position in the survey's frame order
+    frame_id: str = Field(max_length=64)  # e.g. "000042"; "map" for an accumulated map
+    timestamp: float | None = Field(default=None, sa_type=sa.Double)  # seconds
+    point_count: int = Field(default=0, ge=0, sa_type=sa.BigInteger)
+    pose: list[float] = Field(sa_type=JSONList, nullable=False)  # 4x4 row-major
+
+
+class Job(Timestamped, table=True):
+    __tablename__ = "job"
+    __table_args__ = (
+        sa.CheckConstraint("progress >= 0 AND progress <= 1", name="ck_job_progress"),
+        sa.Index("ix_job_status_created", "status", "created_at"),
+    )
+
+    survey_id: int | None = Field(
+        default=None, foreign_key="survey.id", ondelete="SET NULL", index=True
+    )
+    kind: str = Field(max_length=64, index=True)  # "run:phantom", "train:phantom", "import", ...
+    config: dict[str, Any] = Field(default_factory=dict, sa_type=JSONDict, nullable=False)
+    status: JobStatus = Field(
+        default=JobStatus.queued, sa_type=_enum_type(JobStatus), nullable=False
+    )
+    progress: float = Field(default=0.0, ge=0.0, le=1.0)
+    message: str = Field(default="")
+    log_path: str | None = None
+    result_path: str | None = None
+    created_by: int | None = _user_fk()
+    started_at: datetime | None = Field(default=None, sa_type=UTCDateTime)
+    finished_at: datetime | None = Field(default=None, sa_type=UTCDateTime)
+    worker_pid: int | None = None
+
+
+class ModelVersion(Versioned, table=True):
+    __tablename__ = "model_version"
+    __table_args__ = (sa.UniqueConstraint("pipeline", "name", name="uq_model_version_name"),)
+
+    pipeline: Pipeline = Field(sa_type=_enum_type(Pipeline), nullable=False, index=True)
+    name: str = Field(max_length=128)
+    checkpoint_path: str
+    metrics: dict[str, Any] = Field(default_factory=dict, sa_type=JSONDict, nullable=False)
+    trained_on: dict[str, Any] = Field(default_factory=dict, sa_type=JSONDict, nullable=False)
+    is_promoted: bool = Field(default=False, index=True)
+    job_id: int | None = Field(default=None, foreign_key="job.id", ondelete="SET NULL")
+
+
+class PillarLabel(Versioned, table=True):
+    """One pillar's label from one source; `cell_id` is the signed int64 packed pillar id."""
+
+    __tablename__ = "pillar_label"
+    __table_args__ = (
+        sa.UniqueConstraint("survey_id", "cell_id", "source", name="uq_pillar_label_cell_source"),
+        sa.CheckConstraint("label >= 0 AND label <= 3", name="ck_pillar_label_label"),
+        sa.CheckConstraint(
+            "confidence IS NULL OR (confidence >= 0 AND confidence <= 1)",
+            name="ck_pillar_label_confidence",
+        ),
+    )
+
+    survey_id: int = _survey_fk()
+    cell_id: int = Field(sa_type=sa.BigInteger, nullable=False)
+    label: int = Field(ge=0, le=3)  # PillarClass
+    source: LabelSource = Field(sa_type=_enum_type(LabelSource), nullable=False)
+    confidence: float | None = Field(default=None, ge=0.0, le=1.0)
+    user_id: int | None = _user_fk()
+    model_version_id: int | None = Field(
+        default=None, foreign_key="model_version.id", ondelete="SET NULL"
+    )
+
+
+class ClutterInstance(Created, table=True):
+    """One segmented object instance (person, car, ...) in one frame's camera image."""
+
+    __tablename__ = "clutter_instance"
+    __table_args__ = (
+        sa.UniqueConstraint(
+            "survey_id", "frame_id", "instance_index", name="uq_clutter_instance_index"
+        ),
+    )
+
+    survey_id: int = _survey_fk()
+    frame_id: str = Field(max_length=64)  # Frame.frame_id within the survey
+    instance_index: int = Field(ge=0)
+    class_name: str = Field(max_length=32, index=True)
+    point_count: int = Field(default=0, ge=0)
+    mask_path: str | None = None
+    bbox: list[int] | None = Field(default=None, sa_type=JSONList)  # [u0, v0, u1, v1] pixels
+    moving: bool | None = None
+    track_id: int | None = None
+
+    decision: Optional["ClutterDecision"] = Relationship(
+        back_populates="instance",
+        sa_relationship_kwargs={
+            "uselist": False,
+            "cascade": "all, delete-orphan",
+            "passive_deletes": True,
+        },
+    )
+
+
+class ClutterDecision(Versioned, table=True):
+    """The reviewer's verdict on a ClutterInstance: remove its points (approved) or keep them."""
+
+    __tablename__ = "clutter_decision"
+
+    instance_id: int = Field(
+        foreign_key="clutter_instance.id", ondelete="CASCADE", unique=True, index=True
+    )
+    decision: Decision = Field(
+        default=Decision.pending, sa_type=_enum_type(Decision), nullable=False, index=True
+    )
+    user_id: int | None = _user_fk()
+    decided_at: datetime | None = Field(default=None, sa_type=UTCDateTime)
+
+    instance: ClutterInstance = Relationship(back_populates="decision")
+
+
+class GuardrailSlice(Versioned, table=True):
+    """A 0.5 m slice of a roadside component: CNN prediction, adjacency correction, human label."""
+
+    __tablename__ = "guardrail_slice"
+    __table_args__ = (
+        sa.UniqueConstraint(
+            "survey_id", "component_id", "slice_index", name="uq_guardrail_slice_index"
+        ),
+        sa.CheckConstraint("predicted_label IN (0, 1)", name="ck_guardrail_slice_predicted"),
+        sa.CheckConstraint(
+            "corrected_label IS NULL OR corrected_label IN (0, 1)",
+            name="ck_guardrail_slice_corrected",
+        ),
+        sa.CheckConstraint("label IN (0, 1)", name="ck_guardrail_slice_label"),
+        sa.CheckConstraint(
+            "probability IS NULL OR (probability >= 0 AND probability <= 1)",
+            name="ck_guardrail_slice_probability",
+        ),
+    )
+
+    survey_id: int = _survey_fk()
+    slice_index: int
+    component_id: int
+    station_m: float = Field(sa_type=sa.Double)  # distance along the trajectory
+    predicted_label: int = Field(ge=0, le=1)  # CNN: 1 guardrail
+    probability: float | None = Field(default=None, ge=0.0, le=1.0)
+    corrected_label: int | None = Field(default=None, ge=0, le=1)  # after adjacency correction
+    label: int = Field(ge=0, le=1)  # current label (human when labelled_by is set)
+    labelled_by: int | None = _user_fk()
+
+
+class GuardrailModel(Versioned, table=True):
+    """One reconstructed guardrail (pipe or beam) awaiting review before export."""
+
+    __tablename__ = "guardrail_model"
+    __table_args__ = (
+        sa.UniqueConstraint("survey_id", "guardrail_index", name="uq_guardrail_model_index"),
+    )
+
+    survey_id: int = _survey_fk()
+    guardrail_index: int = Field(ge=0)
+    kind: GuardrailKind = Field(sa_type=_enum_type(GuardrailKind), nullable=False)
+    mesh_path: str
+    params: dict[str, Any] = Field(default_factory=dict, sa_type=JSONDict, nullable=False)
+    unit_count: int = Field(default=0, ge=0)
+    icp_residual: float | None = None
+    status: ModelStatus = Field(
+        default=ModelStatus.pending, sa_type=_enum_type(ModelStatus), nullable=False, index=True
+    )
+    decided_by: int | None = _user_fk()
+    decided_at: datetime | None = Field(default=None, sa_type=UTCDateTime)
+
+
+class AuditEvent(Record, table=True):
+    """Who did what to which record; `payload` holds the details (e.g. before/after values)."""
+
+    __tablename__ = "audit_event"
+    __table_args__ = (sa.Index("ix_audit_event_entity", "entity", "entity_id"),)
+
+    at: datetime = Field(default_factory=utcnow, sa_type=UTCDateTime, nullable=False, index=True)
+    user_id: int | None = _user_fk(index=True)
+    action: str = Field(max_length=64, index=True)  # e.g. "pillar.label", "clutter.approve"
+    entity: str = Field(max_length=64)  # table name, e.g. "pillar_label"
+    entity_id: str | None = Field(default=None, max_length=64)
+    payload: dict[str, Any] = Field(default_factory=dict, sa_type=JSONDict, nullable=False)
+
+
+TABLES: tuple[type[SQLModel], ...] = (
+    User,
+    Survey,
+    Frame,
+    Job,
+    ModelVersion,
+    PillarLabel,
+    ClutterInstance,
+    ClutterDecision,
+    GuardrailSlice,
+    GuardrailModel,
+    AuditEvent,
+)
