@@ -89,5 +89,6 @@ def main() -> None:
             print(f"error: {exc.format_message()}", file=sys.stderr)
         sys.exit(exc.exit_code or 2)
 
+
 if __name__ == "__main__":
     main()
