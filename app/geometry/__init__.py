@@ -1,0 +1,1 @@
+"""Pure-numpy geometry: rigid transforms, camera projection, pillar grid, voxels, trajectory."""

@@ -1,0 +1,310 @@
+"""LAS / LAZ: read an accumulated map, write the cleaned map.
+
+`read_las` reads the header eagerly (to validate the file and know the point count) and the points
+only when `Frame.points()` is called. World coordinates are float64 exactly as laspy computes them
+(`X * scale + offset`).
+
+`write_laz` writes LAS 1.4 point format 6 (with GPS time) and three extra dimensions that carry
+mmsclean's own bookkeeping: `mmsclean_label` (uint8, the pipeline label), `source_frame` and
+`source_index` (uint32, which input frame and which point of it each map point came from). The
+file is written next to its destination as `<name>.partial` and renamed when complete.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from functools import partial
+from pathlib import Path
+
+import laspy
+import numpy as np
+
+from app.core.errors import InputError
+from app.io.survey import MAP_FRAME_ID, Frame, PointCloud, Survey
+
+# extra dimensions mmsclean writes, with the dtype the reader hands back
+EXTRA_DIMS: dict[str, np.dtype] = {
+    "mmsclean_label": np.dtype(np.uint8),
+    "source_frame": np.dtype(np.uint32),
+    "source_index": np.dtype(np.uint32),
+}
+_EXTRA_DESCRIPTIONS = {
+    "mmsclean_label": "mmsclean pipeline label",
+    "source_frame": "index of the source frame",
+    "source_index": "point index in the source frame",
+}
+_RETURN_DIMS = ("return_number", "number_of_returns")
+_CHUNK = 1_000_000  # points per chunk when scanning classification
+
+
+def read_las(path: str | Path) -> Survey:
+    """Open a .las / .laz file as an accumulated map (one frame `map`, identity pose)."""
+    path = Path(path)
+    header = _read_header(path)
+    n = int(header.point_count)
+    if n == 0:
+        raise InputError(path, "contains no points")
+    scales = np.asarray(header.scales, dtype=np.float64)
+    if not (np.all(np.isfinite(scales)) and np.all(scales > 0)):
+        raise InputError(path, f"has invalid scale factors {scales.tolist()} (must be finite, > 0)")
+    offsets = np.asarray(header.offsets, dtype=np.float64)
+    if not np.all(np.isfinite(offsets)):
+        raise InputError(path, f"has invalid offsets {offsets.tolist()} (must be finite)")
+    if not header.are_points_compressed:
+        needed = n * header.point_format.size
+        available = path.stat().st_size - header.offset_to_point_data
+        if available < needed:
+            raise InputError(
+                path,
+                f"truncated: header promises {n} points ({needed} bytes), "
+                f"file has {max(available, 0)} bytes",
+            )
+
+    has_classes = _has_nonzero_classification(path)
+    frame = Frame(
+        index=0,
+        frame_id=MAP_FRAME_ID,
+        pose=np.eye(4),
+        point_count=n,
+        source_path=path,
+        _load_points=partial(_load_points, path, n),
+        _load_reference=partial(_load_reference, path, n) if has_classes else None,
+    )
+    return Survey(
+        name=path.stem,
+        source=path,
+        format="las",
+        frames=[frame],
+        reference_label_kinds=("classification",) if has_classes else (),
+    )
+
+
+def _read_header(path: Path) -> laspy.LasHeader:
+    if not path.is_file():
+        raise InputError(path, "does not exist" if not path.exists() else "is not a file")
+    try:
+        with laspy.open(path) as reader:
+            return reader.header
+    except InputError:
+        raise
+    except MemoryError:
+        raise
+    except Exception as exc:  # laspy raises LaspyException, struct / value errors, lazrs errors
+        raise InputError(path, f"not a LAS/LAZ file: {_one_line(exc)}") from exc
+
+
+def _guarded(path: Path, what: str, fn: Callable[[], object]) -> object:
+    """Run a read, turning any failure of the file into one InputError line."""
+    try:
+        return fn()
+    except (InputError, MemoryError):
+        raise
+    except FileNotFoundError as exc:
+        raise InputError(path, "does not exist") from exc
+    except Exception as exc:
+        raise InputError(path, f"cannot read {what}: {_one_line(exc)}") from exc
+
+
+def _has_nonzero_classification(path: Path) -> bool:
+    """True when some point has a classification other than 0 ("never classified").
+
+    Reads chunk by chunk and stops at the first classified chunk; for LAZ with point formats 6-10
+    only the xy and classification layers are decompressed.
+    """
+    selection = (
+        laspy.DecompressionSelection.XY_RETURNS_CHANNEL
+        | laspy.DecompressionSelection.CLASSIFICATION
+    )
+
+    def scan() -> bool:
+        with laspy.open(path, decompression_selection=selection) as reader:
+            for chunk in reader.chunk_iterator(_CHUNK):
+                if np.any(np.asarray(chunk.classification)):
+                    return True
+        return False
+
+    return bool(_guarded(path, "point data", scan))
+
+
+def _read_all(path: Path, n: int) -> laspy.LasData:
+    las = _guarded(path, "points", lambda: laspy.read(path))
+    assert isinstance(las, laspy.LasData)
+    if len(las.points) != n:
+        raise InputError(path, f"truncated: header promises {n} points, file has {len(las.points)}")
+    return las
+
+
+def _load_points(path: Path, n: int) -> PointCloud:
+    las = _read_all(path, n)
+    dims = set(las.point_format.dimension_names)
+    xyz = np.empty((n, 3), dtype=np.float64)
+    xyz[:, 0] = las.x
+    xyz[:, 1] = las.y
+    xyz[:, 2] = las.z
+    intensity = (
+        np.asarray(las.intensity).astype(np.float32, copy=False) if "intensity" in dims else None
+    )
+    time = np.asarray(las.gps_time, dtype=np.float64) if "gps_time" in dims else None
+    extra: dict[str, np.ndarray] = {
+        "classification": np.asarray(las.classification).astype(np.uint8, copy=False)
+    }
+    for name, dtype in EXTRA_DIMS.items():
+        if name in dims:
+            extra[name] = np.asarray(las[name]).astype(dtype, copy=False)
+    for name in _RETURN_DIMS:
+        if name in dims:
+            extra[name] = np.asarray(las[name]).astype(np.uint8, copy=False)
+    return PointCloud(xyz, intensity=intensity, time=time, extra=extra)
+
+
+def _load_reference(path: Path, n: int) -> dict[str, np.ndarray]:
+    las = _read_all(path, n)
+    return {"classification": np.asarray(las.classification).astype(np.uint8, copy=False)}
+
+
+def write_laz(
+    path: str | Path,
+    xyz: np.ndarray,
+    *,
+    mmsclean_label: np.ndarray | None = None,
+    classification: np.ndarray | None = None,
+    source_frame: np.ndarray | None = None,
+    source_index: np.ndarray | None = None,
+    intensity: np.ndarray | None = None,
+    gps_time: np.ndarray | None = None,
+    scale: float = 0.001,
+    offset: np.ndarray | float | None = None,
+) -> Path:
+    """Write points as LAS 1.4 point format 6: compressed for `.laz`, plain for `.las`.
+
+    - `xyz` (N, 3) float64 world coordinates, stored as integers `round((xyz - offset) / scale)`,
+      so each coordinate comes back within `scale / 2`.
+    - `offset` defaults to the minimum coordinate rounded down to whole metres, which keeps
+      millimetre precision for large UTM coordinates.
+    - `classification` (ASPRS codes, see `app.io.asprs`) defaults to 1 (unclassified);
+      `mmsclean_label`, `source_frame`, `source_index` default to 0; `intensity` is rounded to the
+      LAS uint16 range 0..65535 (scale reflectance 0..1 yourself); `gps_time` defaults to 0.
+
+    Any invalid input raises `InputError` naming `path`; nothing is left at `path` or at the
+    `.partial` file when writing fails.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in (".las", ".laz"):
+        raise InputError(path, "output name must end in .las or .laz")
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise InputError(path, f"xyz must have shape (N, 3), got {xyz.shape}")
+    n = len(xyz)
+    bad = int(np.count_nonzero(~np.isfinite(xyz).all(axis=1)))
+    if bad:
+        raise InputError(path, f"cannot write {bad} points with NaN or infinite coordinates")
+    if not (np.isfinite(scale) and scale > 0):
+        raise InputError(path, f"scale must be finite and > 0, got {scale}")
+    if offset is None:
+        offset_arr = np.floor(xyz.min(axis=0)) if n else np.zeros(3)
+    else:
+        offset_arr = np.broadcast_to(np.asarray(offset, dtype=np.float64), (3,)).copy()
+        if not np.all(np.isfinite(offset_arr)):
+            raise InputError(path, f"offset must be finite, got {offset_arr.tolist()}")
+
+    ints = np.round((xyz - offset_arr) / scale)
+    i32 = np.iinfo(np.int32)
+    if n and (ints.min() < i32.min or ints.max() > i32.max):
+        raise InputError(
+            path,
+            f"coordinates span too far from offset {offset_arr.tolist()} for scale {scale} "
+            "(LAS stores 32-bit integers); use a larger scale",
+        )
+
+    columns = {
+        "mmsclean_label": _column(path, "mmsclean_label", mmsclean_label, n, np.uint8, 0),
+        "classification": _column(path, "classification", classification, n, np.uint8, 1),
+        "source_frame": _column(path, "source_frame", source_frame, n, np.uint32, 0),
+        "source_index": _column(path, "source_index", source_index, n, np.uint32, 0),
+        "intensity": _column(path, "intensity", intensity, n, np.uint16, 0, rounding=True),
+    }
+    if gps_time is None:
+        times = np.zeros(n, dtype=np.float64)
+    else:
+        times = _check_length(path, "gps_time", np.asarray(gps_time, dtype=np.float64), n)
+        if not np.all(np.isfinite(times)):
+            raise InputError(path, "gps_time has NaN or infinite values")
+
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.add_extra_dims(
+        [
+            laspy.ExtraBytesParams(name, dtype, description=_EXTRA_DESCRIPTIONS[name])
+            for name, dtype in EXTRA_DIMS.items()
+        ]
+    )
+    header.offsets = offset_arr
+    header.scales = np.full(3, scale, dtype=np.float64)
+    las = laspy.LasData(header, points=laspy.ScaleAwarePointRecord.zeros(n, header=header))
+    las.X = ints[:, 0].astype(np.int32)
+    las.Y = ints[:, 1].astype(np.int32)
+    las.Z = ints[:, 2].astype(np.int32)
+    for name, values in columns.items():
+        las[name] = values
+    las.gps_time = times
+    las.return_number = np.ones(n, dtype=np.uint8)
+    las.number_of_returns = np.ones(n, dtype=np.uint8)
+
+    _write_atomically(path, lambda f: las.write(f, do_compress=suffix == ".laz"))
+    return path
+
+
+def _check_length(path: Path, name: str, values: np.ndarray, n: int) -> np.ndarray:
+    if values.ndim != 1 or len(values) != n:
+        raise InputError(path, f"{name} has shape {values.shape}, expected ({n},) like xyz")
+    return values
+
+
+def _column(
+    path: Path,
+    name: str,
+    values: np.ndarray | None,
+    n: int,
+    dtype: type[np.integer],
+    default: int,
+    *,
+    rounding: bool = False,
+) -> np.ndarray:
+    """A per-point integer column of length n, range-checked against `dtype`."""
+    if values is None:
+        return np.full(n, default, dtype=dtype)
+    arr = _check_length(path, name, np.asarray(values), n)
+    if arr.dtype.kind not in "biuf":
+        raise InputError(path, f"{name} must be numeric, got dtype {arr.dtype}")
+    if arr.dtype.kind == "f":
+        if not np.all(np.isfinite(arr)):
+            raise InputError(path, f"{name} has NaN or infinite values")
+        if rounding:
+            arr = np.round(arr)
+        elif not np.array_equal(arr, np.round(arr)):
+            raise InputError(path, f"{name} must hold whole numbers")
+    info = np.iinfo(dtype)
+    if n and (arr.min() < info.min or arr.max() > info.max):
+        raise InputError(
+            path, f"{name} values {arr.min()}..{arr.max()} do not fit {np.dtype(dtype).name}"
+        )
+    return arr.astype(dtype)
+
+
+def _write_atomically(path: Path, write: Callable[[object], None]) -> None:
+    """Write through `<path>.partial` and rename, removing the partial file on any failure."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial_path = path.with_suffix(path.suffix + ".partial")
+    try:
+        with open(partial_path, "wb") as f:
+            write(f)
+        os.replace(partial_path, path)
+    except BaseException:
+        partial_path.unlink(missing_ok=True)
+        raise
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return text or type(exc).__name__

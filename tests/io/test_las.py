@@ -1,0 +1,269 @@
+"""LAS / LAZ reader and writer, and the ASPRS class mapping."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pytest
+
+from app.core.errors import InputError
+from app.io import las as las_module
+from app.io.asprs import (
+    GUARDRAIL_ASPRS,
+    PHANTOM_LABEL_TO_ASPRS,
+    REMOVED_CLUTTER_ASPRS,
+    AsprsClass,
+    to_asprs,
+)
+from app.io.las import read_las, write_laz
+from app.io.registry import open_survey
+from app.io.survey import MAP_FRAME_ID
+
+SCALE = 0.001
+
+
+def _utm_points(n: int, seed: int = 0) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    xyz = np.column_stack(
+        [
+            500000.123 + rng.uniform(0, 200, n),
+            5400000.456 + rng.uniform(0, 200, n),
+            100.0 + rng.uniform(-5, 30, n),
+        ]
+    )
+    return {
+        "xyz": xyz,
+        "mmsclean_label": rng.integers(0, 4, n).astype(np.uint8),
+        "classification": rng.choice([1, 2, 6, 64, 65], n).astype(np.uint8),
+        "source_frame": rng.integers(0, 500, n).astype(np.uint32),
+        "source_index": rng.integers(0, 2**32 - 1, n, dtype=np.uint64).astype(np.uint32),
+        "intensity": rng.integers(0, 65536, n).astype(np.uint16),
+        "gps_time": 1.3e9 + np.sort(rng.uniform(0, 600, n)),
+    }
+
+
+@pytest.mark.parametrize("suffix", [".laz", ".las"])
+def test_round_trip_keeps_utm_precision_labels_intensity_and_time(tmp_path: Path, suffix: str):
+    data = _utm_points(5000)
+    path = write_laz(tmp_path / f"map{suffix}", scale=SCALE, **data)
+    assert path == tmp_path / f"map{suffix}"
+    assert sorted(p.name for p in tmp_path.iterdir() if p.is_file()) == [path.name]
+
+    survey = read_las(path)
+    assert (survey.name, survey.format, survey.source) == ("map", "las", path)
+    assert survey.is_map and len(survey) == 1
+    frame = survey.frames[0]
+    assert frame.frame_id == MAP_FRAME_ID and frame.index == 0
+    np.testing.assert_array_equal(frame.pose, np.eye(4))
+    assert frame.point_count == 5000 and frame.source_path == path
+
+    cloud = frame.points()
+    assert cloud.xyz.dtype == np.float64
+    assert np.abs(cloud.xyz - data["xyz"]).max() <= SCALE / 2 + 1e-9
+    for name in ("mmsclean_label", "classification", "source_frame", "source_index"):
+        assert cloud.extra[name].dtype == data[name].dtype, name
+        np.testing.assert_array_equal(cloud.extra[name], data[name], err_msg=name)
+    assert cloud.intensity is not None and cloud.intensity.dtype == np.float32
+    np.testing.assert_array_equal(cloud.intensity, data["intensity"].astype(np.float32))
+    assert cloud.time is not None
+    np.testing.assert_array_equal(cloud.time, data["gps_time"])
+    np.testing.assert_array_equal(cloud.extra["return_number"], 1)
+
+    assert survey.reference_label_kinds == ("classification",)
+    np.testing.assert_array_equal(
+        frame.reference_labels()["classification"], data["classification"]
+    )
+
+    # laspy on its own sees a LAS 1.4 / point format 6 file with the extra dimensions
+    with laspy.open(path) as reader:
+        assert reader.header.are_points_compressed == (suffix == ".laz")
+    raw = laspy.read(path)
+    assert raw.header.version == laspy.header.Version(1, 4)
+    assert raw.header.point_format.id == 6
+    assert set(raw.point_format.extra_dimension_names) == {
+        "mmsclean_label",
+        "source_frame",
+        "source_index",
+    }
+    np.testing.assert_array_equal(np.asarray(raw.mmsclean_label), data["mmsclean_label"])
+    np.testing.assert_array_equal(np.asarray(raw.x), cloud.xyz[:, 0])
+
+
+def test_defaults_and_registry(tmp_path: Path):
+    xyz = _utm_points(100)["xyz"]
+    path = write_laz(tmp_path / "sub" / "plain.laz", xyz)
+    survey = open_survey(path, "las")
+    cloud = survey.frames[0].points()
+    np.testing.assert_array_equal(cloud.extra["classification"], 1)  # ASPRS unclassified
+    for name in ("mmsclean_label", "source_frame", "source_index"):
+        np.testing.assert_array_equal(cloud.extra[name], 0)
+    np.testing.assert_array_equal(cloud.time, 0.0)
+    assert np.abs(cloud.xyz - xyz).max() <= SCALE / 2 + 1e-9
+    # offset is the minimum rounded down to metres, so the integers stay small
+    np.testing.assert_array_equal(laspy.read(path).header.offsets, np.floor(xyz.min(axis=0)))
+
+
+def test_all_zero_classification_is_no_reference(tmp_path: Path):
+    xyz = _utm_points(50)["xyz"]
+    path = write_laz(tmp_path / "raw.laz", xyz, classification=np.zeros(50, np.uint8))
+    survey = read_las(path)
+    assert survey.reference_label_kinds == ()
+    assert survey.frames[0].reference_labels() == {}
+
+
+def test_reads_foreign_las_without_extra_dims(tmp_path: Path):
+    las = laspy.create(point_format=3, file_version="1.2")
+    las.header.scales = [0.01, 0.01, 0.01]
+    las.x = np.array([1.0, 2.5, 3.25])
+    las.y = np.array([4.0, 5.0, 6.0])
+    las.z = np.array([7.0, 8.0, 9.0])
+    las.intensity = np.array([10, 20, 30], dtype=np.uint16)
+    las.gps_time = np.array([0.5, 1.5, 2.5])
+    path = tmp_path / "foreign.las"
+    las.write(path)
+
+    survey = read_las(path)
+    assert survey.reference_label_kinds == ()
+    cloud = survey.frames[0].points()
+    np.testing.assert_array_equal(cloud.xyz, np.column_stack([las.x, las.y, las.z]))
+    np.testing.assert_array_equal(cloud.intensity, [10, 20, 30])
+    np.testing.assert_array_equal(cloud.time, [0.5, 1.5, 2.5])
+    assert "mmsclean_label" not in cloud.extra
+    assert cloud.extra["classification"].dtype == np.uint8
+
+
+def test_empty_las_is_an_input_error(tmp_path: Path):
+    path = write_laz(tmp_path / "empty.las", np.zeros((0, 3)))
+    with pytest.raises(InputError, match="contains no points") as info:
+        read_las(path)
+    assert "empty.las" in str(info.value)
+
+
+def test_text_file_named_las_is_an_input_error(tmp_path: Path):
+    path = tmp_path / "notes.las"
+    path.write_text("this is not a point cloud\n")
+    with pytest.raises(InputError, match="not a LAS/LAZ file") as info:
+        read_las(path)
+    assert "notes.las" in str(info.value)
+    assert info.value.path == path
+
+
+def test_missing_file_is_an_input_error(tmp_path: Path):
+    with pytest.raises(InputError, match="does not exist"):
+        read_las(tmp_path / "nope.laz")
+
+
+def test_truncated_las_is_an_input_error(tmp_path: Path):
+    path = write_laz(tmp_path / "cut.las", _utm_points(1000)["xyz"])
+    path.write_bytes(path.read_bytes()[:-500])
+    with pytest.raises(InputError, match="truncated") as info:
+        read_las(path)
+    assert "cut.las" in str(info.value)
+
+
+def test_truncated_laz_is_an_input_error(tmp_path: Path):
+    path = write_laz(tmp_path / "cut.laz", _utm_points(5000)["xyz"])
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    with pytest.raises(InputError, match="cut.laz"):
+        read_las(path).frames[0].points()
+
+
+def test_points_are_read_only_when_asked(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    path = write_laz(tmp_path / "lazy.laz", _utm_points(200)["xyz"])
+    calls: list[object] = []
+    real_read = laspy.read
+
+    def spy(*args, **kwargs):
+        calls.append(args)
+        return real_read(*args, **kwargs)
+
+    monkeypatch.setattr(las_module.laspy, "read", spy)
+    survey = read_las(path)
+    assert calls == []
+    assert len(survey.frames[0].points()) == 200
+    assert len(calls) == 1
+
+
+def test_file_removed_after_opening_gives_input_error(tmp_path: Path):
+    path = write_laz(tmp_path / "gone.laz", _utm_points(10)["xyz"])
+    survey = read_las(path)
+    path.unlink()
+    with pytest.raises(InputError, match="gone.laz"):
+        survey.frames[0].points()
+
+
+def test_write_nan_fails_and_leaves_nothing(tmp_path: Path):
+    xyz = _utm_points(100)["xyz"]
+    xyz[[3, 7], 2] = np.nan
+    xyz[9, 0] = np.inf
+    out = tmp_path / "bad.laz"
+    with pytest.raises(InputError, match="3 points with NaN or infinite") as info:
+        write_laz(out, xyz)
+    assert "bad.laz" in str(info.value)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_write_mismatched_lengths_fails(tmp_path: Path):
+    xyz = _utm_points(100)["xyz"]
+    with pytest.raises(InputError, match=r"mmsclean_label has shape \(99,\), expected \(100,\)"):
+        write_laz(tmp_path / "x.laz", xyz, mmsclean_label=np.zeros(99, np.uint8))
+    with pytest.raises(InputError, match="source_frame values -1..3 do not fit uint32"):
+        write_laz(tmp_path / "x.laz", xyz, source_frame=np.r_[-1, np.full(99, 3)])
+    with pytest.raises(InputError, match="xyz must have shape"):
+        write_laz(tmp_path / "x.laz", xyz[:, :2])
+    with pytest.raises(InputError, match=r"\.las or \.laz"):
+        write_laz(tmp_path / "x.ply", xyz)
+    with pytest.raises(InputError, match="span too far"):
+        write_laz(tmp_path / "x.laz", xyz, offset=0.0)  # 5.4e9 mm does not fit int32
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_failure_while_writing_removes_partial_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    def broken_write(self, destination, do_compress=None, laz_backend=None):
+        destination.write(b"LASF half a file")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(laspy.LasData, "write", broken_write)
+    out = tmp_path / "map.laz"
+    with pytest.raises(OSError, match="disk full"):
+        write_laz(out, _utm_points(10)["xyz"])
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_overwrite_replaces_complete_file(tmp_path: Path):
+    out = tmp_path / "map.laz"
+    write_laz(out, _utm_points(10, seed=1)["xyz"])
+    write_laz(out, _utm_points(20, seed=2)["xyz"])
+    assert read_las(out).frames[0].point_count == 20
+    assert [p.name for p in tmp_path.iterdir()] == ["map.laz"]
+
+
+def test_asprs_mappings():
+    assert AsprsClass.GROUND == 2 and AsprsClass.LOW_POINT_NOISE == 7
+    assert AsprsClass.HIGH_NOISE == 18 and AsprsClass.IGNORED_GROUND == 20
+    assert GUARDRAIL_ASPRS == 64 and REMOVED_CLUTTER_ASPRS == 65
+    assert PHANTOM_LABEL_TO_ASPRS == {0: 2, 1: 1, 2: 1, 3: 65}
+    labels = np.array([0, 1, 2, 3, 3, 0, 9], dtype=np.uint8)
+    codes = to_asprs(labels, PHANTOM_LABEL_TO_ASPRS)
+    assert codes.dtype == np.uint8
+    np.testing.assert_array_equal(codes, [2, 1, 1, 65, 65, 2, 1])
+    with pytest.raises(ValueError, match="0..255"):
+        to_asprs(np.array([300]), PHANTOM_LABEL_TO_ASPRS)
+
+
+def test_phantom_classification_survives_laz(tmp_path: Path):
+    labels = np.array([0, 1, 2, 3], dtype=np.uint8)
+    xyz = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]]) + [600000.0, 5e6, 50.0]
+    path = write_laz(
+        tmp_path / "phantom.laz",
+        xyz,
+        mmsclean_label=labels,
+        classification=to_asprs(labels, PHANTOM_LABEL_TO_ASPRS),
+    )
+    cloud = read_las(path).frames[0].points()
+    np.testing.assert_array_equal(cloud.extra["classification"], [2, 1, 1, 65])
+    np.testing.assert_array_equal(cloud.extra["mmsclean_label"], labels)

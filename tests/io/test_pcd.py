@@ -1,0 +1,232 @@
+"""PCD reader."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from app.core.errors import InputError
+from app.io import pcd as pcd_module
+from app.io.pcd import read_pcd
+from app.io.registry import open_survey
+from app.io.survey import MAP_FRAME_ID
+
+
+def _points(n: int = 400, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return np.column_stack(
+        [rng.uniform(-50, 50, n), rng.uniform(-50, 50, n), rng.uniform(-2, 10, n)]
+    )
+
+
+def _write_pcd(
+    path: Path,
+    data: np.ndarray,
+    *,
+    kind: str = "binary",
+    width: int | None = None,
+    height: int = 1,
+    header_override: dict[str, str] | None = None,
+) -> Path:
+    """A hand-made PCD v0.7 file from a little-endian structured array."""
+    names, sizes, types, counts = [], [], [], []
+    for name in data.dtype.names:
+        dt, shape = data.dtype[name].base, data.dtype[name].shape
+        names.append("_" if name.startswith("pad") else name)
+        sizes.append(str(dt.itemsize))
+        types.append({"f": "F", "i": "I", "u": "U"}[dt.kind])
+        counts.append(str(shape[0] if shape else 1))
+    width = len(data) // height if width is None else width
+    header = {
+        "VERSION": "0.7",
+        "FIELDS": " ".join(names),
+        "SIZE": " ".join(sizes),
+        "TYPE": " ".join(types),
+        "COUNT": " ".join(counts),
+        "WIDTH": str(width),
+        "HEIGHT": str(height),
+        "VIEWPOINT": "0 0 0 1 0 0 0",
+        "POINTS": str(len(data)),
+        "DATA": kind,
+    }
+    header.update(header_override or {})
+    head = "# .PCD v0.7 - test\n" + "".join(f"{k} {v}\n" for k, v in header.items())
+    if kind == "binary":
+        body = data.tobytes()
+    else:
+        flat = [data[n].reshape(len(data), -1).astype(np.float64) for n in data.dtype.names]
+        rows = np.hstack(flat)
+        body = "".join(" ".join(f"{v:.17g}" for v in row) + "\n" for row in rows).encode()
+    path.write_bytes(head.encode() + body)
+    return path
+
+
+@pytest.mark.parametrize("ascii_", [True, False])
+def test_open3d_written_pcd_reads_back_exactly(tmp_path: Path, ascii_: bool):
+    xyz = _points()
+    path = tmp_path / "o3d.pcd"
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
+    assert o3d.io.write_point_cloud(str(path), cloud, write_ascii=ascii_)
+
+    survey = open_survey(path, "pcd")
+    assert (survey.name, survey.format) == ("o3d", "pcd")
+    frame = survey.frames[0]
+    assert frame.frame_id == MAP_FRAME_ID and frame.point_count == len(xyz)
+    np.testing.assert_array_equal(frame.pose, np.eye(4))
+    ours = frame.points().xyz
+    assert ours.dtype == np.float64
+    np.testing.assert_array_equal(ours, np.asarray(o3d.io.read_point_cloud(str(path)).points))
+    if ascii_:  # open3d prints 10 significant digits of the float32 value
+        np.testing.assert_allclose(ours, xyz, rtol=0, atol=1e-5)
+    else:  # open3d's legacy writer stores float32; we read exactly those
+        np.testing.assert_array_equal(ours, xyz.astype(np.float32).astype(np.float64))
+
+
+@pytest.mark.parametrize("compressed", [False, True])
+def test_open3d_tensor_pcd_double_precision_and_intensity(tmp_path: Path, compressed: bool):
+    xyz = _points(300) + [500000.0, 5400000.0, 100.0]
+    intensity = np.linspace(0, 1, 300, dtype=np.float32)
+    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(xyz))
+    cloud.point["intensity"] = o3d.core.Tensor(intensity.reshape(-1, 1))
+    path = tmp_path / "t.pcd"
+    assert o3d.t.io.write_point_cloud(str(path), cloud, compressed=compressed)
+    expected_kind = b"DATA binary_compressed" if compressed else b"DATA binary\n"
+    assert expected_kind in path.read_bytes()[:400]
+
+    points = read_pcd(path).frames[0].points()
+    np.testing.assert_array_equal(points.xyz, xyz)
+    np.testing.assert_array_equal(points.intensity, intensity)
+
+
+def test_padding_multi_count_fields_and_labels(tmp_path: Path):
+    n = 6
+    data = np.zeros(
+        n,
+        dtype=[
+            ("x", "<f8"),
+            ("y", "<f8"),
+            ("z", "<f8"),
+            ("pad0", "u1"),
+            ("normal", "<f4", (3,)),
+            ("pad1", "<u2"),
+            ("label", "<u4"),
+            ("timestamp", "<f8"),
+        ],
+    )
+    data["x"], data["y"], data["z"] = np.arange(n), np.arange(n) * 2.0, 0.5
+    data["normal"] = [0, 0, 1]
+    data["label"] = [1, 1, 2, 2, 3, 40]
+    data["timestamp"] = 1.6e9 + np.arange(n) / 10
+    for kind in ("binary", "ascii"):
+        path = _write_pcd(tmp_path / f"{kind}.pcd", data, kind=kind)
+        survey = read_pcd(path)
+        assert survey.reference_label_kinds == ("label",)
+        cloud = survey.frames[0].points()
+        np.testing.assert_array_equal(cloud.xyz[:, 1], np.arange(n) * 2.0)
+        np.testing.assert_array_equal(cloud.time, data["timestamp"])
+        np.testing.assert_array_equal(cloud.extra["normal"], np.tile([0, 0, 1], (n, 1)))
+        assert cloud.extra["label"].dtype == np.uint32
+        assert sorted(cloud.extra) == ["label", "normal"]  # padding gone
+        np.testing.assert_array_equal(survey.frames[0].reference_labels()["label"], data["label"])
+
+
+@pytest.mark.parametrize("kind", ["binary", "ascii"])
+def test_organized_cloud_drops_nan_returns(tmp_path: Path, kind: str):
+    width, height = 4, 3
+    data = np.zeros(width * height, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("i", "<f4")])
+    data["x"] = np.arange(12)
+    data["y"] = 1.0
+    data["z"] = 2.0
+    data["i"] = np.arange(12) * 10
+    missing = [1, 5, 6, 11]
+    data["x"][missing] = np.nan
+    data["z"][5] = np.nan
+    path = _write_pcd(tmp_path / "organized.pcd", data, kind=kind, width=width, height=height)
+
+    survey = read_pcd(path)
+    assert survey.frames[0].point_count is None  # unknown until the NaN returns are dropped
+    cloud = survey.frames[0].points()
+    kept = np.setdiff1d(np.arange(12), missing)
+    assert len(cloud) == 8
+    np.testing.assert_array_equal(cloud.xyz[:, 0], kept)
+    np.testing.assert_array_equal(cloud.extra["grid_index"], kept)
+    np.testing.assert_array_equal(cloud.extra["i"], kept * 10)
+
+
+def test_unorganized_nan_is_an_input_error(tmp_path: Path):
+    data = np.zeros(5, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+    data["y"][[0, 3]] = np.nan
+    path = _write_pcd(tmp_path / "nan.pcd", data)
+    with pytest.raises(InputError, match="has 2 points with NaN or infinite coordinates") as info:
+        read_pcd(path).frames[0].points()
+    assert "nan.pcd" in str(info.value)
+
+
+def test_truncated_binary_is_an_input_error(tmp_path: Path):
+    data = np.zeros(50, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+    path = _write_pcd(tmp_path / "cut.pcd", data)
+    path.write_bytes(path.read_bytes()[:-7])
+    with pytest.raises(InputError, match="truncated") as info:
+        read_pcd(path)
+    assert "cut.pcd" in str(info.value)
+    assert "header promises 50 points (600 bytes), file has 593 bytes" in str(info.value)
+
+
+def test_truncated_ascii_is_an_input_error(tmp_path: Path):
+    data = np.zeros(5, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+    path = _write_pcd(tmp_path / "cut.pcd", data, kind="ascii")
+    path.write_bytes(b"".join(path.read_bytes().splitlines(keepends=True)[:-2]))
+    with pytest.raises(InputError, match="truncated: header promises 5 points, file has 3"):
+        read_pcd(path).frames[0].points()
+
+
+@pytest.mark.parametrize(
+    ("override", "problem"),
+    [
+        ({"SIZE": "4 4"}, "SIZE has 2 values, FIELDS has 3"),
+        ({"TYPE": "F F F F"}, "TYPE has 4 values, FIELDS has 3"),
+        ({"COUNT": "1 1"}, "COUNT has 2 values, FIELDS has 3"),
+        ({"POINTS": "7"}, "POINTS 7 is not WIDTH x HEIGHT"),
+        ({"VIEWPOINT": "0 0 0"}, "VIEWPOINT has 3 values, expected 7"),
+        ({"WIDTH": "two"}, "WIDTH values must be integers"),
+        ({"TYPE": "F F X"}, "unsupported TYPE X"),
+        ({"FIELDS": "x y intensity"}, "has no x/y/z fields"),
+        ({"DATA": "zipped"}, "DATA must be one of"),
+    ],
+)
+def test_bad_header_is_an_input_error(tmp_path: Path, override: dict[str, str], problem: str):
+    data = np.zeros(3, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+    path = _write_pcd(tmp_path / "bad.pcd", data, header_override=override)
+    with pytest.raises(InputError, match=problem) as info:
+        read_pcd(path)
+    assert "bad.pcd" in str(info.value)
+
+
+def test_not_a_pcd(tmp_path: Path):
+    path = tmp_path / "junk.pcd"
+    path.write_text("hello world\nDATA ascii\n")
+    with pytest.raises(InputError, match="not a PCD file"):
+        read_pcd(path)
+    path.write_text("VERSION 0.7\nFIELDS x y z\n")
+    with pytest.raises(InputError, match="no 'DATA' line"):
+        read_pcd(path)
+
+
+def test_points_are_read_only_when_asked(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    data = np.zeros(30, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+    path = _write_pcd(tmp_path / "lazy.pcd", data)
+    calls: list[Path] = []
+    real = pcd_module._load_data
+
+    def spy(p, header):
+        calls.append(p)
+        return real(p, header)
+
+    monkeypatch.setattr(pcd_module, "_load_data", spy)
+    survey = read_pcd(path)
+    assert calls == []
+    assert len(survey.frames[0].points()) == 30
+    assert calls == [path]
