@@ -25,6 +25,7 @@ cli = typer.Typer(
     pretty_exceptions_enable=False,
 )
 console = Console()
+err_console = Console(stderr=True)
 
 FormatOption = Annotated[
     str, typer.Option("--format", "-f", help="kitti-raw, semantickitti, las, ply, pcd")
@@ -36,16 +37,28 @@ def info(
     source: Annotated[Path, typer.Argument(help="survey folder or point-cloud file")],
     fmt: FormatOption,
     as_json: Annotated[bool, typer.Option("--json", help="print JSON instead of a table")] = False,
+    check: Annotated[
+        bool, typer.Option("--check", help="read every frame: validate data, world bounds")
+    ] = False,
 ) -> None:
     """Summarise a survey: frames, points, time span, trajectory, cameras, reference labels."""
-    from app.io import open_survey
-    from app.io.summary import summarize, summary_rows
+    from rich.progress import Progress
 
-    summary = summarize(open_survey(source, fmt))
+    from app.io import open_survey
+    from app.io.summary import check_frames, summarize, summary_rows
+
+    survey = open_survey(source, fmt)
+    summary = summarize(survey)
+    if check:
+        with Progress(console=err_console, transient=True, disable=as_json) as bar:
+            task = bar.add_task("reading frames", total=len(survey))
+            summary = check_frames(survey, summary, lambda: bar.advance(task))
     if as_json:
         console.print_json(json.dumps(summary.as_dict()))
         return
     table = Table(show_header=False, box=None)
+    table.add_column(no_wrap=True)
+    table.add_column(overflow="fold")
     for key, value in summary_rows(summary):
         table.add_row(f"[bold]{key}[/bold]", value)
     console.print(table)

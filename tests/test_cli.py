@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from tests.io.kitti_fixtures import make_semantickitti
@@ -67,6 +68,28 @@ def test_truncated_scan(tmp_path: Path) -> None:
     assert_one_line_error(
         mmsclean("info", str(root), "-f", "semantickitti"), "000002.bin", "truncated"
     )
+
+
+def test_nan_coordinates_found_by_check(tmp_path: Path) -> None:
+    root = make_semantickitti(tmp_path / "seq")
+    scan = root / "velodyne" / "000001.bin"
+    points = np.fromfile(scan, dtype=np.float32).reshape(-1, 4)
+    points[10, 0] = np.nan
+    points.tofile(scan)
+    assert_one_line_error(
+        mmsclean("info", str(root), "-f", "semantickitti", "--check"),
+        "000001.bin",
+        "has 1 points with NaN or infinite coordinates",
+    )
+
+
+def test_check_reports_world_bounds(tmp_path: Path) -> None:
+    root = make_semantickitti(tmp_path / "seq", frames=2)
+    result = mmsclean("info", str(root), "-f", "semantickitti", "--check", "--json")
+    assert result.returncode == 0, result.stderr
+    summary = json.loads(result.stdout)
+    assert summary["points"] == 200
+    assert summary["bounds_max"][0] > summary["bounds_min"][0]
 
 
 def test_malformed_calibration(tmp_path: Path) -> None:

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
+
+import numpy as np
 
 from app.geometry.trajectory import total_length
 from app.io.survey import Survey
@@ -21,6 +23,8 @@ class SurveySummary:
     poses: str  # "GNSS/INS", "estimated (LiDAR odometry)", "identity (map)", "given"
     cameras: list[str]
     reference_labels: list[str]
+    bounds_min: list[float] | None = None  # world xyz, only after a full check
+    bounds_max: list[float] | None = None
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -59,12 +63,36 @@ def summarize(survey: Survey) -> SurveySummary:
     )
 
 
+def check_frames(survey: Survey, summary: SurveySummary, progress=None) -> SurveySummary:
+    """Read every frame (points and reference labels) so bad data fails now, not mid-pipeline;
+    returns the summary with the exact point count and the world bounding box."""
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    points = 0
+    for frame in survey.frames:
+        cloud = frame.world_points()
+        frame.reference_labels()
+        points += len(cloud)
+        if len(cloud):
+            lo = np.minimum(lo, cloud.xyz.min(axis=0))
+            hi = np.maximum(hi, cloud.xyz.max(axis=0))
+        if progress is not None:
+            progress()
+    bounds = points > 0
+    return replace(
+        summary,
+        points=points,
+        bounds_min=[round(float(v), 3) for v in lo] if bounds else None,
+        bounds_max=[round(float(v), 3) for v in hi] if bounds else None,
+    )
+
+
 def format_count(n: int) -> str:
     return f"{n:,}" if n < 1e6 else f"{n:,} ({n / 1e6:.2f}M)"
 
 
 def summary_rows(s: SurveySummary) -> list[tuple[str, str]]:
-    return [
+    rows = [
         ("survey", s.name),
         ("format", f"{s.format} ({s.kind})"),
         ("source", s.source),
@@ -79,3 +107,6 @@ def summary_rows(s: SurveySummary) -> list[tuple[str, str]]:
         ("cameras", ", ".join(s.cameras) if s.cameras else "none"),
         ("reference labels", ", ".join(s.reference_labels) if s.reference_labels else "none"),
     ]
+    if s.bounds_min is not None and s.bounds_max is not None:
+        rows.append(("world bounds", f"{s.bounds_min} .. {s.bounds_max}"))
+    return rows
