@@ -12,8 +12,6 @@ file is written next to its destination as `<name>.partial` and renamed when com
 
 from __future__ import annotations
 
-import os
-from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 
@@ -21,7 +19,8 @@ import laspy
 import numpy as np
 
 from app.core.errors import InputError
-from app.io.survey import MAP_FRAME_ID, Frame, PointCloud, Survey
+from app.io.point_files import guarded, map_survey, one_line, writable_xyz, write_atomically
+from app.io.survey import PointCloud, Survey
 
 # extra dimensions mmsclean writes, with the dtype the reader hands back
 EXTRA_DIMS: dict[str, np.dtype] = {
@@ -62,21 +61,13 @@ def read_las(path: str | Path) -> Survey:
             )
 
     has_classes = _has_nonzero_classification(path)
-    frame = Frame(
-        index=0,
-        frame_id=MAP_FRAME_ID,
-        pose=np.eye(4),
-        point_count=n,
-        source_path=path,
-        _load_points=partial(_load_points, path, n),
-        _load_reference=partial(_load_reference, path, n) if has_classes else None,
-    )
-    return Survey(
-        name=path.stem,
-        source=path,
-        format="las",
-        frames=[frame],
-        reference_label_kinds=("classification",) if has_classes else (),
+    return map_survey(
+        path,
+        "las",
+        n,
+        partial(_load_points, path, n),
+        partial(_load_reference, path, n) if has_classes else None,
+        ("classification",) if has_classes else (),
     )
 
 
@@ -91,19 +82,7 @@ def _read_header(path: Path) -> laspy.LasHeader:
     except MemoryError:
         raise
     except Exception as exc:  # laspy raises LaspyException, struct / value errors, lazrs errors
-        raise InputError(path, f"not a LAS/LAZ file: {_one_line(exc)}") from exc
-
-
-def _guarded(path: Path, what: str, fn: Callable[[], object]) -> object:
-    """Run a read, turning any failure of the file into one InputError line."""
-    try:
-        return fn()
-    except (InputError, MemoryError):
-        raise
-    except FileNotFoundError as exc:
-        raise InputError(path, "does not exist") from exc
-    except Exception as exc:
-        raise InputError(path, f"cannot read {what}: {_one_line(exc)}") from exc
+        raise InputError(path, f"not a LAS/LAZ file: {one_line(exc)}") from exc
 
 
 def _has_nonzero_classification(path: Path) -> bool:
@@ -124,11 +103,11 @@ def _has_nonzero_classification(path: Path) -> bool:
                     return True
         return False
 
-    return bool(_guarded(path, "point data", scan))
+    return bool(guarded(path, "point data", scan))
 
 
 def _read_all(path: Path, n: int) -> laspy.LasData:
-    las = _guarded(path, "points", lambda: laspy.read(path))
+    las = guarded(path, "points", lambda: laspy.read(path))
     assert isinstance(las, laspy.LasData)
     if len(las.points) != n:
         raise InputError(path, f"truncated: header promises {n} points, file has {len(las.points)}")
@@ -193,13 +172,8 @@ def write_laz(
     suffix = path.suffix.lower()
     if suffix not in (".las", ".laz"):
         raise InputError(path, "output name must end in .las or .laz")
-    xyz = np.asarray(xyz, dtype=np.float64)
-    if xyz.ndim != 2 or xyz.shape[1] != 3:
-        raise InputError(path, f"xyz must have shape (N, 3), got {xyz.shape}")
+    xyz = writable_xyz(path, xyz)
     n = len(xyz)
-    bad = int(np.count_nonzero(~np.isfinite(xyz).all(axis=1)))
-    if bad:
-        raise InputError(path, f"cannot write {bad} points with NaN or infinite coordinates")
     if not (np.isfinite(scale) and scale > 0):
         raise InputError(path, f"scale must be finite and > 0, got {scale}")
     if offset is None:
@@ -251,7 +225,7 @@ def write_laz(
     las.return_number = np.ones(n, dtype=np.uint8)
     las.number_of_returns = np.ones(n, dtype=np.uint8)
 
-    _write_atomically(path, lambda f: las.write(f, do_compress=suffix == ".laz"))
+    write_atomically(path, lambda f: las.write(f, do_compress=suffix == ".laz"))
     return path
 
 
@@ -290,21 +264,3 @@ def _column(
             path, f"{name} values {arr.min()}..{arr.max()} do not fit {np.dtype(dtype).name}"
         )
     return arr.astype(dtype)
-
-
-def _write_atomically(path: Path, write: Callable[[object], None]) -> None:
-    """Write through `<path>.partial` and rename, removing the partial file on any failure."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    partial_path = path.with_suffix(path.suffix + ".partial")
-    try:
-        with open(partial_path, "wb") as f:
-            write(f)
-        os.replace(partial_path, path)
-    except BaseException:
-        partial_path.unlink(missing_ok=True)
-        raise
-
-
-def _one_line(exc: BaseException) -> str:
-    text = " ".join(str(exc).split())
-    return text or type(exc).__name__

@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import os
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from app.core.settings import get_settings
+from app.io.point_files import write_atomically
 from app.io.velodyne_bin import read_velodyne_bin
 
 log = logging.getLogger(__name__)
@@ -65,8 +65,5 @@ def estimated_poses(scan_files: Sequence[Path]) -> np.ndarray:
             return poses
     log.info("estimating poses of %d scans with KISS-ICP", len(scan_files))
     poses = kiss_icp_poses(scan_files)
-    cache.parent.mkdir(parents=True, exist_ok=True)
-    partial = cache.with_suffix(f".{os.getpid()}.partial.npy")
-    np.save(partial, poses)
-    os.replace(partial, cache)
+    write_atomically(cache, lambda fh: np.save(fh, poses))
     return poses

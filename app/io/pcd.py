@@ -25,15 +25,16 @@ from pathlib import Path
 import numpy as np
 
 from app.core.errors import InputError
-from app.io.ply import (
+from app.io.point_files import (
     LABEL_NAMES,
     cloud_from_fields,
     guarded,
     load_text_table,
+    map_survey,
     normalized,
     read_header_bytes,
 )
-from app.io.survey import MAP_FRAME_ID, Frame, PointCloud, Survey
+from app.io.survey import PointCloud, Survey
 
 _KEYS = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT", "POINTS")
 _DATA_KINDS = ("ascii", "binary", "binary_compressed")
@@ -76,21 +77,13 @@ def read_pcd(path: str | Path) -> Survey:
                 f"file has {available} bytes",
             )
     labels = tuple(name for name, _, count in header.fields if normalized(name) in LABEL_NAMES)
-    frame = Frame(
-        index=0,
-        frame_id=MAP_FRAME_ID,
-        pose=np.eye(4),
-        point_count=None if header.organized else header.points,
-        source_path=path,
-        _load_points=partial(_load_points, path, header),
-        _load_reference=partial(_load_reference, path, header, labels) if labels else None,
-    )
-    return Survey(
-        name=path.stem,
-        source=path,
-        format="pcd",
-        frames=[frame],
-        reference_label_kinds=labels,
+    return map_survey(
+        path,
+        "pcd",
+        None if header.organized else header.points,
+        partial(_load_points, path, header),
+        partial(_load_reference, path, header, labels) if labels else None,
+        labels,
     )
 
 

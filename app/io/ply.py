@@ -17,17 +17,25 @@ properties, since their size must be computed); elements after it are ignored.
 from __future__ import annotations
 
 import io
-import os
-from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import TypeVar
 
 import numpy as np
 
 from app.core.errors import InputError
-from app.io.survey import MAP_FRAME_ID, Frame, PointCloud, Survey
+from app.io.point_files import (
+    LABEL_NAMES,
+    cloud_from_fields,
+    guarded,
+    load_text_table,
+    map_survey,
+    normalized,
+    read_header_bytes,
+    writable_xyz,
+    write_atomically,
+)
+from app.io.survey import PointCloud, Survey
 
 _PLY_TYPES: dict[str, str] = {
     "char": "i1",
@@ -60,12 +68,6 @@ _PLY_NAMES: dict[str, str] = {
 }
 _FORMATS = {"ascii": "", "binary_little_endian": "<", "binary_big_endian": ">"}
 _MAX_HEADER = 1 << 20  # bytes
-
-T = TypeVar("T")
-
-INTENSITY_NAMES = ("intensity",)
-TIME_NAMES = ("time", "gps_time", "gpstime", "timestamp")
-LABEL_NAMES = ("label", "class", "classification")
 
 
 @dataclass
@@ -116,28 +118,14 @@ def read_ply(path: str | Path) -> Survey:
             )
 
     labels = tuple(name for name in names if normalized(name) in LABEL_NAMES)
-    frame = Frame(
-        index=0,
-        frame_id=MAP_FRAME_ID,
-        pose=np.eye(4),
-        point_count=vertex.count,
-        source_path=path,
-        _load_points=partial(_load_points, path, header),
-        _load_reference=partial(_load_reference, path, header, labels) if labels else None,
+    return map_survey(
+        path,
+        "ply",
+        vertex.count,
+        partial(_load_points, path, header),
+        partial(_load_reference, path, header, labels) if labels else None,
+        labels,
     )
-    return Survey(
-        name=path.stem,
-        source=path,
-        format="ply",
-        frames=[frame],
-        reference_label_kinds=labels,
-    )
-
-
-def normalized(name: str) -> str:
-    """Property name for matching: lower case, without CloudCompare's `scalar_` prefix."""
-    name = name.lower()
-    return name.removeprefix("scalar_")
 
 
 def _parse_header(path: Path) -> _PlyHeader:
@@ -181,61 +169,9 @@ def _parse_header(path: Path) -> _PlyHeader:
     return _PlyHeader(fmt, elements, len(raw))
 
 
-def read_header_bytes(path: Path, end_keyword: bytes, limit: int) -> bytes:
-    """The header of a text-headed format: everything up to and including the line that starts
-    with `end_keyword` (and its newline)."""
-    if not path.is_file():
-        raise InputError(path, "does not exist" if not path.exists() else "is not a file")
-    try:
-        with open(path, "rb") as f:
-            head = f.read(limit)
-    except OSError as exc:
-        raise InputError(path, f"cannot read: {one_line(exc)}") from exc
-    start = 0
-    while start < len(head):
-        end = head.find(b"\n", start)
-        if end < 0:
-            break
-        if head[start:end].lstrip().startswith(end_keyword):
-            return head[: end + 1]
-        start = end + 1
-    if head[start:].lstrip().startswith(end_keyword):  # keyword on the last line, no newline
-        return head
-    keyword = end_keyword.decode()
-    raise InputError(path, f"has no '{keyword}' line in its first {len(head)} bytes")
-
-
 def _vertex_dtype(header: _PlyHeader) -> np.dtype:
     order = _FORMATS[header.format] if header.format != "ascii" else "="
     return np.dtype([(name, order + code) for name, code in header.vertex.properties])
-
-
-def load_text_table(path: Path, offset: int, dtype: np.dtype, skip: int, rows: int) -> np.ndarray:
-    """Up to `rows` whitespace-separated text rows from byte `offset` on, after `skip` lines.
-
-    Float columns are parsed as float64, so x, y, z keep every digit the text has (even when the
-    header says float32); other float columns are then cast to their declared type.
-    """
-    names = dtype.names or ()
-    parse = np.dtype(
-        [
-            (n, np.float64 if dtype[n].base.kind == "f" else dtype[n].base, dtype[n].shape)
-            for n in names
-        ]
-    )
-    result = np.dtype(
-        [(n, np.float64 if n in ("x", "y", "z") else dtype[n].base, dtype[n].shape) for n in names]
-    )
-
-    def load() -> np.ndarray:
-        with open(path, "rb") as raw:
-            raw.seek(offset)
-            text = io.TextIOWrapper(raw, encoding="latin-1")
-            return np.loadtxt(
-                text, dtype=parse, skiprows=skip, max_rows=rows, ndmin=1, comments=None
-            )
-
-    return guarded(path, "point data", load).astype(result, copy=False)
 
 
 def _binary_layout(path: Path, header: _PlyHeader) -> tuple[int, int]:
@@ -290,34 +226,6 @@ def _load_reference(path: Path, header: _PlyHeader, labels: tuple[str, ...]) -> 
     return {name: np.ascontiguousarray(data[name]) for name in labels}
 
 
-def cloud_from_fields(path: Path, data: np.ndarray) -> PointCloud:
-    """Build a PointCloud from a structured array with x, y, z fields (shared with PCD).
-
-    Points with NaN / infinite coordinates raise InputError: they are never silently dropped.
-    """
-    xyz = np.empty((len(data), 3), dtype=np.float64)
-    for column, axis in enumerate("xyz"):
-        xyz[:, column] = data[axis]
-    bad = len(xyz) - int(np.count_nonzero(np.isfinite(xyz).all(axis=1)))
-    if bad:
-        raise InputError(path, f"has {bad} points with NaN or infinite coordinates")
-    intensity = None
-    time = None
-    extra: dict[str, np.ndarray] = {}
-    for name in data.dtype.names or ():
-        if name in ("x", "y", "z"):
-            continue
-        key = normalized(name)
-        values = np.ascontiguousarray(data[name])
-        if key in INTENSITY_NAMES and intensity is None and values.ndim == 1:
-            intensity = values.astype(np.float32, copy=False)
-        elif key in TIME_NAMES and time is None and values.ndim == 1:
-            time = values.astype(np.float64, copy=False)
-        else:
-            extra[name] = values
-    return PointCloud(xyz, intensity=intensity, time=time, extra=extra)
-
-
 def write_ply(
     path: str | Path,
     xyz: np.ndarray,
@@ -333,13 +241,8 @@ def write_ply(
     invalid input raises InputError naming `path`.
     """
     path = Path(path)
-    xyz = np.asarray(xyz, dtype=np.float64)
-    if xyz.ndim != 2 or xyz.shape[1] != 3:
-        raise InputError(path, f"xyz must have shape (N, 3), got {xyz.shape}")
+    xyz = writable_xyz(path, xyz)
     n = len(xyz)
-    bad = int(np.count_nonzero(~np.isfinite(xyz).all(axis=1)))
-    if bad:
-        raise InputError(path, f"cannot write {bad} points with NaN or infinite coordinates")
     columns: list[tuple[str, np.ndarray]] = [("x", xyz[:, 0]), ("y", xyz[:, 1]), ("z", xyz[:, 2])]
     for name, values in (fields or {}).items():
         if not name or any(c.isspace() for c in name) or not name.isascii():
@@ -386,34 +289,3 @@ def _text_format(dtype: np.dtype) -> str:
     if dtype.kind == "f":
         return "%.17g" if dtype.itemsize == 8 else "%.9g"
     return "%d"
-
-
-def write_atomically(path: Path, write: Callable[[io.BufferedWriter], None]) -> None:
-    """Write through `<path>.partial` and rename, removing the partial file on any failure."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    partial_path = path.with_suffix(path.suffix + ".partial")
-    try:
-        with open(partial_path, "wb") as f:
-            write(f)
-        os.replace(partial_path, path)
-    except BaseException:
-        partial_path.unlink(missing_ok=True)
-        raise
-
-
-def guarded(path: Path, what: str, fn: Callable[[], T]) -> T:
-    """Run a read, turning any failure of the file into one InputError line."""
-    try:
-        return fn()
-    except (InputError, MemoryError):
-        raise
-    except FileNotFoundError as exc:
-        raise InputError(path, "does not exist") from exc
-    except Exception as exc:
-        raise InputError(path, f"cannot read {what}: {one_line(exc)}") from exc
-
-
-def one_line(exc: BaseException) -> str:
-    """The exception's message on one line (numpy's `; use usecols ...` advice cut off)."""
-    text = " ".join(str(exc).split()).split("; use `usecols`")[0]
-    return text or type(exc).__name__

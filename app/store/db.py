@@ -19,7 +19,7 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import sqlalchemy as sa
 from sqlalchemy import event
@@ -146,11 +146,16 @@ def commit(session: Session) -> None:
     try:
         session.commit()
     except (StaleDataError, IntegrityError) as exc:
-        session.rollback()
-        conflict = as_conflict(exc)
-        if conflict is None:
-            raise
-        raise conflict from exc
+        _raise_as_conflict(session, exc)
+
+
+def _raise_as_conflict(session: Session, exc: StaleDataError | IntegrityError) -> NoReturn:
+    """Roll back, then raise the ConflictError that `exc` means (or `exc` itself)."""
+    session.rollback()
+    conflict = as_conflict(exc)
+    if conflict is None:
+        raise exc
+    raise conflict from exc
 
 
 @contextmanager
@@ -165,11 +170,7 @@ def session_scope(engine: Engine | None = None) -> Iterator[Session]:
         yield session
         session.commit()
     except (StaleDataError, IntegrityError) as exc:
-        session.rollback()
-        conflict = as_conflict(exc)
-        if conflict is None:
-            raise
-        raise conflict from exc
+        _raise_as_conflict(session, exc)
     except BaseException:
         session.rollback()
         raise
@@ -183,8 +184,4 @@ def get_session() -> Iterator[Session]:
         try:
             yield session
         except (StaleDataError, IntegrityError) as exc:
-            session.rollback()
-            conflict = as_conflict(exc)
-            if conflict is None:
-                raise
-            raise conflict from exc
+            _raise_as_conflict(session, exc)
