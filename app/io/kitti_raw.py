@@ -10,7 +10,9 @@ Layout (as unpacked from the KITTI downloads):
 SOURCE is the sync folder, or a folder holding exactly one. The calibration files are searched in
 the sync folder, its parents and their `<date>_calib/<date>` siblings. Poses: OXTS packets through
 the devkit's Mercator convention; a drive without oxts gets KISS-ICP odometry poses, marked as
-estimated. Camera: image_02 (left colour), `P_rect_02 @ R_rect_00 @ T_velo_to_cam`.
+estimated. With `timestamps_start.txt` / `timestamps_end.txt` every point gets its time from
+its azimuth within the sweep. Camera: image_02 (left colour),
+`P_rect_02 @ R_rect_00 @ T_velo_to_cam`.
 """
 
 from __future__ import annotations
@@ -113,9 +115,15 @@ def read_kitti_raw(source: Path) -> Survey:
         poses = estimated_poses(scan_files)
         estimated = True
 
-    times = read_timestamps(sync / "velodyne_points" / "timestamps.txt", n)
+    velo = sync / "velodyne_points"
+    times = read_timestamps(velo / "timestamps.txt", n)
     if times is None:
         times = read_timestamps(sync / "oxts" / "timestamps.txt", n)
+    starts = read_timestamps(velo / "timestamps_start.txt", n)
+    ends = read_timestamps(velo / "timestamps_end.txt", n)
+    sweeps = (
+        list(zip(starts, ends, strict=True)) if starts is not None and ends is not None else None
+    )
     frames = [
         Frame(
             index=i,
@@ -125,7 +133,7 @@ def read_kitti_raw(source: Path) -> Survey:
             point_count=counts[i],
             source_path=f,
             image_paths={CAMERA: images[f.stem]} if f.stem in images else {},
-            _load_points=partial(read_velodyne_bin, f),
+            _load_points=partial(read_velodyne_bin, f, *(sweeps[i] if sweeps else ())),
         )
         for i, f in enumerate(scan_files)
     ]

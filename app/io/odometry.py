@@ -16,7 +16,7 @@ import numpy as np
 
 from app.core.settings import get_settings
 from app.io.point_files import write_atomically
-from app.io.velodyne_bin import read_velodyne_bin
+from app.io.velodyne_bin import read_velodyne_bin, sweep_fraction
 
 log = logging.getLogger(__name__)
 
@@ -29,11 +29,6 @@ def _cache_key(scan_files: Sequence[Path]) -> str:
         st = f.stat()
         h.update(f"{f.resolve()}|{st.st_size}|{st.st_mtime_ns}\n".encode())
     return h.hexdigest()[:32]
-
-
-def _azimuth_times(xyz: np.ndarray) -> np.ndarray:
-    """Relative time in [0, 1] of each point of a rotating scan from its azimuth (deskewing)."""
-    return 0.5 * (-np.arctan2(xyz[:, 1], xyz[:, 0]) / np.pi + 1.0)
 
 
 def kiss_icp_poses(scan_files: Sequence[Path], kitti_correction: bool = True) -> np.ndarray:
@@ -51,7 +46,7 @@ def kiss_icp_poses(scan_files: Sequence[Path], kitti_correction: bool = True) ->
             xyz = np.asarray(
                 kiss_icp_pybind._correct_kitti_scan(kiss_icp_pybind._Vector3dVector(xyz))
             )
-        odometry.register_frame(xyz, _azimuth_times(xyz))
+        odometry.register_frame(xyz, sweep_fraction(xyz))
         poses[i] = odometry.last_pose
     return poses
 

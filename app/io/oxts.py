@@ -16,9 +16,13 @@ from app.core.errors import InputError
 from app.geometry.transforms import euler_to_matrix, make_transform
 
 EARTH_RADIUS_M = 6378137.0
-OXTS_FIELD_COUNT = (
-    30  # lat lon alt roll pitch yaw vn ve vf vl vu ax ... navstat numsats posmode ...
-)
+# the packet's values in order, as the devkit's dataformat.txt lists them
+OXTS_FIELDS = (
+    "lat", "lon", "alt", "roll", "pitch", "yaw", "vn", "ve", "vf", "vl", "vu",
+    "ax", "ay", "az", "af", "al", "au", "wx", "wy", "wz", "wf", "wl", "wu",
+    "pos_accuracy", "vel_accuracy", "navstat", "numsats", "posmode", "velmode", "orimode",
+)  # fmt: skip
+OXTS_FIELD_COUNT = len(OXTS_FIELDS)
 
 
 def read_oxts_packet(path: Path) -> np.ndarray:

@@ -34,8 +34,24 @@ def check_finite(path: Path, xyz: np.ndarray) -> None:
         raise InputError(path, f"has {int(bad.sum())} points with NaN or infinite coordinates")
 
 
-def read_velodyne_bin(path: Path) -> PointCloud:
+def sweep_fraction(xyz: np.ndarray) -> np.ndarray:
+    """Where in its sweep (0..1) a rotating HDL-64E measured each point, from its azimuth.
+
+    The head turns clockwise seen from above; KITTI's sweep starts and ends facing backwards and
+    is half done facing forwards, when the cameras are triggered.
+    """
+    return 0.5 * (-np.arctan2(xyz[:, 1], xyz[:, 0]) / np.pi + 1.0)
+
+
+def read_velodyne_bin(
+    path: Path, sweep_start: float | None = None, sweep_end: float | None = None
+) -> PointCloud:
+    """A scan in file order; with the sweep's start and end times, per-point times too."""
     bin_point_count(path)
     raw = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
     check_finite(path, raw[:, :3])
-    return PointCloud(xyz=raw[:, :3].astype(np.float64), intensity=raw[:, 3].copy())
+    xyz = raw[:, :3].astype(np.float64)
+    time = None
+    if sweep_start is not None and sweep_end is not None:
+        time = sweep_start + sweep_fraction(xyz) * (sweep_end - sweep_start)
+    return PointCloud(xyz=xyz, intensity=raw[:, 3].copy(), time=time)

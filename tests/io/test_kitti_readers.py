@@ -125,3 +125,22 @@ def test_imu_poses_heading() -> None:
     packets[1, 5] = np.pi / 2  # yaw: facing north
     poses = imu_poses(packets)
     assert poses[1, :3, 0] == pytest.approx([0, 1, 0], abs=1e-12)  # x axis (forward) points north
+
+
+def test_kitti_raw_point_times_from_sweep(tmp_path: Path) -> None:
+    sync = make_kitti_raw(tmp_path)
+    velo = sync / "velodyne_points"
+    starts = [f"2011-09-26 13:02:2{i}.000000000" for i in range(3)]
+    ends = [f"2011-09-26 13:02:2{i}.100000000" for i in range(3)]
+    (velo / "timestamps_start.txt").write_text("\n".join(starts) + "\n")
+    (velo / "timestamps_end.txt").write_text("\n".join(ends) + "\n")
+    scan = np.array([[10, 0, 0, 0], [0, -10, 0, 0], [-10, 1e-9, 0, 0]], dtype=np.float32)
+    scan.tofile(velo / "data" / "0000000001.bin")
+    cloud = open_survey(sync, "kitti-raw").frames[1].points()
+    start = cloud.time.min() - (cloud.time.min() % 1.0)  # whole second of frame 1's sweep
+    # clockwise sweep from behind: forward at half time, right side (y < 0) at three quarters
+    assert cloud.time - start == pytest.approx([0.05, 0.075, 0.0], abs=1e-6)
+
+
+def test_kitti_raw_without_sweep_times_has_no_point_times(tmp_path: Path) -> None:
+    assert open_survey(make_kitti_raw(tmp_path), "kitti-raw").frames[0].points().time is None

@@ -87,3 +87,30 @@ def test_object_boxes_project_into_2d_boxes(real_data: Path, frame: str) -> None
         assert hit.mean() >= 0.95, f"{box.type}: {hit.mean():.1%} of its points in its 2D box"
         checked += 1
     assert checked >= 1
+
+
+def test_real_oxts_packet_and_timestamps(real_data: Path) -> None:
+    """The devkit's own files of drive 0001: field order, one packet, 10 Hz timestamps."""
+    from app.io.kitti_raw import read_timestamps
+    from app.io.oxts import OXTS_FIELDS, imu_poses, read_oxts_packet
+
+    drive = real_data / (
+        "kitti_raw/drive_0001_meta/2011_09_26_drive_0001_sync/2011_09_26/2011_09_26_drive_0001_sync"
+    )
+    documented = [
+        ln.split(":")[0] for ln in (drive / "oxts/dataformat.txt").read_text().split("\n")
+    ]
+    documented = [name for name in documented if name]
+    # dataformat.txt of the devkit lists "ay" twice; the 14th value is the z acceleration
+    assert documented[:13] == list(OXTS_FIELDS[:13]) and documented[13] == "ay"
+    assert documented[14:] == list(OXTS_FIELDS[14:])
+    packet = read_oxts_packet(drive / "oxts/data/0000000000.txt")
+    assert packet[0] == pytest.approx(49.015003823272)  # Karlsruhe
+    pose = imu_poses(packet)[0]
+    assert pose[:3, 3] == pytest.approx([0, 0, 0])
+    assert np.degrees(np.arctan2(pose[1, 0], pose[0, 0])) == pytest.approx(np.degrees(packet[5]))
+    times = read_timestamps(drive / "velodyne_points/timestamps.txt", 108)
+    starts = read_timestamps(drive / "velodyne_points/timestamps_start.txt", 108)
+    ends = read_timestamps(drive / "velodyne_points/timestamps_end.txt", 108)
+    assert np.diff(times) == pytest.approx(0.1, abs=0.01)
+    assert (starts < times).all() and (times < ends).all()
