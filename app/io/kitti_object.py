@@ -65,7 +65,7 @@ def read_object_camera(path: Path, width: int, height: int) -> Camera:
     entries = read_calib_file(path)
     P2 = matrix_3x4(entries, "P2", path)
     T = rectifying_4x4(entries, "R0_rect", path) @ rigid_4x4(entries, "Tr_velo_to_cam", path)
-    return Camera("image_2", P2, T, width, height)
+    return Camera("image_2", P2, T, width, height, "P2")
 
 
 def rectified_camera_points(camera: Camera, xyz: np.ndarray) -> np.ndarray:

@@ -84,7 +84,7 @@ def read_camera(calib_dir: Path, image_files: list[Path]) -> tuple[Camera, np.nd
         width, height = image_size(image_files[0])
     else:
         raise InputError(cam_path, "calibration entry S_rect_02 is missing and there are no images")
-    camera = Camera(CAMERA, P, R_rect @ T_cam_velo, width, height)
+    camera = Camera(CAMERA, P, R_rect @ T_cam_velo, width, height, "P_rect_02")
     return camera, T_velo_imu
 
 

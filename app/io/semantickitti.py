@@ -95,7 +95,7 @@ def read_semantickitti(source: Path) -> Survey:
             raise InputError(calib_path, f"calibration entry {key} is missing (needed by {folder})")
         P = projections[key]
         width, height = image_size(next(iter(files.values())))
-        cameras[folder] = Camera(folder, P, T_cam0_velo, width, height)
+        cameras[folder] = Camera(folder, P, T_cam0_velo, width, height, key)
         images[folder] = files
 
     cam_poses = read_pose_rows(source / "poses.txt", numbers)

@@ -44,8 +44,8 @@ def summarize(survey: Survey) -> SurveySummary:
     trajectory = survey.poses()
     length = float(total_length(trajectory[:, :3, 3])) if len(trajectory) >= 2 else None
     cameras = [
-        f"{c.name} ({c.width}x{c.height}, images for "
-        f"{sum(c.name in f.image_paths for f in frames)}/{len(frames)} frames)"
+        f"{c.name} ({c.calibration + ', ' if c.calibration else ''}{c.width}x{c.height}, "
+        f"images for {sum(c.name in f.image_paths for f in frames)}/{len(frames)} frames)"
         for c in survey.cameras.values()
     ]
     return SurveySummary(

@@ -65,6 +65,7 @@ class Camera:
     T_cam_sensor: np.ndarray  # (4, 4) float64
     width: int
     height: int
+    calibration: str = ""  # the calibration entry P came from, e.g. "P2" or "P_rect_02"
 
     @property
     def K(self) -> np.ndarray:

@@ -26,7 +26,7 @@ def test_info_semantickitti_04(real_data: Path) -> None:
     s = summarize(open_survey(real_data / "semantickitti/sequences/04", "semantickitti"))
     assert s.frames == 10
     assert 1.15e6 < s.points < 1.3e6
-    assert any(c.startswith("image_2 ") for c in s.cameras)
+    assert any(c.startswith("image_2 (P2, 1226x370") for c in s.cameras)
     assert s.reference_labels == ["semantic", "instance"]
     assert s.time_span_s == pytest.approx(0.9, abs=0.1)
     assert 5 < s.trajectory_length_m < 30
