@@ -1,0 +1,1 @@
+"""Synthetic mobile-mapping surveys with complete ground truth (scenes, scanners, camera)."""
