@@ -28,7 +28,7 @@ console = Console()
 err_console = Console(stderr=True)
 
 FormatOption = Annotated[
-    str, typer.Option("--format", "-f", help="kitti-raw, semantickitti, las, ply, pcd")
+    str, typer.Option("--format", "-f", help="kitti-raw, semantickitti, las, ply, pcd, sim")
 ]
 
 
@@ -62,6 +62,59 @@ def info(
     for key, value in summary_rows(summary):
         table.add_row(f"[bold]{key}[/bold]", value)
     console.print(table)
+
+
+@cli.command()
+def simulate(
+    out: Annotated[Path, typer.Option("--out", "-o", help="output folder (KITTI-raw-like)")],
+    scene: Annotated[str, typer.Option(help="urban, highway or mixed")] = "urban",
+    length: Annotated[float, typer.Option(help="metres of street driven")] = 60.0,
+    seed: Annotated[int, typer.Option(help="same seed, same bytes")] = 0,
+    scanner: Annotated[str, typer.Option(help="hdl64 (frames) or profile (MLS map)")] = "hdl64",
+    camera: Annotated[bool, typer.Option(help="render camera images and masks")] = True,
+    pose_noise_m: Annotated[float, typer.Option(help="GNSS/INS position noise sigma")] = 0.0,
+    pose_noise_deg: Annotated[float, typer.Option(help="GNSS/INS heading noise sigma")] = 0.0,
+    write_map: Annotated[
+        bool | None, typer.Option("--map/--no-map", help="write map.laz (default: profile)")
+    ] = None,
+    overwrite: Annotated[bool, typer.Option(help="replace OUT if it exists")] = False,
+) -> None:
+    """Simulate a mobile-mapping survey with complete ground truth."""
+    from pydantic import ValidationError
+    from rich.progress import Progress
+
+    from app.core.errors import ConfigError
+    from app.simulate.survey import SimulationConfig
+    from app.simulate.survey import simulate as run_simulation
+
+    try:
+        config = SimulationConfig(
+            scene=scene,
+            length=length,
+            seed=seed,
+            scanner=scanner,
+            camera=camera,
+            pose_noise_m=pose_noise_m,
+            pose_noise_deg=pose_noise_deg,
+            write_map=write_map,
+        )
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        raise ConfigError(f"--{first['loc'][0]}".replace("_", "-"), first["msg"]) from None
+    with Progress(console=err_console, transient=True) as bar:
+        task = bar.add_task(f"simulating {config.scene} ({config.scanner})", total=None)
+        summary = run_simulation(
+            config,
+            out,
+            overwrite,
+            lambda done, total: bar.update(task, completed=done, total=total),
+        )
+    console.print(
+        f"{summary.out}: {summary.frames} frames, {summary.points:,} points, "
+        f"{summary.moving_objects} moving objects, {summary.parked_vehicles} parked vehicles, "
+        f"guardrails: {', '.join(summary.guardrails) or 'none'} "
+        f"({summary.seconds:.1f} s, {summary.points_per_second:,.0f} points/s)"
+    )
 
 
 @cli.command()

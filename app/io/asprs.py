@@ -95,3 +95,18 @@ def to_asprs(labels: np.ndarray, mapping: dict[int, int], default: int = 1) -> n
     for label, code in mapping.items():
         table[label] = code
     return table[labels.astype(np.intp)]
+
+
+SEMANTICKITTI_TO_ASPRS: dict[int, int] = {
+    40: int(AsprsClass.ROAD_SURFACE),  # road
+    44: int(AsprsClass.ROAD_SURFACE),  # parking
+    60: int(AsprsClass.ROAD_SURFACE),  # lane-marking
+    48: int(AsprsClass.GROUND),  # sidewalk
+    49: int(AsprsClass.GROUND),  # other-ground
+    72: int(AsprsClass.GROUND),  # terrain
+    50: int(AsprsClass.BUILDING),  # building
+    70: int(AsprsClass.HIGH_VEGETATION),  # vegetation
+    71: int(AsprsClass.HIGH_VEGETATION),  # trunk
+}
+"""Static SemanticKITTI class id (0..99) -> ASPRS code; the rest (vehicles, poles, signs,
+fences, people) have no ASPRS class and stay 1 (unclassified)."""

@@ -12,6 +12,7 @@ file is written next to its destination as `<name>.partial` and renamed when com
 
 from __future__ import annotations
 
+import datetime
 from functools import partial
 from pathlib import Path
 
@@ -154,6 +155,7 @@ def write_laz(
     gps_time: np.ndarray | None = None,
     scale: float = 0.001,
     offset: np.ndarray | float | None = None,
+    creation_date: datetime.date | None = None,
 ) -> Path:
     """Write points as LAS 1.4 point format 6: compressed for `.laz`, plain for `.las`.
 
@@ -164,6 +166,7 @@ def write_laz(
     - `classification` (ASPRS codes, see `app.io.asprs`) defaults to 1 (unclassified);
       `mmsclean_label`, `source_frame`, `source_index` default to 0; `intensity` is rounded to the
       LAS uint16 range 0..65535 (scale reflectance 0..1 yourself); `gps_time` defaults to 0.
+    - `creation_date` defaults to today; pass a fixed date for byte-identical output.
 
     Any invalid input raises `InputError` naming `path`; nothing is left at `path` or at the
     `.partial` file when writing fails.
@@ -207,6 +210,7 @@ def write_laz(
             raise InputError(path, "gps_time has NaN or infinite values")
 
     header = laspy.LasHeader(point_format=6, version="1.4")
+    header.creation_date = creation_date or datetime.date.today()
     header.add_extra_dims(
         [
             laspy.ExtraBytesParams(name, dtype, description=_EXTRA_DESCRIPTIONS[name])

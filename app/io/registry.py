@@ -18,13 +18,14 @@ _READERS: dict[str, str] = {
     "las": "app.io.las:read_las",
     "ply": "app.io.ply:read_ply",
     "pcd": "app.io.pcd:read_pcd",
+    "sim": "app.io.sim:read_sim",
 }
 
 FORMATS: tuple[str, ...] = tuple(_READERS)
 
 
 def register_reader(name: str, target: str) -> None:
-    """Add a format (e.g. the simulator's `sim`) as `"module:function"`."""
+    """Add a format as `"module:function"` (plug-ins)."""
     _READERS[name] = target
 
 
