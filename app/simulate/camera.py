@@ -77,9 +77,7 @@ def render(
     T = np.asarray(T_world_cam, dtype=np.float64)
     d_cam = pixel_rays(config)
     d_world = d_cam @ T[:3, :3].T
-    hits = caster.cast(
-        np.broadcast_to(T[:3, 3], d_world.shape), d_world, time, config.max_range, with_halo=False
-    )
+    hits = caster.cast_from(T[:3, 3], d_world, time, config.max_range)
     H, W = config.height, config.width
     hit = hits.body >= 0
     body_idx = hits.body[hit]

@@ -123,6 +123,18 @@ def _cast(
 
 
 @dataclass
+class _Static:
+    """The merged static bodies: one open3d scene and per-triangle lookups back to bodies."""
+
+    scene: o3d.t.geometry.RaycastingScene
+    origin: np.ndarray  # subtracted before float32 casting
+    tri_body: np.ndarray  # (T,) body index of each merged triangle
+    tri_local: np.ndarray  # (T,) triangle index within its body's mesh
+    tri_normal: np.ndarray  # (T, 3) world face normals
+    triangles: int
+
+
+@dataclass
 class _Moving:
     index: int  # body index
     motion: Motion  # a constant one for static bodies with a halo
@@ -150,36 +162,43 @@ class RayCaster:
         self.halo_probability = float(halo_probability)
         self.chunk_size = int(chunk_size)
         self.threads = int(threads)  # open3d threads, 0 = all cores
-        self._build_static(scene.bodies)
+        self._static_lidar = self._build_static(scene.bodies, with_halo_bodies=False)
         own = [i for i, b in enumerate(scene.bodies) if b.moving or b.halo_margin > 0]
         built = (self._build_moving(i, scene.bodies[i]) for i in own)
         self.moving = [m for m in built if m is not None]  # own-frame bodies (moving or halo)
+        self._moving_only = [m for m in self.moving if scene.bodies[m.index].moving]
+        if len(self._moving_only) == len(self.moving):
+            self._static_camera = self._static_lidar
+        else:
+            self._static_camera = self._build_static(scene.bodies, with_halo_bodies=True)
+        self.static_triangles = 0 if self._static_lidar is None else self._static_lidar.triangles
 
     # -- construction -------------------------------------------------------------------------
 
-    def _build_static(self, bodies: list[Body]) -> None:
+    def _build_static(self, bodies: list[Body], with_halo_bodies: bool) -> _Static | None:
+        """One scene of the static bodies; static bodies with a halo (parked cars) are left out
+        for LiDAR casts, which treat them in their own frame, and put in for camera casts."""
         static = [
             i
             for i, b in enumerate(bodies)
-            if not b.moving and b.halo_margin <= 0 and len(b.mesh.triangles)
+            if not b.moving and (with_halo_bodies or b.halo_margin <= 0) and len(b.mesh.triangles)
         ]
-        self.static_triangles = int(sum(len(bodies[i].mesh.triangles) for i in static))
-        self.static_scene = None
-        self.origin = np.zeros(3)
         if not static:
-            return
+            return None
         meshes = [bodies[i].mesh for i in static]
         merged = Mesh.merge(meshes)
         lo, hi = merged.vertices.min(axis=0), merged.vertices.max(axis=0)
-        self.origin = 0.5 * (lo + hi)  # float32 work is relative to the middle of the scene
+        origin = 0.5 * (lo + hi)  # float32 work is relative to the middle of the scene
         counts = np.array([len(m.triangles) for m in meshes])
-        self._tri_body = np.repeat(np.asarray(static, dtype=np.int32), counts)
         starts = np.cumsum(counts) - counts
-        self._tri_local = np.arange(len(merged.triangles), dtype=np.int64) - np.repeat(
-            starts, counts
+        return _Static(
+            scene=_scene_of(merged.vertices - origin, merged.triangles),
+            origin=origin,
+            tri_body=np.repeat(np.asarray(static, dtype=np.int32), counts),
+            tri_local=np.arange(len(merged.triangles), dtype=np.int64) - np.repeat(starts, counts),
+            tri_normal=face_normals(merged.vertices, merged.triangles),
+            triangles=len(merged.triangles),
         )
-        self._tri_normal = face_normals(merged.vertices, merged.triangles)
-        self.static_scene = _scene_of(merged.vertices - self.origin, merged.triangles)
 
     def _build_moving(self, index: int, body: Body) -> _Moving | None:
         mesh = body.mesh
@@ -252,6 +271,73 @@ class RayCaster:
         hits.normal *= np.where(facing > 0, -1.0, 1.0)[:, None]
         return hits
 
+    def _cast_static(
+        self,
+        static: _Static | None,
+        o: np.ndarray,
+        d: np.ndarray,
+        max_range: float,
+        hits: Hits,
+        sl: slice,
+    ) -> None:
+        """Fill hits[sl] with the nearest static hits (first pass, so no comparison needed)."""
+        if static is None:
+            return
+        dist, prim = _cast(static.scene, o - static.origin, d, max_range, self.threads)
+        ok = prim >= 0
+        p = np.where(ok, prim, 0)
+        hits.distance[sl] = dist
+        hits.body[sl] = np.where(ok, np.take(static.tri_body, p), -1)
+        hits.triangle[sl] = np.where(ok, np.take(static.tri_local, p), -1)
+        hits.normal[sl] = np.take(static.tri_normal, p, axis=0) * ok[:, None]
+
+    def cast_from(
+        self, origin: np.ndarray, directions: np.ndarray, time: float, max_range: float
+    ) -> Hits:
+        """Rays from one point at one instant (a camera), without halo.
+
+        Each moving body is placed once at `time` and culled with one cone test against its
+        bounding sphere, much cheaper than the per-ray-time path of `cast`.
+        """
+        origin = np.asarray(origin, dtype=np.float64).reshape(3)
+        d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+        n = len(d)
+        hits = Hits(
+            distance=np.full(n, np.inf),
+            body=np.full(n, -1, dtype=np.int32),
+            triangle=np.full(n, -1, dtype=np.int64),
+            normal=np.zeros((n, 3)),
+            halo=np.zeros(n, dtype=bool),
+        )
+        o = np.broadcast_to(origin, d.shape)
+        self._cast_static(self._static_camera, o, d, max_range, hits, slice(0, n))
+        for m in self._moving_only:
+            T = m.motion.poses(np.array([time]))[0]
+            w = T[:3, 3] - origin
+            centre_distance = float(np.linalg.norm(w))
+            if centre_distance - m.radius > max_range:
+                continue
+            if centre_distance > m.radius:
+                cone = np.sqrt(1.0 - (m.radius / centre_distance) ** 2)
+                cand = np.flatnonzero(d @ (w / centre_distance) >= cone)
+            else:
+                cand = np.arange(n)
+            cand = cand[hits.distance[cand] > centre_distance - m.radius]
+            if not len(cand):
+                continue
+            R = T[:3, :3]
+            o_l = np.broadcast_to(R.T @ (origin - T[:3, 3]), (len(cand), 3))
+            dist, prim = _cast(m.scene, o_l, d[cand] @ R, max_range, self.threads)
+            near = dist < hits.distance[cand]
+            j = cand[near]
+            hits.distance[j] = dist[near]
+            hits.body[j] = m.index
+            hits.triangle[j] = prim[near]
+            hits.normal[j] = np.take(m.normals, prim[near], axis=0) @ R.T
+        facing = np.einsum("ij,ij->i", hits.normal, d)
+        hits.normal *= np.where(facing > 0, -1.0, 1.0)[:, None]
+        return hits
+
     def _cast_chunk(
         self,
         o: np.ndarray,
@@ -266,18 +352,14 @@ class RayCaster:
         sl = slice(offset, offset + len(o))
         best, body, tri = hits.distance[sl], hits.body[sl], hits.triangle[sl]
         normal, halo = hits.normal[sl], hits.halo[sl]
-        if self.static_scene is not None:
-            dist, prim = _cast(self.static_scene, o - self.origin, d, max_range, self.threads)
-            ok = prim >= 0
-            p = np.where(ok, prim, 0)
-            best[:] = dist
-            body[:] = np.where(ok, np.take(self._tri_body, p), -1)
-            tri[:] = np.where(ok, np.take(self._tri_local, p), -1)
-            normal[:] = np.take(self._tri_normal, p, axis=0) * ok[:, None]
-        if not self.moving:
+        self._cast_static(
+            self._static_lidar if with_halo else self._static_camera, o, d, max_range, hits, sl
+        )
+        movers = self.moving if with_halo else self._moving_only
+        if not movers:
             return
         blocks = _Blocks(o, d, t)
-        for m in self.moving:
+        for m in movers:
             idx = self._candidates(m, blocks, o, d, t, best, max_range)
             if not len(idx):
                 continue

@@ -205,7 +205,7 @@ def simulate(
         kw.write_json(
             partial / "ground_truth" / "simulation.json",
             {
-                "name": out.name,
+                "name": f"sim-{config.scene}-{config.length:g}m-{config.scanner}-seed{config.seed}",
                 "generator": f"mmsclean {__version__}",
                 "config": config.model_dump(),
                 "scanner": config.scanner,
