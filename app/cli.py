@@ -77,6 +77,9 @@ def simulate(
     write_map: Annotated[
         bool | None, typer.Option("--map/--no-map", help="write map.laz (default: profile)")
     ] = None,
+    compressed: Annotated[
+        bool, typer.Option(help="scans as LAZ (per-point time inside) instead of KITTI .bin")
+    ] = False,
     overwrite: Annotated[bool, typer.Option(help="replace OUT if it exists")] = False,
 ) -> None:
     """Simulate a mobile-mapping survey with complete ground truth."""
@@ -97,6 +100,7 @@ def simulate(
             pose_noise_m=pose_noise_m,
             pose_noise_deg=pose_noise_deg,
             write_map=write_map,
+            compressed=compressed,
         )
     except ValidationError as exc:
         first = exc.errors()[0]

@@ -4,6 +4,7 @@ Layout (as unpacked from the KITTI downloads):
 
     <date>/calib_cam_to_cam.txt, calib_velo_to_cam.txt, calib_imu_to_velo.txt
     <date>/<date>_drive_NNNN_sync/velodyne_points/data/NNNNNNNNNN.bin (+ timestamps*.txt)
+                                  (or NNNNNNNNNN.laz: compressed scans with per-point time)
                                   image_02/data/NNNNNNNNNN.png
                                   oxts/data/NNNNNNNNNN.txt (+ timestamps.txt)
 
@@ -26,10 +27,11 @@ from app.core.errors import InputError
 from app.geometry.transforms import invert
 from app.io.images import image_size
 from app.io.kitti_calib import matrix_3x4, read_calib_file, rectifying_4x4, require, rigid_from_r_t
+from app.io.las import las_point_count, read_las_points
 from app.io.odometry import estimated_poses
 from app.io.oxts import imu_poses, read_oxts_packet
-from app.io.survey import Camera, Frame, Survey
-from app.io.velodyne_bin import bin_point_count, read_velodyne_bin
+from app.io.survey import Camera, Frame, PointCloud, Survey
+from app.io.velodyne_bin import bin_point_count, check_finite, read_velodyne_bin
 
 CAMERA = "image_02"
 CALIB_FILES = ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt", "calib_imu_to_velo.txt")
@@ -88,12 +90,26 @@ def read_camera(calib_dir: Path, image_files: list[Path]) -> tuple[Camera, np.nd
     return camera, T_velo_imu
 
 
+LAZ_INTENSITY_SCALE = 65535.0  # reflectance 0..1 <-> LAS uint16 intensity
+
+
+def read_laz_scan(path: Path) -> PointCloud:
+    """A scan stored as LAZ (sensor frame, gps_time = per-point time), reflectance back to 0..1."""
+    cloud = read_las_points(path)
+    check_finite(path, cloud.xyz)
+    if cloud.intensity is not None:
+        cloud.intensity = cloud.intensity / np.float32(LAZ_INTENSITY_SCALE)
+    return PointCloud(cloud.xyz, cloud.intensity, cloud.time)
+
+
 def read_kitti_raw(source: Path) -> Survey:
     sync = find_sync_folder(source)
-    scan_files = sorted((sync / "velodyne_points" / "data").glob("*.bin"))
+    scan_dir = sync / "velodyne_points" / "data"
+    scan_files = sorted(scan_dir.glob("*.bin")) or sorted(scan_dir.glob("*.laz"))
     if not scan_files:
-        raise InputError(sync / "velodyne_points" / "data", "contains no .bin scans")
-    counts = [bin_point_count(f) for f in scan_files]
+        raise InputError(scan_dir, "contains no .bin (or .laz) scans")
+    compressed = scan_files[0].suffix == ".laz"
+    counts = [las_point_count(f) if compressed else bin_point_count(f) for f in scan_files]
     n = len(scan_files)
 
     image_dir = sync / CAMERA / "data"
@@ -133,7 +149,9 @@ def read_kitti_raw(source: Path) -> Survey:
             point_count=counts[i],
             source_path=f,
             image_paths={CAMERA: images[f.stem]} if f.stem in images else {},
-            _load_points=partial(read_velodyne_bin, f, *(sweeps[i] if sweeps else ())),
+            _load_points=partial(read_laz_scan, f)
+            if compressed
+            else partial(read_velodyne_bin, f, *(sweeps[i] if sweeps else ())),
         )
         for i, f in enumerate(scan_files)
     ]

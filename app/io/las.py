@@ -107,6 +107,16 @@ def _has_nonzero_classification(path: Path) -> bool:
     return bool(guarded(path, "point data", scan))
 
 
+def las_point_count(path: Path) -> int:
+    """Points promised by a LAS/LAZ header (nothing else is read)."""
+    return int(_read_header(path).point_count)
+
+
+def read_las_points(path: Path) -> PointCloud:
+    """All points of a LAS/LAZ file (used for single scans stored as LAZ)."""
+    return _load_points(path, las_point_count(path))
+
+
 def _read_all(path: Path, n: int) -> laspy.LasData:
     las = guarded(path, "points", lambda: laspy.read(path))
     assert isinstance(las, laspy.LasData)

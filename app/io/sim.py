@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from app.core.errors import InputError
-from app.io.kitti_raw import read_kitti_raw
+from app.io.kitti_raw import read_kitti_raw, read_laz_scan
 from app.io.point_files import guarded
 from app.io.survey import PointCloud, Survey
 from app.io.velodyne_bin import read_velodyne_bin
@@ -50,6 +50,9 @@ def read_truth(path: Path, point_count: int) -> dict[str, np.ndarray]:
 
 
 def _load_points(scan: Path, truth: Path) -> PointCloud:
+    """Scan points with their exact per-point times (in the LAZ scan, or in the truth file)."""
+    if scan.suffix == ".laz":
+        return read_laz_scan(scan)
     cloud = read_velodyne_bin(scan)
     cloud.time = read_truth(truth, len(cloud))["time"]
     return cloud

@@ -38,7 +38,6 @@ FRAME_RATE = 10.0  # Hz: scanner frames and camera images
 T_VEHICLE_CAMERA = make_transform(
     np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]), np.array([0.27, 0.0, 1.65])
 )
-MAP_DATE = (2020, 6, 1)  # creation date written into map.laz: fixed for byte-identical output
 
 
 class SimulationConfig(BaseModel):
@@ -50,6 +49,7 @@ class SimulationConfig(BaseModel):
     pose_noise_m: float = Field(0.0, ge=0.0, description="GNSS/INS position noise (sigma)")
     pose_noise_deg: float = Field(0.0, ge=0.0, description="GNSS/INS heading noise (sigma)")
     write_map: bool | None = Field(None, description="write map.laz; default: profile only")
+    compressed: bool = Field(False, description="scans as LAZ instead of KITTI .bin")
 
 
 @dataclass
@@ -92,19 +92,21 @@ def noisy_poses(poses: np.ndarray, config: SimulationConfig, rng) -> np.ndarray:
 
 
 def scene_objects(scene: Scene) -> list[dict]:
-    """The countable objects of the scene for scene.json (what a test or a reviewer looks up)."""
-    objects = []
+    """The countable objects of the scene for scene.json, one entry per instance (a cyclist's
+    bicycle and rider are one object with two classes)."""
+    objects: dict[int, dict] = {}
     for b in scene.bodies:
         if b.instance == 0:
             continue
-        entry = {"instance": b.instance, "name": b.name, "semantic": int(b.semantic)}
-        entry["moving"] = b.moving
+        entry = objects.setdefault(
+            b.instance, {"instance": b.instance, "name": b.name, "semantic": [], "moving": b.moving}
+        )
+        entry["semantic"].append(int(b.semantic))
         if b.motion is not None:
             entry["mean_speed"] = round(float(np.mean(b.motion.speed(b.motion.times))), 3)
         if b.guardrail >= 0:
             entry["guardrail"] = b.guardrail
-        objects.append(entry)
-    return objects
+    return list(objects.values())
 
 
 def count_vehicles(scene: Scene) -> tuple[int, int]:
@@ -160,7 +162,7 @@ def simulate(
             points = scan(caster, frame_pattern(scanner, starts[k]), scene.vehicle_path, T_vs,
                           scanner, scan_rng)  # fmt: skip
             xyz_sensor = apply(invert(T_world_sensor[k]), points.xyz_world)
-            kw.write_scan(partial, k, xyz_sensor, points.intensity)
+            kw.write_scan(partial, k, xyz_sensor, points.intensity, points.time, config.compressed)
             frames_world.append(points.xyz_world)
             frames_truth.append(table.truth(points.body, points.triangle, points.halo, points.time))
             frames_time.append(points.time)
@@ -179,7 +181,9 @@ def simulate(
         moving = np.concatenate([t.moving for t in frames_truth])
         pillar = pillar_classes(world, semantic, moving, scene.ground_height(world))
         for k, part in enumerate(np.split(pillar, np.cumsum(sizes)[:-1])):
-            arrays = frames_truth[k].as_arrays() | {"pillar_class": part, "time": frames_time[k]}
+            arrays = frames_truth[k].as_arrays() | {"pillar_class": part}
+            if not config.compressed:  # LAZ scans carry the per-point time themselves
+                arrays["time"] = frames_time[k]
             kw.write_point_truth(partial, k, arrays)
 
         measured = noisy_poses(T_world_sensor, config, np.random.default_rng(noise_seed))
@@ -268,7 +272,7 @@ def write_accumulated_map(path, world, truths, pillar, sizes, times) -> None:
         source_frame=frame,
         source_index=index,
         gps_time=np.concatenate(times),
-        creation_date=datetime.date(*MAP_DATE),
+        creation_date=datetime.date(*kw.FIXED_DATE),
     )
 
 
