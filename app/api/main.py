@@ -9,6 +9,7 @@ from fastapi.responses import JSONResponse
 
 from app import __version__
 from app.api.routes import health
+from app.api.sample import load_sample_on_first_start
 from app.core.errors import MmscleanError
 from app.core.settings import Settings, get_settings
 from app.store.db import init_db, make_engine
@@ -22,6 +23,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         settings.data_dir.mkdir(parents=True, exist_ok=True)
         engine = make_engine(settings.database_url)
         init_db(engine)
+        load_sample_on_first_start(engine, settings.sample_dir)
         app.state.engine = engine
         yield
         engine.dispose()

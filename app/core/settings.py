@@ -5,7 +5,7 @@ from __future__ import annotations
 from functools import lru_cache
 from pathlib import Path
 
-from pydantic import Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from app.core.errors import ConfigError
@@ -22,6 +22,15 @@ class Settings(BaseSettings):
     port: int = Field(8000, ge=0, le=65535, description="web app (API, dashboard, viewer)")
     viewer_port: int = Field(0, ge=0, le=65535, description="loopback viser port; 0 = free port")
     admin_password: str | None = None
+    sample_dir: Path | None = Field(
+        Path(__file__).resolve().parents[2] / "data_samples" / "urban-60m",
+        description="survey loaded into an empty database on first start; empty = none",
+    )
+
+    @field_validator("sample_dir", mode="before")
+    @classmethod
+    def _empty_means_none(cls, value: object) -> object:
+        return None if value == "" else value
 
     @model_validator(mode="after")
     def _default_database(self) -> Settings:
