@@ -10,12 +10,14 @@ COPY pyproject.toml requirements.lock README.md ./
 COPY app ./app
 COPY frontend_assets ./frontend_assets
 COPY models ./models
+COPY data_samples ./data_samples
 # torch from the CPU index: the default PyPI wheel pulls several GB of CUDA libraries.
 RUN pip install --no-cache-dir torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu \
  && pip install --no-cache-dir -c requirements.lock .
 
 ENV MMSCLEAN_DATA_DIR=/data \
     MMSCLEAN_WEIGHTS_DIR=/opt/mmsclean/weights \
+    MMSCLEAN_SAMPLE_DIR=/opt/mmsclean/data_samples/urban-60m \
     MMSCLEAN_HOST=0.0.0.0 \
     MMSCLEAN_PORT=8000
 VOLUME ["/data"]
