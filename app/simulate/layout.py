@@ -10,8 +10,9 @@ beyond both ends of the driven stretch so the scanner sees a complete street eve
   guardrail along the left one; cars, vans, a truck, a cyclist and pedestrians (one crossing).
 - `highway`: two lanes each way, shoulders, beam guardrails on both edges and in the median,
   grass and trees beyond; fast cars and trucks in both directions, an overtaking car.
-- `mixed`: an urban street whose second half opens to verges with guardrails of both kinds, a
-  traffic light where oncoming traffic stops and starts again, and a tram.
+- `mixed`: an arterial with two lanes each way, buildings along its first half only, guardrails
+  of both kinds, cars overtaking the survey vehicle (long phantoms), a traffic light where
+  oncoming traffic stops and starts again, and a tram.
 """
 
 from __future__ import annotations
@@ -69,6 +70,7 @@ class CrossSection:
 
 
 URBAN = CrossSection(3.5, 5.7, 9.2, 25.0, (-1.75,))
+ARTERIAL = CrossSection(7.0, 9.2, 12.7, 28.0, (-5.25, -1.75))  # two lanes each way (mixed)
 HIGHWAY = CrossSection(7.75, 10.25, 40.0, 40.0, (-2.0, -5.875))
 
 
@@ -322,7 +324,9 @@ def urban_traffic(b: SceneBuilder, drive: Drive, cs: CrossSection, length: float
         add_person(b, drive, path, rng.uniform(1.2, 1.6), 0.0)
     # one pedestrian crossing from the left sidewalk ahead of the survey vehicle
     s_cross = min(length - 5.0, drive.station_at(0.6 * drive.duration) + 10.0)
-    path = b.centerline.offset_points(np.full(2, s_cross), np.array([cs.outer_edge + 1.0, -8.0]))
+    path = b.centerline.offset_points(
+        np.full(2, s_cross), np.array([cs.outer_edge + 1.0, -(cs.outer_edge + 2.0)])
+    )
     add_person(b, drive, path, 1.4, max(0.0, s_cross / drive.speed - 2.5))
 
 
@@ -341,9 +345,16 @@ def highway_traffic(b: SceneBuilder, drive: Drive, cs: CrossSection) -> None:
 
 
 def mixed_traffic(b: SceneBuilder, drive: Drive, cs: CrossSection, length: float) -> tuple:
-    """Urban traffic plus a red light for the oncoming lane and a tram."""
+    """Urban traffic plus cars overtaking the survey vehicle in the inner lane (the long-drawn
+    phantoms of the phantom paper: a profile scanner sees an overtaking car for as long as it
+    takes to pass), a red light for the oncoming lane and a tram."""
     urban_traffic(b, drive, cs, length)
     rng = b.rng
+    inner = cs.lane_centres[1]
+    for t_pass, kind in zip(np.sort(rng.uniform(0.2, 0.8, 2)) * drive.duration, ("car", "van"),
+                            strict=True):  # fmt: skip
+        v = drive.speed + rng.uniform(2.5, 5.0)
+        add_vehicle(b, drive, kind, inner, 1, v, meeting_start(drive, v, t_pass, 1))
     s_light = 0.5 * length
     green = rng.uniform(0.5, 0.8) * drive.duration
     oncoming = -cs.lane_centres[0]
@@ -352,7 +363,7 @@ def mixed_traffic(b: SceneBuilder, drive: Drive, cs: CrossSection, length: float
         plan = SpeedPlan(rng.uniform(9.0, 12.0), stop_at=20.0, green_at=green)
         add_vehicle(b, drive, "car", oncoming, -1, plan.speed, start, plan)
     v_tram = rng.uniform(8.0, 11.0)
-    add_vehicle(b, drive, "tram", oncoming, -1, v_tram,
+    add_vehicle(b, drive, "tram", -inner, -1, v_tram,
                 meeting_start(drive, v_tram, 0.8 * drive.duration, -1, gap=40.0))  # fmt: skip
     signal = objects.pole(b.rng, arm=True)
     light_pole = b.place(signal.mesh, s_light, cs.outer_edge + 0.9, 0.0, CURB_HEIGHT)
@@ -399,9 +410,9 @@ def build_scene(preset: str, length: float, rng: np.random.Generator) -> Scene:
         drive, vehicle = survey_drive(b, cs.lane_centres[1], rng.uniform(20.0, 25.0), length)
         highway_traffic(b, drive, cs)
     else:
-        cs = URBAN
+        cs = URBAN if preset == "urban" else ARTERIAL
         ground_strips(b, cs, s0, s1, sidewalk=True)
-        lane_markings(b, cs, s0, s1, dashed=[0.0])
+        lane_markings(b, cs, s0, s1, dashed=[0.0] if preset == "urban" else [3.5, 0.0, -3.5])
         built_end = s1 if preset == "urban" else 0.5 * length
         building_rows(b, cs, s0, built_end)
         street_furniture(b, cs, s0, s1, dz=CURB_HEIGHT)
