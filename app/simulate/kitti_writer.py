@@ -6,6 +6,7 @@
     OUT/image_02/data/NNNNNNNNNN.png          RGB render at the frame's reference time
     OUT/oxts/data/NNNNNNNNNN.txt              GNSS/INS packets (devkit Mercator convention)
     OUT/poses.txt                             sensor -> world per frame (as measured)
+    OUT/trajectory.txt                        time + sensor -> world at the scanner's rate
     OUT/ground_truth/...                      labels per point, masks, poses, scene, guardrails
 
 The `kitti-raw` reader reads the sensor part (poses from the OXTS packets, relative to the first
@@ -112,6 +113,14 @@ def write_poses(path: Path, poses: np.ndarray) -> None:
     """KITTI odometry style: one row-major 3x4 sensor -> world pose per line."""
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("".join(matrix_line(T[:3, :4]) + "\n" for T in poses))
+
+
+def write_trajectory(path: Path, times: np.ndarray, poses: np.ndarray) -> None:
+    """GNSS/INS trajectory: per line the time (s) and the row-major 3x4 sensor -> world pose."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(
+        "".join(f"{t:.6f} {matrix_line(T[:3, :4])}\n" for t, T in zip(times, poses, strict=True))
+    )
 
 
 def write_scan(

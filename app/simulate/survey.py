@@ -186,7 +186,20 @@ def simulate(
                 arrays["time"] = frames_time[k]
             kw.write_point_truth(partial, k, arrays)
 
-        measured = noisy_poses(T_world_sensor, config, np.random.default_rng(noise_seed))
+        # GNSS/INS trajectory at the scanner's rate (revolutions / profiles); frames take theirs
+        rate = FRAME_RATE if isinstance(scanner, HDL64Config) else scanner.profiles_per_s
+        traj_times = (
+            refs if rate == FRAME_RATE else np.arange(round(n_frames * rate / FRAME_RATE)) / rate
+        )
+        traj_true = scene.vehicle_path.poses(traj_times) @ T_vs
+        traj_measured = noisy_poses(traj_true, config, np.random.default_rng(noise_seed))
+        kw.write_trajectory(partial / "trajectory.txt", traj_times, traj_measured)
+        kw.write_trajectory(partial / "ground_truth" / "trajectory.txt", traj_times, traj_true)
+        measured = (
+            traj_measured[np.round(refs * rate).astype(int)]
+            if rate != FRAME_RATE
+            else traj_measured
+        )
         kw.write_poses(partial / "poses.txt", measured)
         kw.write_poses(partial / "ground_truth" / "poses.txt", T_world_sensor)
         T_world_imu = measured @ invert(T_vs)

@@ -168,3 +168,30 @@ def test_instance_points_project_into_their_masks(small_survey: Path) -> None:
         total += int(visible.sum())
     assert total > 1000
     assert hits / total >= 0.95, f"{hits / total:.1%}"
+
+
+def test_trajectory_at_scanner_rate(profile_survey: Path) -> None:
+    rows = np.loadtxt(profile_survey / "trajectory.txt")
+    assert np.diff(rows[:, 0]) == pytest.approx(0.01)  # 100 profiles per second
+    poses = np.loadtxt(profile_survey / "poses.txt")
+    mid = np.round((np.arange(len(poses)) / 10 + 0.05) * 100).astype(int)
+    assert np.allclose(rows[mid, 1:], poses)
+
+
+def test_pose_noise(tmp_path: Path) -> None:
+    config = SimulationConfig(scene="highway", length=20.0, seed=1, camera=False,
+                              pose_noise_m=0.05, pose_noise_deg=0.1)  # fmt: skip
+    out = tmp_path / "noisy"
+    simulate(config, out)
+    measured = np.loadtxt(out / "poses.txt").reshape(-1, 3, 4)
+    exact = np.loadtxt(out / "ground_truth" / "poses.txt").reshape(-1, 3, 4)
+    error = np.linalg.norm(measured[:, :, 3] - exact[:, :, 3], axis=1)
+    assert 0.03 < np.median(error) < 0.15  # 3D error of 5 cm per axis
+    sim = open_survey(out, "sim")
+    assert np.allclose(sim.poses()[:, :3, :4], measured)
+    # the OXTS packets carry the same noisy poses (shifted to the first fix)
+    raw = open_survey(out, "kitti-raw").poses()
+    assert (
+        np.abs((raw[:, :3, 3] - raw[0, :3, 3]) - (measured[:, :, 3] - measured[0, :, 3])).max()
+        < 1e-3
+    )
