@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 
@@ -248,21 +246,14 @@ def grid_terrain(n: int, size: float) -> Mesh:
     return Mesh(np.stack([x.ravel(), y.ravel(), z.ravel()], 1), tri)
 
 
-def test_million_static_rays(capsys):
-    """Throughput micro-check on ~100k triangles (printed, not asserted)."""
+def test_many_static_rays_on_a_large_mesh():
+    """A million rays on ~100k triangles: every downward ray lands on the terrain."""
     terrain = grid_terrain(225, 100.0)
     caster = RayCaster(scene_of([body("terrain", terrain, Semantic.TERRAIN)]))
     rng = np.random.default_rng(4)
     n = 1_000_000
     d = unit(rng.normal(size=(n, 3)) * [1, 1, 0.3] - [0, 0, 0.5])
     o = np.tile([3.0, 2.0, 3.0], (n, 1))
-    caster.cast(o[:1000], d[:1000], 0.0, 200.0)  # BVH build
-    dt = np.inf
-    for _ in range(3):
-        start = time.perf_counter()
-        hits = caster.cast(o, d, 0.0, 200.0)
-        dt = min(dt, time.perf_counter() - start)
-    with capsys.disabled():
-        print(f"\nstatic caster: {len(terrain.triangles)} triangles, {n / dt / 1e6:.1f} M rays/s")
+    hits = caster.cast(o, d, 0.0, 200.0)
     down = d[:, 2] < -0.2
     assert np.all(hits.body[down] == 0)
