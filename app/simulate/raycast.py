@@ -57,6 +57,23 @@ class Hits:
     def __len__(self) -> int:
         return len(self.distance)
 
+    @classmethod
+    def misses(cls, n: int) -> Hits:
+        """n rays that hit nothing (yet)."""
+        return cls(
+            distance=np.full(n, np.inf),
+            body=np.full(n, -1, dtype=np.int32),
+            triangle=np.full(n, -1, dtype=np.int64),
+            normal=np.zeros((n, 3)),
+            halo=np.zeros(n, dtype=bool),
+        )
+
+    def face(self, directions: np.ndarray) -> Hits:
+        """Turn every normal towards its ray (dot(normal, direction) <= 0)."""
+        facing = np.einsum("ij,ij->i", self.normal, directions)
+        self.normal *= np.where(facing > 0, -1.0, 1.0)[:, None]
+        return self
+
 
 def face_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Unit normals (T, 3) of triangles wound counter-clockwise (zero for degenerate ones)."""
@@ -254,22 +271,13 @@ class RayCaster:
         if len(directions) != n:
             raise ValueError("origins and directions need the same number of rays")
         times = np.broadcast_to(np.asarray(times, dtype=np.float64), (n,))
-        hits = Hits(
-            distance=np.full(n, np.inf),
-            body=np.full(n, -1, dtype=np.int32),
-            triangle=np.full(n, -1, dtype=np.int64),
-            normal=np.zeros((n, 3)),
-            halo=np.zeros(n, dtype=bool),
-        )
+        hits = Hits.misses(n)
         for a in range(0, n, self.chunk_size):
             b = min(a + self.chunk_size, n)
             self._cast_chunk(
                 origins[a:b], directions[a:b], times[a:b], max_range, rng, with_halo, hits, a
             )
-        # face the ray
-        facing = np.einsum("ij,ij->i", hits.normal, directions)
-        hits.normal *= np.where(facing > 0, -1.0, 1.0)[:, None]
-        return hits
+        return hits.face(directions)
 
     def _cast_static(
         self,
@@ -302,13 +310,7 @@ class RayCaster:
         origin = np.asarray(origin, dtype=np.float64).reshape(3)
         d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
         n = len(d)
-        hits = Hits(
-            distance=np.full(n, np.inf),
-            body=np.full(n, -1, dtype=np.int32),
-            triangle=np.full(n, -1, dtype=np.int64),
-            normal=np.zeros((n, 3)),
-            halo=np.zeros(n, dtype=bool),
-        )
+        hits = Hits.misses(n)
         o = np.broadcast_to(origin, d.shape)
         self._cast_static(self._static_camera, o, d, max_range, hits, slice(0, n))
         for m in self._moving_only:
@@ -334,9 +336,7 @@ class RayCaster:
             hits.body[j] = m.index
             hits.triangle[j] = prim[near]
             hits.normal[j] = np.take(m.normals, prim[near], axis=0) @ R.T
-        facing = np.einsum("ij,ij->i", hits.normal, d)
-        hits.normal *= np.where(facing > 0, -1.0, 1.0)[:, None]
-        return hits
+        return hits.face(d)
 
     def _cast_chunk(
         self,
