@@ -432,7 +432,7 @@ def build_scene(preset: str, length: float, rng: np.random.Generator) -> Scene:
             urban_traffic(b, drive, cs, length)
     return Scene(
         name=f"{preset}-{length:g}m",
-        seed=0,
+        seed=-1,  # set by the caller that knows the seed (survey.rebuild_scene)
         bodies=b.bodies,
         centerline=centerline.xyz,
         vehicle_path=vehicle,

@@ -124,7 +124,9 @@ def _seeds(config: SimulationConfig) -> list[np.random.SeedSequence]:
 
 def rebuild_scene(config: SimulationConfig) -> Scene:
     """The exact scene a simulation with this config used (tests, evaluation)."""
-    return build_scene(config.scene, config.length, np.random.default_rng(_seeds(config)[0]))
+    scene = build_scene(config.scene, config.length, np.random.default_rng(_seeds(config)[0]))
+    scene.seed = config.seed
+    return scene
 
 
 def simulate(
