@@ -121,6 +121,57 @@ def simulate(
     )
 
 
+run_app = typer.Typer(help="Run a pipeline on a survey (labels, cleaned map, report).")
+cli.add_typer(run_app, name="run")
+train_app = typer.Typer(help="Train a pipeline's model.")
+cli.add_typer(train_app, name="train")
+
+
+@run_app.command("phantom")
+def run_phantom(
+    source: Annotated[Path, typer.Argument(help="survey folder or point-cloud file")],
+    fmt: FormatOption,
+    out: Annotated[Path, typer.Option("--out", "-o", help="output folder")],
+    model: Annotated[Path | None, typer.Option(help="checkpoint (default: shipped)")] = None,
+    windows: Annotated[
+        bool, typer.Option("--windows", help="per-window reference path instead of dense")
+    ] = False,
+    refine: Annotated[bool, typer.Option(help="Algorithm 1 neighbourhood vote")] = True,
+    baselines: Annotated[
+        bool, typer.Option(help="also score the paper's two baselines (needs reference labels)")
+    ] = False,
+) -> None:
+    """Phantom removal (Nagy & Benedek): pillar 3D CNN on the accumulated map."""
+    from rich.progress import Progress
+
+    from app.io import open_survey
+    from app.pipelines.phantom.run import run_phantom_to_folder
+
+    survey = open_survey(source, fmt)
+    with Progress(console=err_console, transient=True) as bar:
+        task = bar.add_task("phantom", total=1.0)
+        report = run_phantom_to_folder(
+            survey,
+            out,
+            model_path=model,
+            dense=not windows,
+            refine=refine,
+            baselines=baselines,
+            progress=lambda stage, f: bar.update(task, completed=f, description=stage),
+        )
+    console.print(
+        f"{out}: {report['counts']['points']:,} points, {report['counts']['phantom_points']:,} "
+        f"phantom points removed, {report['counts']['pillars']:,} pillars "
+        f"({report['timings']['total']:.1f} s)"
+    )
+    if "metrics" in report:
+        pillar = report["metrics"]["pillar"]
+        console.print(
+            f"pillar level: overall F {pillar['macro']['f1']:.1f}, phantom F "
+            f"{pillar['classes']['phantom']['f1']:.1f}"
+        )
+
+
 @cli.command()
 def serve(
     host: Annotated[str | None, typer.Option(help="bind address (default 127.0.0.1)")] = None,

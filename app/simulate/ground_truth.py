@@ -109,16 +109,29 @@ def pillar_classes(
     grid = PillarGrid.aligned(xyz[:, :2], cell)
     _, inverse, _ = grid.group(xyz[:, :2])
     in_column = xyz[:, 2] - ground_height <= height
+    return classify_pillar_groups(inverse, semantic, moving, in_column, min_points)[inverse]
+
+
+def classify_pillar_groups(
+    group: np.ndarray,
+    semantic: np.ndarray,
+    moving: np.ndarray,
+    in_column: np.ndarray,
+    min_points: int = 3,
+) -> np.ndarray:
+    """The pillar rule (module docstring) for points grouped into pillars: (G,) uint8 class of
+    each group id 0..G-1 from its points' static SemanticKITTI class and moving flag; only
+    points with `in_column` count."""
     non_ground = in_column & ~np.isin(semantic, list(GROUND_CLASSES))
-    n = int(inverse.max()) + 1
-    count = np.bincount(inverse, weights=non_ground, minlength=n)
-    moving_count = np.bincount(inverse, weights=non_ground & moving, minlength=n)
+    n = int(group.max()) + 1 if len(group) else 0
+    count = np.bincount(group, weights=non_ground, minlength=n)
+    moving_count = np.bincount(group, weights=non_ground & moving, minlength=n)
     static = non_ground & ~moving
-    high = np.bincount(inverse, weights=static & np.isin(semantic, list(HIGH_CLASSES)), minlength=n)
+    high = np.bincount(group, weights=static & np.isin(semantic, list(HIGH_CLASSES)), minlength=n)
     short = count - moving_count - high
     classes = np.full(n, PillarClass.GROUND, dtype=np.uint8)
     occupied = count >= min_points
     classes[occupied & (high >= short)] = PillarClass.HIGH_OBJECT
     classes[occupied & (high < short)] = PillarClass.SHORT_OBJECT
     classes[occupied & (2 * moving_count > count)] = PillarClass.PHANTOM
-    return classes[inverse]
+    return classes

@@ -1,0 +1,72 @@
+"""Pillar classification: the per-window reference path and the dense (fully-convolutional)
+path that shares the convolutions of overlapping windows, tiled with a halo so memory stays
+bounded on any map size. Both return softmax probabilities (P, 4) for the occupied pillars."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from app.pipelines.phantom.network import PillarCNN, dense_logits
+from app.pipelines.phantom.pillars import PillarMap, window_origin
+
+Progress = Callable[[float], None]
+
+
+def window_tensor(pm: PillarMap, pillars: np.ndarray) -> torch.Tensor:
+    """(N, 1, 30, 24, 24) inputs of the given pillars (their windows plus one context voxel)."""
+    side = pm.config.window_voxels + 2
+    origins = window_origin(pillars, pm.config)
+    lo = origins.min(axis=0)
+    span = origins.max(axis=0) - lo + side
+    block = pm.dense_block(int(lo[0]), int(lo[1]), int(span[0]), int(span[1]))
+    ox, oy = (origins - lo).T
+    r = np.arange(side)
+    windows = block[:, ox[:, None, None] + r[None, :, None], oy[:, None, None] + r[None, None, :]]
+    return torch.from_numpy(np.ascontiguousarray(windows.transpose(1, 0, 2, 3)))[:, None]
+
+
+@torch.no_grad()
+def classify_windows(
+    net: PillarCNN, pm: PillarMap, batch: int = 512, progress: Progress | None = None
+) -> np.ndarray:
+    """Reference path: each occupied pillar's window through the network on its own."""
+    net.eval()
+    out = np.zeros((len(pm.pillars), 4), dtype=np.float32)
+    for a in range(0, len(pm.pillars), batch):
+        x = window_tensor(pm, pm.pillars[a : a + batch])
+        out[a : a + batch] = torch.softmax(net(x), dim=1).numpy()
+        if progress is not None:
+            progress(min(a + batch, len(pm.pillars)) / len(pm.pillars))
+    return out
+
+
+@torch.no_grad()
+def classify_dense(
+    net: PillarCNN, pm: PillarMap, tile: int = 96, progress: Progress | None = None
+) -> np.ndarray:
+    """Dense path: tiles of `tile` x `tile` pillars, each computed fully-convolutionally from
+    its block of voxels (tile + 5-pillar halo + context), only where there are pillars."""
+    net.eval()
+    cfg = pm.config
+    half, per = cfg.neighbourhood // 2, cfg.voxels_per_cell
+    side = per * tile + cfg.window_voxels + 2
+    out = np.zeros((len(pm.pillars), 4), dtype=np.float32)
+    tiles = np.floor_divide(pm.pillars, tile)
+    keys, inverse = np.unique(tiles, axis=0, return_inverse=True)
+    order = np.argsort(inverse, kind="stable")
+    bounds = np.searchsorted(inverse[order], np.arange(len(keys) + 1))
+    for k, (tx, ty) in enumerate(keys):
+        members = order[bounds[k] : bounds[k + 1]]
+        first = np.array([tx * tile - half, ty * tile - half])  # first window pillar P0
+        v0 = first * per - 1
+        block = pm.dense_block(int(v0[0]), int(v0[1]), side, side)
+        logits = dense_logits(net, torch.from_numpy(block)[None, None])
+        local = pm.pillars[members] - first - half
+        probs = torch.softmax(logits[:, local[:, 0], local[:, 1]], dim=0)
+        out[members] = probs.T.numpy()
+        if progress is not None:
+            progress((k + 1) / len(keys))
+    return out

@@ -1,0 +1,39 @@
+"""Parameters of the phantom pipeline; defaults are the numbers of Nagy & Benedek's paper."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, Field
+
+
+class PhantomConfig(BaseModel):
+    cell_size: float = Field(0.2, gt=0, description="s_c: pillar base, metres")
+    pillar_height: float = Field(3.0, gt=0, description="pillars reach this high above ground")
+    voxel_size: float = Field(0.1, gt=0, description="voxel edge: 2 x 2 x 30 voxels per pillar")
+    neighbourhood: int = Field(11, ge=3, description="pillars per side of the CNN window (11 x 11)")
+    refine_window: int = Field(5, ge=1, description="N: Algorithm 1 neighbourhood (5 x 5)")
+    refine: bool = True
+    ground_cell: float = Field(1.0, gt=0, description="metres: cells of the ground-height estimate")
+    ground_opening: int = Field(5, ge=1, description="cells: objects narrower are not ground")
+    ground_tolerance: float = Field(
+        0.15, ge=0, description="points this close above the ground stay ground (DESIGN.md)"
+    )
+    below_ground: float = Field(0.3, ge=0, description="points this far below ground still count")
+    tile_pillars: int = Field(96, ge=8, description="dense inference tile size (output pillars)")
+    batch_size: int = Field(512, ge=1, description="windows per batch on the per-window path")
+    threads: int = Field(0, ge=0, description="torch threads, 0 = all cores")
+
+    @property
+    def voxels_per_cell(self) -> int:
+        return round(self.cell_size / self.voxel_size)
+
+    @property
+    def voxels_high(self) -> int:
+        """Voxels per pillar column (30); at most 32, they share a packed key with x and y."""
+        n = round(self.pillar_height / self.voxel_size)
+        if n > 32:
+            raise ValueError(f"pillar_height / voxel_size = {n} voxels: at most 32 are supported")
+        return n
+
+    @property
+    def window_voxels(self) -> int:
+        return self.neighbourhood * self.voxels_per_cell

@@ -1,0 +1,95 @@
+"""The 3D CNN of the paper (Fig. 4): LeNet-style, three 3x3x3 convolutions with ReLU, two
+2x2x2 max-pools, dropout 0.5 then 0.25, two fully connected layers, softmax over the four
+pillar classes {ground, high object, short object, phantom}.
+
+Input: a pillar's 11 x 11 pillar neighbourhood, 22 x 22 x 30 voxels of point counts (log1p).
+The paper zero-pads the border so that the first convolution keeps 22 x 22 x 30. We keep that
+size but give the first convolution one voxel of real *context* around the window in x and y
+(the window is cut 24 x 24 from the map) and zero padding only in z, where the column ends
+anyway. This is what makes the dense (fully-convolutional) evaluation of `dense_logits`
+*exactly* equal to the per-window network: with zeros at every window border, overlapping
+windows could not share their convolutions.
+
+Tensor layout: (batch, 1, z, x, y).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F  # noqa: N812 (torch convention)
+from torch import nn
+
+CLASS_NAMES = ("ground", "high object", "short object", "phantom")
+
+
+class PillarCNN(nn.Module):
+    def __init__(
+        self,
+        channels: tuple[int, int, int] = (8, 16, 32),
+        hidden: int = 64,
+        height: int = 30,
+        window: int = 22,
+        classes: int = 4,
+    ):
+        super().__init__()
+        c1, c2, c3 = channels
+        self.channels, self.hidden, self.height, self.window = channels, hidden, height, window
+        self.conv1 = nn.Conv3d(1, c1, 3, padding=(1, 0, 0))
+        self.pool1 = nn.MaxPool3d(2)
+        self.conv2 = nn.Conv3d(c1, c2, 3)
+        self.pool2 = nn.MaxPool3d(2)
+        self.drop1 = nn.Dropout(0.5)
+        self.conv3 = nn.Conv3d(c2, c3, 3)
+        self.drop2 = nn.Dropout(0.25)
+        z, xy = self.conv3_shape(height, window)
+        self.fc1 = nn.Linear(c3 * z * xy * xy, hidden)
+        self.fc2 = nn.Linear(hidden, classes)
+
+    @staticmethod
+    def conv3_shape(height: int, window: int) -> tuple[int, int]:
+        """(z, xy) size after conv3 for a window of `window` voxels (+2 context) and `height`."""
+        z = ((height // 2) - 2) // 2 - 2
+        xy = ((window // 2) - 2) // 2 - 2
+        return z, xy
+
+    def features(self, x: torch.Tensor) -> torch.Tensor:
+        x = torch.log1p(x)
+        x = self.pool1(F.relu(self.conv1(x)))
+        x = self.pool2(F.relu(self.conv2(x)))
+        return F.relu(self.conv3(self.drop1(x)))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Logits (N, 4) of windows (N, 1, 30, 24, 24)."""
+        x = self.drop2(self.features(x)).flatten(1)
+        return self.fc2(F.relu(self.fc1(x)))
+
+    def config(self) -> dict:
+        return {
+            "channels": list(self.channels),
+            "hidden": self.hidden,
+            "height": self.height,
+            "window": self.window,
+        }
+
+
+@torch.no_grad()
+def dense_logits(net: PillarCNN, block: torch.Tensor) -> torch.Tensor:
+    """The network evaluated at every pillar of a block at once (shared convolutions).
+
+    `block` (1, 1, 30, 2T + 22, 2T + 22) voxels starting one context voxel before pillar P0's
+    window; returns logits (4, T, T) whose [:, u, v] is the per-window output of the window whose
+    first pillar is P0 + (u, v), i.e. of the pillar P0 + (u, v) + 5. The second max-pool loses
+    its stride (windows one pillar apart are not aligned with it), so later layers dilate by 2.
+    """
+    x = torch.log1p(block)
+    x = F.max_pool3d(F.relu(net.conv1(x)), 2)
+    x = F.relu(net.conv2(x))
+    x = F.max_pool3d(x, kernel_size=2, stride=(2, 1, 1))
+    x = F.relu(F.conv3d(x, net.conv3.weight, net.conv3.bias, dilation=(1, 2, 2)))
+    z, xy = net.conv3_shape(net.height, net.window)
+    c3 = net.channels[2]
+    w1 = net.fc1.weight.view(net.hidden, c3, z, xy, xy)
+    x = F.relu(F.conv3d(x, w1, net.fc1.bias, dilation=(1, 2, 2)))
+    x = F.conv3d(x, net.fc2.weight.view(-1, net.hidden, 1, 1, 1), net.fc2.bias)
+    t = (block.shape[-1] - net.window) // 2
+    return x[0, :, 0, :t, :t]

@@ -1,0 +1,75 @@
+"""Pillars and voxels (the paper's Sec. III-A): the map cut into s_c x s_c x 3 m columns that
+stand on the local ground, each split into 2 x 2 x 30 voxels of 0.1 m holding point counts.
+
+Indices are global and stable: voxel (vx, vy) = floor(x / 0.1), floor(y / 0.1); the pillar of a
+voxel is (vx // 2, vy // 2). vz = floor(height above ground / 0.1) in [0, 30). Counts are kept
+sparse (one entry per occupied voxel), so any map size fits; `dense_block` cuts out the dense
+tensor of any window or tile.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from app.pipelines.phantom.config import PhantomConfig
+from app.pipelines.phantom.ground import GroundModel
+
+_BIAS = 1 << 27  # voxel indices within +-2^27 (13,000 km at 0.1 m): UTM coordinates fit
+
+
+@dataclass
+class PillarMap:
+    config: PhantomConfig
+    vx: np.ndarray  # (M,) int64 occupied voxels, sorted by vx
+    vy: np.ndarray  # (M,)
+    vz: np.ndarray  # (M,)
+    counts: np.ndarray  # (M,) float32 points per voxel
+    pillars: np.ndarray  # (P, 2) int64 occupied pillars (ix, iy)
+    point_pillar: np.ndarray  # (N,) int64 index into `pillars`, -1 outside the 3 m layer
+    height: np.ndarray  # (N,) float64 height above the local ground
+
+    @property
+    def in_layer(self) -> np.ndarray:
+        return self.point_pillar >= 0
+
+    def dense_block(self, vx0: int, vy0: int, nx: int, ny: int) -> np.ndarray:
+        """(Z, nx, ny) float32 counts of voxels vx0..vx0+nx-1, vy0..vy0+ny-1 (zeros elsewhere)."""
+        block = np.zeros((self.config.voxels_high, nx, ny), dtype=np.float32)
+        a, b = np.searchsorted(self.vx, [vx0, vx0 + nx])
+        vy = self.vy[a:b]
+        sel = (vy >= vy0) & (vy < vy0 + ny)
+        block[self.vz[a:b][sel], self.vx[a:b][sel] - vx0, vy[sel] - vy0] = self.counts[a:b][sel]
+        return block
+
+
+def build_pillar_map(xyz: np.ndarray, ground: GroundModel, config: PhantomConfig) -> PillarMap:
+    """Voxelise the points between `below_ground` under and `pillar_height` above the ground."""
+    v = config.voxel_size
+    height = xyz[:, 2] - ground.height(xyz)
+    layer = (height >= -config.below_ground) & (height < config.pillar_height)
+    idx = np.flatnonzero(layer)
+    vx = np.floor(xyz[idx, 0] / v).astype(np.int64)
+    vy = np.floor(xyz[idx, 1] / v).astype(np.int64)
+    vz = np.clip(np.floor(height[idx] / v).astype(np.int64), 0, config.voxels_high - 1)
+    if len(idx) and (np.abs(vx).max() >= _BIAS or np.abs(vy).max() >= _BIAS):
+        raise ValueError("coordinates beyond +-13,000 km: re-centre the map first")
+    # one int64 per voxel: 28 bits vx, 28 bits vy, 5 bits vz (sorted by vx, then vy, then vz)
+    key = (vx + _BIAS) << 33 | (vy + _BIAS) << 5 | vz
+    keys, counts = np.unique(key, return_counts=True)
+    ux, uy, uz = (keys >> 33) - _BIAS, ((keys >> 5) & 0xFFFFFFF) - _BIAS, keys & 0x1F
+    per = config.voxels_per_cell
+    pkey = (vx // per + _BIAS) << 32 | (vy // per + _BIAS)
+    pkeys, inverse = np.unique(pkey, return_inverse=True)
+    pillars = np.stack([(pkeys >> 32) - _BIAS, (pkeys & 0xFFFFFFFF) - _BIAS], axis=1)
+    point_pillar = np.full(len(xyz), -1, dtype=np.int64)
+    point_pillar[idx] = inverse
+    return PillarMap(config, ux, uy, uz, counts.astype(np.float32), pillars, point_pillar, height)
+
+
+def window_origin(pillar: np.ndarray, config: PhantomConfig) -> np.ndarray:
+    """First voxel (vx, vy) of the CNN input of each pillar: its 11 x 11 pillar neighbourhood
+    plus one voxel of context on every side (the first convolution's border, see network.py)."""
+    half = config.neighbourhood // 2
+    return np.asarray(pillar) * config.voxels_per_cell - half * config.voxels_per_cell - 1

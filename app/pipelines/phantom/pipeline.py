@@ -1,0 +1,127 @@
+"""The phantom pipeline, step by step: accumulate -> ground -> pillars -> 3D CNN (dense) ->
+refinement (Algorithm 1) -> point labels -> cleaned map; plus, when the survey has reference
+labels, the paper's metrics."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from app.io.survey import Survey
+from app.pipelines.phantom.classify import classify_dense, classify_windows
+from app.pipelines.phantom.config import PhantomConfig
+from app.pipelines.phantom.ground import estimate_ground
+from app.pipelines.phantom.model import load_model
+from app.pipelines.phantom.pillars import PillarMap, build_pillar_map
+from app.pipelines.phantom.point_labels import point_labels
+from app.pipelines.phantom.refine import refine
+
+Progress = Callable[[str, float], None]
+
+
+@dataclass
+class AccumulatedMap:
+    """All frames of a survey in world coordinates, with where each point came from."""
+
+    xyz: np.ndarray  # (N, 3) float64
+    frame_ids: list[str]
+    frame_sizes: list[int]
+    reference: dict[str, np.ndarray] = field(default_factory=dict)  # per point, when present
+
+    def split(self, values: np.ndarray) -> dict[str, np.ndarray]:
+        """Per-point values back into per-frame arrays (file order)."""
+        parts = np.split(values, np.cumsum(self.frame_sizes)[:-1])
+        return dict(zip(self.frame_ids, parts, strict=True))
+
+    @property
+    def source_frame(self) -> np.ndarray:
+        return np.repeat(np.arange(len(self.frame_sizes), dtype=np.uint32), self.frame_sizes)
+
+    @property
+    def source_index(self) -> np.ndarray:
+        return np.concatenate([np.arange(n, dtype=np.uint32) for n in self.frame_sizes])
+
+
+def accumulate(survey: Survey, with_reference: bool = True) -> AccumulatedMap:
+    clouds, refs = [], []
+    for frame in survey.frames:
+        clouds.append(frame.world_points().xyz)
+        if with_reference and survey.reference_label_kinds:
+            refs.append(frame.reference_labels())
+    reference = {}
+    if refs and all(refs):
+        reference = {k: np.concatenate([r[k] for r in refs]) for k in refs[0]}
+    return AccumulatedMap(
+        xyz=np.concatenate(clouds) if clouds else np.zeros((0, 3)),
+        frame_ids=[f.frame_id for f in survey.frames],
+        frame_sizes=[len(c) for c in clouds],
+        reference=reference,
+    )
+
+
+@dataclass
+class PhantomResult:
+    map: AccumulatedMap
+    pillar_map: PillarMap
+    probabilities: np.ndarray  # (P, 4) CNN softmax per occupied pillar
+    raw_labels: np.ndarray  # (P,) argmax
+    pillar_labels: np.ndarray  # (P,) after refinement
+    point_labels: np.ndarray  # (N,) uint8 per accumulated point
+    timings: dict[str, float]
+
+    def frame_labels(self) -> dict[str, np.ndarray]:
+        return self.map.split(self.point_labels)
+
+
+class PhantomPipeline:
+    def __init__(
+        self,
+        config: PhantomConfig | None = None,
+        model_path: Path | None = None,
+        dense: bool = True,
+    ):
+        self.config = config or PhantomConfig()
+        self.net, self.card = load_model(model_path)
+        self.dense = dense
+
+    def run(self, survey: Survey, progress: Progress | None = None) -> PhantomResult:
+        def report(stage: str, fraction: float) -> None:
+            if progress is not None:
+                progress(stage, fraction)
+
+        cfg = self.config
+        if cfg.threads:
+            torch.set_num_threads(cfg.threads)
+        timings: dict[str, float] = {}
+        clock = time.perf_counter()
+
+        def lap(name: str) -> None:
+            nonlocal clock
+            now = time.perf_counter()
+            timings[name] = round(now - clock, 3)
+            clock = now
+
+        report("accumulate", 0.0)
+        amap = accumulate(survey)
+        lap("accumulate")
+        ground = estimate_ground(amap.xyz, cfg.ground_cell, cfg.ground_opening)
+        lap("ground")
+        pm = build_pillar_map(amap.xyz, ground, cfg)
+        lap("pillars")
+        if self.dense:
+            probs = classify_dense(self.net, pm, cfg.tile_pillars, lambda f: report("classify", f))
+        else:
+            probs = classify_windows(self.net, pm, cfg.batch_size, lambda f: report("classify", f))
+        lap("classify")
+        raw = probs.argmax(axis=1).astype(np.uint8)
+        labels = refine(pm.pillars, raw, cfg.refine_window) if cfg.refine else raw
+        lap("refine")
+        points = point_labels(pm, labels)
+        lap("point_labels")
+        report("done", 1.0)
+        return PhantomResult(amap, pm, probs, raw, labels, points, timings)

@@ -1,0 +1,42 @@
+"""Reference pillar classes of a map from per-point reference labels (evaluation, training).
+
+Simulated surveys and SemanticKITTI both carry SemanticKITTI class ids; moving objects are either
+flagged (simulator) or have the moving ids 252-259 (SemanticKITTI), which map back to their static
+class. The pillar rule is the simulator's (`app.simulate.ground_truth`): moving points the
+majority of a pillar's non-ground points -> phantom; otherwise high vs short object by vote;
+fewer than 3 non-ground points -> ground. Unlabeled (0) and outlier (1) points do not vote.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from app.pipelines.phantom.pillars import PillarMap
+from app.simulate.classes import Semantic
+from app.simulate.ground_truth import classify_pillar_groups
+
+# SemanticKITTI moving class -> its static class
+MOVING_TO_STATIC = {252: 10, 253: 31, 254: 30, 255: 32, 256: 16, 257: 13, 258: 18, 259: 20}
+
+
+def static_and_moving(reference: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(static semantic id, moving flag) per point from a survey frame's reference labels."""
+    semantic = reference["semantic"].astype(np.int64)
+    if "moving" in reference:
+        return semantic, reference["moving"].astype(bool)
+    moving = semantic >= 252
+    static = semantic.copy()
+    for moving_id, static_id in MOVING_TO_STATIC.items():
+        static[semantic == moving_id] = static_id
+    return static, moving
+
+
+def reference_pillar_labels(pm: PillarMap, semantic: np.ndarray, moving: np.ndarray) -> np.ndarray:
+    """(P,) uint8 reference class of each occupied pillar of `pm`."""
+    inside = pm.point_pillar >= 0
+    voting = inside & ~np.isin(semantic, [Semantic.UNLABELED, 1])
+    group = pm.point_pillar[inside]
+    labels = classify_pillar_groups(group, semantic[inside], moving[inside], voting[inside])
+    out = np.zeros(len(pm.pillars), dtype=np.uint8)
+    out[: len(labels)] = labels
+    return out
