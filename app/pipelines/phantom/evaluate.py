@@ -1,6 +1,10 @@
 """The paper's metrics (Table I: precision / recall / F per class and overall, confusion matrix;
 Table II: phantom detection against the two baselines) for a run on a survey with reference
-labels. Pillar level is what the paper reports; point level is what a cleaned map is made of."""
+labels. Pillar level is what the paper reports; point level is what a cleaned map is made of.
+
+"Overall" (`macro`) is the mean over the three object classes, ground left out: that is how
+Table I's overall row is computed (91.5 = mean of 89.5, 95.6, 89.3); `accuracy` is the micro
+rate over all four."""
 
 from __future__ import annotations
 
@@ -13,6 +17,8 @@ from app.pipelines.phantom.point_labels import point_labels
 from app.pipelines.phantom.reference import reference_pillar_labels, static_and_moving
 from app.simulate.classes import PillarClass
 
+PAPER_OVERALL_EXCLUDES = ("ground",)
+
 
 def evaluate(result: PhantomResult, baselines: dict[str, np.ndarray] | None = None) -> dict:
     """Metrics as a JSON-ready dict; `baselines` maps a method name to per-point phantom flags."""
@@ -24,16 +30,20 @@ def evaluate(result: PhantomResult, baselines: dict[str, np.ndarray] | None = No
     out: dict = {"pillars": int(len(pm.pillars))}
     for key, predicted in (("pillar_raw", result.raw_labels), ("pillar", result.pillar_labels)):
         confusion = confusion_matrix(ref_pillars, predicted, 4)
-        out[key] = scores_from_confusion(confusion, names).as_dict()
+        out[key] = scores_from_confusion(
+            confusion, names, macro_exclude=PAPER_OVERALL_EXCLUDES
+        ).as_dict()
     in_layer = pm.point_pillar >= 0
     ref_points = point_labels(pm, ref_pillars)
     confusion = confusion_matrix(ref_points, result.point_labels, 4, mask=in_layer)
-    out["point"] = scores_from_confusion(confusion, names).as_dict()
+    out["point"] = scores_from_confusion(
+        confusion, names, macro_exclude=PAPER_OVERALL_EXCLUDES
+    ).as_dict()
     # point-level phantom detection: a removed point should belong to a moving object
     truth = moving & in_layer
     phantom = {"mmsclean": result.point_labels == PillarClass.PHANTOM}
     phantom.update(baselines or {})
     out["phantom_points"] = {
-        name: binary_scores(truth, flags & in_layer).__dict__ for name, flags in phantom.items()
+        name: binary_scores(truth, flags & in_layer).as_dict() for name, flags in phantom.items()
     }
     return out
