@@ -45,7 +45,7 @@ def classify_windows(
 
 @torch.no_grad()
 def classify_dense(
-    net: PillarCNN, pm: PillarMap, tile: int = 96, progress: Progress | None = None
+    net: PillarCNN, pm: PillarMap, tile: int = 32, progress: Progress | None = None
 ) -> np.ndarray:
     """Dense path: tiles of `tile` x `tile` pillars, each computed fully-convolutionally from
     its block of voxels (tile + 5-pillar halo + context), only where there are pillars."""

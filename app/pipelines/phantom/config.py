@@ -18,7 +18,7 @@ class PhantomConfig(BaseModel):
         0.15, ge=0, description="points this close above the ground stay ground (DESIGN.md)"
     )
     below_ground: float = Field(0.3, ge=0, description="points this far below ground still count")
-    tile_pillars: int = Field(96, ge=8, description="dense inference tile size (output pillars)")
+    tile_pillars: int = Field(32, ge=8, description="dense inference tile size (output pillars)")
     batch_size: int = Field(512, ge=1, description="windows per batch on the per-window path")
     threads: int = Field(0, ge=0, description="torch threads, 0 = all cores")
 
