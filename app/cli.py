@@ -172,6 +172,54 @@ def run_phantom(
         )
 
 
+@train_app.command("phantom")
+def train_phantom(
+    out: Annotated[Path, typer.Option("--out", "-o", help="checkpoint to write (.pt)")] = Path(
+        "models/phantom/phantom_cnn.pt"
+    ),
+    sim_seeds: Annotated[
+        str, typer.Option(help="simulator seeds, comma separated (presets cycle)")
+    ] = "101,102,103",
+    sim_length: Annotated[float, typer.Option(help="metres per simulated survey")] = 200.0,
+    semantickitti: Annotated[
+        list[Path] | None, typer.Option(help="SemanticKITTI sequence folder (repeatable)")
+    ] = None,
+    per_class: Annotated[int, typer.Option(help="pillars per class (paper: 10,000)")] = 10_000,
+    epochs: Annotated[int, typer.Option(help="training epochs")] = 8,
+    folds_to_run: Annotated[int, typer.Option(help="folds of the 5-fold split to train")] = 1,
+    seed: Annotated[int, typer.Option(help="sampling / initialisation seed")] = 0,
+) -> None:
+    """Train the phantom 3D CNN on simulated surveys and SemanticKITTI sequences."""
+    from rich.progress import Progress
+
+    from app.core.errors import ConfigError
+    from app.pipelines.phantom.train import TrainConfig, train_phantom_model
+
+    try:
+        seeds = [int(s) for s in sim_seeds.split(",") if s.strip()]
+    except ValueError:
+        raise ConfigError("--sim-seeds", f"not a list of integers: {sim_seeds!r}") from None
+    for folder in semantickitti or []:
+        if not (folder / "velodyne").is_dir():
+            raise ConfigError("--semantickitti", f"{folder} is not a SemanticKITTI sequence")
+    config = TrainConfig(per_class=per_class, epochs=epochs, folds_to_run=folds_to_run, seed=seed)
+    with Progress(console=err_console, transient=True) as bar:
+        task = bar.add_task("training", total=1.0)
+        card = train_phantom_model(
+            out,
+            seeds,
+            list(semantickitti or []),
+            config,
+            lambda stage, f: bar.update(task, completed=f, description=stage),
+            sim_length=sim_length,
+        )
+    validation = card["validation"]
+    per_class = ", ".join(f"{k} {c['f1']:.1f}" for k, c in validation["classes"].items())
+    console.print(
+        f"{out}: validation F per class: {per_class}; macro {validation['macro']['f1']:.1f}"
+    )
+
+
 @cli.command()
 def serve(
     host: Annotated[str | None, typer.Option(help="bind address (default 127.0.0.1)")] = None,
