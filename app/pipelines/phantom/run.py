@@ -50,7 +50,7 @@ def run_phantom_to_folder(
         "timings": dict(result.timings),
         "files": files,
     }
-    if result.map.reference:
+    if "semantic" in result.map.reference:  # SemanticKITTI ids (simulator, SemanticKITTI)
         from app.pipelines.phantom.evaluate import evaluate
 
         flags = {}

@@ -119,3 +119,16 @@ def test_missing_model_is_one_line(survey_dir: Path, tmp_path: Path) -> None:
     )
     assert result.returncode != 0 and "Traceback" not in result.stderr
     assert str(missing) in result.stderr and len(result.stderr.strip().splitlines()) == 1
+
+
+def test_run_on_a_las_map(survey_dir: Path, model: Path, tmp_path: Path) -> None:
+    """An accumulated map without SemanticKITTI labels: labels for frame `map`, no metrics."""
+    from app.io.las import write_laz
+    from app.pipelines.phantom.run import run_phantom_to_folder
+
+    survey = open_survey(survey_dir, "sim")
+    xyz = np.concatenate([f.world_points().xyz for f in survey.frames[:5]])
+    las = write_laz(tmp_path / "map.laz", xyz, classification=np.full(len(xyz), 2, np.uint8))
+    report = run_phantom_to_folder(open_survey(las, "las"), tmp_path / "out", model_path=model)
+    labels = np.load(tmp_path / "out" / "labels" / "map.npy")
+    assert labels.shape == (len(xyz),) and "metrics" not in report
