@@ -1,6 +1,7 @@
 """Pillar classification: the per-window reference path and the dense (fully-convolutional)
 path that shares the convolutions of overlapping windows, tiled with a halo so memory stays
-bounded on any map size. Both return softmax probabilities (P, 4) for the occupied pillars."""
+bounded on any map size. Both return softmax probabilities (len(which), 4) for the pillars
+`which` (indices into `pm.pillars`, default all occupied pillars)."""
 
 from __future__ import annotations
 
@@ -28,33 +29,49 @@ def window_tensor(pm: PillarMap, pillars: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(windows.transpose(1, 0, 2, 3)))[:, None]
 
 
+def _selected(pm: PillarMap, which: np.ndarray | None) -> np.ndarray:
+    return np.arange(len(pm.pillars)) if which is None else np.asarray(which, dtype=np.int64)
+
+
 @torch.no_grad()
 def classify_windows(
-    net: PillarCNN, pm: PillarMap, batch: int = 512, progress: Progress | None = None
+    net: PillarCNN,
+    pm: PillarMap,
+    batch: int = 512,
+    progress: Progress | None = None,
+    which: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Reference path: each occupied pillar's window through the network on its own."""
+    """Reference path: each pillar's window through the network on its own."""
     net.eval()
-    out = np.zeros((len(pm.pillars), 4), dtype=np.float32)
-    for a in range(0, len(pm.pillars), batch):
-        x = window_tensor(pm, pm.pillars[a : a + batch])
+    which = _selected(pm, which)
+    out = np.zeros((len(which), 4), dtype=np.float32)
+    for a in range(0, len(which), batch):
+        x = window_tensor(pm, pm.pillars[which[a : a + batch]])
         out[a : a + batch] = torch.softmax(net(x), dim=1).numpy()
         if progress is not None:
-            progress(min(a + batch, len(pm.pillars)) / len(pm.pillars))
+            progress(min(a + batch, len(which)) / len(which))
     return out
 
 
 @torch.no_grad()
 def classify_dense(
-    net: PillarCNN, pm: PillarMap, tile: int = 32, progress: Progress | None = None
+    net: PillarCNN,
+    pm: PillarMap,
+    tile: int = 32,
+    progress: Progress | None = None,
+    which: np.ndarray | None = None,
 ) -> np.ndarray:
     """Dense path: tiles of `tile` x `tile` pillars, each computed fully-convolutionally from
-    its block of voxels (tile + 5-pillar halo + context), only where there are pillars."""
+    its block of voxels (tile + 5-pillar halo + context), only where there are pillars to
+    classify."""
     net.eval()
     cfg = pm.config
     half, per = cfg.neighbourhood // 2, cfg.voxels_per_cell
     side = per * tile + cfg.window_voxels + 2
-    out = np.zeros((len(pm.pillars), 4), dtype=np.float32)
-    tiles = np.floor_divide(pm.pillars, tile)
+    which = _selected(pm, which)
+    out = np.zeros((len(which), 4), dtype=np.float32)
+    pillars = pm.pillars[which]
+    tiles = np.floor_divide(pillars, tile)
     keys, inverse = np.unique(tiles, axis=0, return_inverse=True)
     order = np.argsort(inverse, kind="stable")
     bounds = np.searchsorted(inverse[order], np.arange(len(keys) + 1))
@@ -64,7 +81,7 @@ def classify_dense(
         v0 = first * per - 1
         block = pm.dense_block(int(v0[0]), int(v0[1]), side, side)
         logits = dense_logits(net, torch.from_numpy(block)[None, None])
-        local = pm.pillars[members] - first - half
+        local = pillars[members] - first - half
         probs = torch.softmax(logits[:, local[:, 0], local[:, 1]], dim=0)
         out[members] = probs.T.numpy()
         if progress is not None:

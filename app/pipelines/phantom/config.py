@@ -17,6 +17,9 @@ class PhantomConfig(BaseModel):
     ground_tolerance: float = Field(
         0.15, ge=0, description="points this close above the ground stay ground (DESIGN.md)"
     )
+    min_object_points: int = Field(
+        3, ge=0, description="pillars with fewer points above ground_tolerance are ground"
+    )
     below_ground: float = Field(0.3, ge=0, description="points this far below ground still count")
     tile_pillars: int = Field(32, ge=8, description="dense inference tile size (output pillars)")
     batch_size: int = Field(512, ge=1, description="windows per batch on the per-window path")

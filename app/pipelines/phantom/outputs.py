@@ -39,6 +39,7 @@ def write_maps(out: Path, result: PhantomResult) -> dict[str, str]:
         Path(out) / "pillars.npz",
         pillars=pm.pillars,
         probabilities=result.probabilities,
+        classified=result.classified,
         raw_labels=result.raw_labels,
         labels=result.pillar_labels,
         cell_size=pm.config.cell_size,

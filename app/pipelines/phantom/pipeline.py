@@ -20,6 +20,7 @@ from app.pipelines.phantom.model import load_model
 from app.pipelines.phantom.pillars import PillarMap, build_pillar_map
 from app.pipelines.phantom.point_labels import point_labels
 from app.pipelines.phantom.refine import refine
+from app.simulate.classes import PillarClass
 
 Progress = Callable[[str, float], None]
 
@@ -68,7 +69,8 @@ def accumulate(survey: Survey, with_reference: bool = True) -> AccumulatedMap:
 class PhantomResult:
     map: AccumulatedMap
     pillar_map: PillarMap
-    probabilities: np.ndarray  # (P, 4) CNN softmax per occupied pillar
+    probabilities: np.ndarray  # (P, 4) CNN softmax per occupied pillar (one-hot ground if gated)
+    classified: np.ndarray  # (P,) bool: the CNN judged the pillar (PillarMap.candidates)
     raw_labels: np.ndarray  # (P,) argmax
     pillar_labels: np.ndarray  # (P,) after refinement
     point_labels: np.ndarray  # (N,) uint8 per accumulated point
@@ -113,10 +115,17 @@ class PhantomPipeline:
         lap("ground")
         pm = build_pillar_map(amap.xyz, ground, cfg)
         lap("pillars")
+        which = pm.candidates()  # the rest is plain ground (PillarMap.candidates)
+        probs = np.zeros((len(pm.pillars), 4), dtype=np.float32)
+        probs[:, PillarClass.GROUND] = 1.0
+
+        def step(fraction: float) -> None:
+            report("classify", fraction)
+
         if self.dense:
-            probs = classify_dense(self.net, pm, cfg.tile_pillars, lambda f: report("classify", f))
+            probs[which] = classify_dense(self.net, pm, cfg.tile_pillars, step, which)
         else:
-            probs = classify_windows(self.net, pm, cfg.batch_size, lambda f: report("classify", f))
+            probs[which] = classify_windows(self.net, pm, cfg.batch_size, step, which)
         lap("classify")
         raw = probs.argmax(axis=1).astype(np.uint8)
         labels = refine(pm.pillars, raw, cfg.refine_window) if cfg.refine else raw
@@ -124,4 +133,6 @@ class PhantomPipeline:
         points = point_labels(pm, labels)
         lap("point_labels")
         report("done", 1.0)
-        return PhantomResult(amap, pm, probs, raw, labels, points, timings)
+        classified = np.zeros(len(pm.pillars), dtype=bool)
+        classified[which] = True
+        return PhantomResult(amap, pm, probs, classified, raw, labels, points, timings)

@@ -42,6 +42,7 @@ def run_phantom_to_folder(
             "points": int(len(result.point_labels)),
             "points_in_layer": int(result.pillar_map.in_layer.sum()),
             "pillars": int(len(result.pillar_map.pillars)),
+            "pillars_classified": int(result.classified.sum()),
             "pillars_per_class": {
                 name.name.lower(): int((result.pillar_labels == name).sum()) for name in PillarClass
             },

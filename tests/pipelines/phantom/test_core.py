@@ -112,3 +112,29 @@ def test_points_at_ground_level_stay_ground() -> None:
     at_ground = np.abs(pm.height) < 0.05
     assert (labels[at_ground] == 0).all()
     assert (labels[(pm.height > 0.3) & (pm.height < 2.9)] == 3).all()
+
+
+def test_only_pillars_with_object_points_go_to_the_cnn() -> None:
+    xyz = street()
+    pm = build_pillar_map(xyz, estimate_ground(xyz), CFG)
+    which = pm.candidates()
+    above = pm.point_pillar[(pm.point_pillar >= 0) & (pm.height > CFG.ground_tolerance)]
+    counts = np.bincount(above, minlength=len(pm.pillars))
+    assert np.array_equal(which, np.flatnonzero(counts >= CFG.min_object_points))
+    # the car footprint (10..14.5 x -3..-1.2) is judged, the open road beside it is not
+    centres = (pm.pillars[which] + 0.5) * CFG.cell_size
+    on_car = (centres[:, 0] > 10.2) & (centres[:, 0] < 14.3) & (centres[:, 1] > -2.8)
+    on_car &= centres[:, 1] < -1.4
+    assert on_car.sum() > 0.9 * (4.1 / 0.2) * (1.4 / 0.2)
+    road = (pm.pillars[:, 1] * 0.2 > -7) & (pm.pillars[:, 1] * 0.2 < -4)
+    assert not np.isin(np.flatnonzero(road), which).any()
+
+
+def test_classifying_a_subset_gives_the_same_rows(per_window: tuple) -> None:
+    pm, net, ref = per_window
+    which = pm.candidates()
+    assert 0 < len(which) < len(pm.pillars)
+    dense = classify_dense(net, pm, tile=16, which=which)
+    windows = classify_windows(net, pm, batch=256, which=which)
+    assert np.abs(dense - ref[which]).max() < 1e-4
+    assert np.abs(windows - ref[which]).max() < 1e-5
