@@ -29,6 +29,7 @@ from app.pipelines.phantom.ground import estimate_ground
 from app.pipelines.phantom.network import CLASS_NAMES
 from app.pipelines.phantom.pillars import PillarMap, build_pillar_map
 from app.pipelines.phantom.reference import reference_pillar_labels, static_and_moving
+from app.simulate.classes import PillarClass
 
 N_CLASSES = len(CLASS_NAMES)
 COUNT_CLIP = 255  # uint8 storage of the voxel counts (module docstring)
@@ -209,8 +210,12 @@ def pillar_samples(
     max_per_class: int | dict[int, int] | None = None,
     batch: int = 512,
 ) -> Samples:
-    """Every labelled pillar of the map as a sample (a random subset of at most `max_per_class`
-    per class; a dict {class index: cap} caps classes one by one, 0 skips a class).
+    """Every labelled pillar of the map that the pipeline would give to the CNN
+    (`PillarMap.candidates`: the rest is ground without asking it) as a sample, a random subset of
+    at most `max_per_class` per class; a dict {class index: cap} caps classes one by one, 0 skips
+    a class. Ground samples are thus the hard ones (curbs, low vegetation, the fringe of objects),
+    topped up with random plain-road pillars where there are fewer of them than the cap (with no
+    cap: than the largest other class).
 
     With `rotate` the cloud is first turned about z through its centroid by a uniform random angle.
     `sources[0]` records the map's point count and pillars per class (before capping).
@@ -219,22 +224,34 @@ def pillar_samples(
     rng = rng if rng is not None else np.random.default_rng()
     angle = float(rng.uniform(0.0, 2.0 * np.pi)) if rotate else 0.0
     pm, labels = labelled_pillars(lmap, config, angle)
+    judged = np.zeros(len(labels), dtype=bool)
+    judged[pm.candidates()] = True
     chosen = []
     for cls in range(N_CLASSES):
-        index = np.flatnonzero(labels == cls)
+        index = np.flatnonzero((labels == cls) & judged)
         cap = _cap(max_per_class, cls)
         if cap is not None and len(index) > cap:
             index = np.sort(rng.choice(index, size=cap, replace=False))
         chosen.append(index)
+    # judged ground is rare on some maps (none on a flat road): top ground up with plain road
+    want = _cap(max_per_class, PillarClass.GROUND)
+    want = max(len(c) for c in chosen) if want is None else want
+    plain = np.flatnonzero((labels == PillarClass.GROUND) & ~judged)
+    extra = min(max(want - len(chosen[PillarClass.GROUND]), 0), len(plain))
+    if extra:
+        fill = rng.choice(plain, size=extra, replace=False)
+        chosen[PillarClass.GROUND] = np.sort(np.r_[chosen[PillarClass.GROUND], fill])
     index = np.concatenate(chosen)
     y = labels[index].astype(np.int64)
     pillar_counts = np.bincount(labels, minlength=N_CLASSES)
+    judged_counts = np.bincount(labels[judged], minlength=N_CLASSES)
     sample_counts = np.bincount(y, minlength=N_CLASSES)
     info = {
         "name": lmap.source,
         "points": int(len(lmap)),
         "rotation_deg": round(float(np.degrees(angle)), 3),
         "pillars": {name: int(pillar_counts[i]) for i, name in enumerate(CLASS_NAMES)},
+        "judged_pillars": {name: int(judged_counts[i]) for i, name in enumerate(CLASS_NAMES)},
         "samples": {name: int(sample_counts[i]) for i, name in enumerate(CLASS_NAMES)},
     }
     # where each sample's pillar centre lies in the map before the rotation

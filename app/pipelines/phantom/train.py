@@ -338,6 +338,7 @@ def _merge_infos(infos: list[dict], fmt: str, path: Path) -> dict:
         "path": str(path),
         "points": first["points"],
         "pillars": first["pillars"],
+        "judged_pillars": first["judged_pillars"],
         "rotations_deg": [i["rotation_deg"] for i in infos],
         "samples": samples,
     }

@@ -89,7 +89,12 @@ def test_pillar_samples_windows_and_labels(lmap):
     assert all(counts[name] > 20 for name in CLASS_NAMES), counts
     info = samples.sources[0]
     assert info["name"] == "synthetic" and info["points"] == len(lmap)
-    assert info["pillars"] == counts  # nothing capped: every labelled pillar is a sample
+    # nothing capped: every object pillar the CNN would judge is a sample, and plain road only
+    # as many as the largest class (this flat map has no judged ground at all)
+    assert info["judged_pillars"]["ground"] == 0
+    assert counts["ground"] == max(counts[name] for name in CLASS_NAMES[1:])
+    for name in CLASS_NAMES[1:]:
+        assert counts[name] == info["judged_pillars"][name] <= info["pillars"][name]
     # the window of a phantom pillar holds the moving points around it, none at the car
     x, y = samples.batch(np.flatnonzero(samples.y == PHANTOM)[:5])
     assert x.dtype == torch.float32 and x.sum() > 0 and (y == PHANTOM).all()
