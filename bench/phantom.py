@@ -107,9 +107,12 @@ def main() -> int:
     parser.add_argument("part", choices=["speed", "memory", "accuracy", "kitti", "train"])
     parser.add_argument("--model", type=Path, default=None, help="checkpoint (default: shipped)")
     parser.add_argument("--no-record", action="store_true")
-    parser.add_argument("--epochs", type=int, default=8, help="train: epochs")
+    parser.add_argument("--epochs", type=int, default=10, help="train: epochs")
     parser.add_argument("--kitti-per-class", type=int, default=4000, help="kitti: pillars/class")
     parser.add_argument("--kitti-epochs", type=int, default=6, help="kitti: epochs per model")
+    parser.add_argument(
+        "--kitti-with-sim", action="store_true", help="kitti: add the simulator training maps"
+    )
     args = parser.parse_args()
     parts = {"speed": part_speed, "memory": part_memory}
     if args.part not in parts:

@@ -22,7 +22,8 @@ from app.simulate.classes import PillarClass
 from bench.common import markdown_table
 
 HELD_OUT_SEEDS = ((201, "urban"), (202, "highway"), (203, "mixed"))  # never used in training
-TRAIN_SEEDS = (101, 102, 103)
+VALIDATION_SEEDS = ((111, "urban"), (112, "highway"), (113, "mixed"))  # for choosing settings
+TRAIN_SEEDS = tuple(range(101, 110))  # presets cycle: urban, highway, mixed
 KITTI = ("04", "05", "08")
 
 
@@ -88,6 +89,10 @@ def part_accuracy(args) -> tuple[str, str, str]:
     from bench.phantom import simulated
 
     pipeline = PhantomPipeline(PhantomConfig(), args.model)
+    trained_on = pipeline.card.get("simulation", {}).get("seeds", [])
+    overlap = sorted(set(trained_on) & {seed for seed, _ in HELD_OUT_SEEDS})
+    if overlap:
+        raise SystemExit(f"the model was trained on held-out seeds {overlap}: not an evaluation")
     tally = Tally()
     points = 0
     for seed, scene in HELD_OUT_SEEDS:
@@ -102,9 +107,11 @@ def part_accuracy(args) -> tuple[str, str, str]:
     notes = (
         f"Synthetic, held out: seeds {', '.join(f'{s} ({n})' for s, n in HELD_OUT_SEEDS)}, "
         f"200 m each, profile scanner, {points:,} points; the model never saw these seeds "
-        f"(trained on {TRAIN_SEEDS}). Overall = mean over the three object classes, as the "
-        "paper's Table I. Point level: reference phantom = points of moving objects in the 3 m "
-        f"layer. Model: {pipeline.card.get('model', '?')}, {args.model or 'shipped checkpoint'}."
+        f"(trained on simulator seeds {trained_on}; settings chosen on validation seeds "
+        f"{[s for s, _ in VALIDATION_SEEDS]}). Overall = mean over the three object classes, as "
+        "the paper's Table I. Point level: reference phantom = points of moving objects in the "
+        f"3 m layer. Model: {pipeline.card.get('model', '?')}, "
+        f"{args.model or 'shipped checkpoint'}."
     )
     return "Phantom: accuracy on held-out simulated surveys", table, notes
 
@@ -115,18 +122,20 @@ def part_kitti(args) -> tuple[str, str, str]:
     real = Path(os.environ["MMSCLEAN_REAL_DATA"]) / "semantickitti" / "sequences"
     rows_tables = []
     config = TrainConfig(per_class=args.kitti_per_class, epochs=args.kitti_epochs)
+    # the simulator's profile scans do not look like 10 HDL-64E sweeps: mixing them in is optional
+    sim_seeds = list(TRAIN_SEEDS) if args.kitti_with_sim else []
     started = time.perf_counter()
     for held in KITTI:
         others = [real / s for s in KITTI if s != held]
         with tempfile.TemporaryDirectory() as tmp:
             model = Path(tmp) / "loso.pt"
-            train_phantom_model(model, list(TRAIN_SEEDS), others, config)
+            train_phantom_model(model, sim_seeds, others, config)
             pipeline = PhantomPipeline(PhantomConfig(), model)
             tally = Tally()
             tally.add(pipeline.run(open_survey(real / held, "semantickitti")))
         rows_tables.append(
-            f"Sequence {held} (trained on simulator seeds {TRAIN_SEEDS} + "
-            f"{', '.join(s for s in KITTI if s != held)}):\n\n{tally.table_one()}\n\n"
+            f"Sequence {held} (trained on {', '.join(s for s in KITTI if s != held)}"
+            f"{f' + simulator seeds {sim_seeds}' if sim_seeds else ''}):\n\n{tally.table_one()}\n\n"
             f"{tally.table_two()}"
         )
     notes = (
@@ -137,27 +146,44 @@ def part_kitti(args) -> tuple[str, str, str]:
     return "Phantom: SemanticKITTI leave-one-sequence-out", "\n\n".join(rows_tables), notes
 
 
+def object_f(f1: dict[str, float]) -> float:
+    """The paper's overall F: the mean over the three object classes (Table I)."""
+    return float(np.mean([f1[c] for c in CLASS_NAMES if c != "ground"]))
+
+
 def part_train(args) -> tuple[str, str, str]:
     from app.pipelines.phantom.train import TrainConfig, train_phantom_model
 
-    real = Path(os.environ["MMSCLEAN_REAL_DATA"]) / "semantickitti" / "sequences"
     out = args.model or Path("models/phantom/phantom_cnn.pt")
     config = TrainConfig(per_class=10_000, epochs=args.epochs)
     t0 = time.perf_counter()
-    card = train_phantom_model(out, list(TRAIN_SEEDS), [real / s for s in KITTI], config)
+    card = train_phantom_model(out, list(TRAIN_SEEDS), [], config)
     wall = time.perf_counter() - t0
     v = card["validation"]
-    object_f = np.mean([v["classes"][c]["f1"] for c in CLASS_NAMES if c != "ground"])
+    elapsed, reached = 0.0, None
+    for entry in card["history"]:
+        elapsed += entry["seconds"]
+        if reached is None and object_f(entry["val_f1"]) >= 91.5:
+            reached = (entry["epoch"], elapsed)
+    best_f = object_f({c: v["classes"][c]["f1"] for c in CLASS_NAMES})
     rows = [
         ["pillars (10,000 per class)", f"{sum(card['samples_per_class'].values()):,}"],
-        ["building the set (simulation cached, voxelisation)", f"{card['build_seconds']:.0f} s"],
+        ["building the set (simulations cached, voxelisation)", f"{card['build_seconds']:.0f} s"],
         ["training (SGD, one fold of 5)", f"{card['training_seconds']:.0f} s"],
-        ["whole command", f"{wall:.0f} s (target: training <= 15 min)"],
+        [
+            "training time until validation F >= 91.5 (target <= 15 min)",
+            f"{reached[1]:.0f} s (after epoch {reached[0]})" if reached else "not reached",
+        ],
+        ["whole command", f"{wall:.0f} s"],
         ["best epoch", str(card["best_epoch"])],
-        ["validation F, overall (paper: object classes)", f"{object_f:.1f} (paper 91.5)"],
+        ["validation F, overall (paper: object classes)", f"{best_f:.1f} (paper 91.5)"],
     ] + [[f"validation F, {c}", f"{v['classes'][c]['f1']:.1f}"] for c in CLASS_NAMES]
     table = markdown_table(["measure", "value"], rows)
-    notes = f"Checkpoint written to {out}; model card next to it."
+    notes = (
+        f"Synthetic training data: simulator seeds {list(TRAIN_SEEDS)} (200 m each, profile "
+        "scanner). Validation = fold 0 of the 5-fold split (10 m map blocks kept whole), "
+        f"balanced classes. Checkpoint written to {out}; model card next to it."
+    )
     return "Phantom: training on 40k pillars", table, notes
 
 

@@ -21,6 +21,9 @@ class PhantomConfig(BaseModel):
         3, ge=0, description="pillars with fewer points above ground_tolerance are ground"
     )
     below_ground: float = Field(0.3, ge=0, description="points this far below ground still count")
+    prior_weight: float = Field(
+        1.0, ge=0, le=1, description="w: weight of the map's class priors (priors.py), 0 = paper"
+    )
     tile_pillars: int = Field(32, ge=8, description="dense inference tile size (output pillars)")
     batch_size: int = Field(512, ge=1, description="windows per batch on the per-window path")
     threads: int = Field(0, ge=0, description="torch threads, 0 = all cores")

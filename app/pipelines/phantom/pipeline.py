@@ -16,9 +16,10 @@ from app.io.survey import Survey
 from app.pipelines.phantom.classify import classify_dense, classify_windows
 from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.ground import estimate_ground
-from app.pipelines.phantom.model import load_model
+from app.pipelines.phantom.model import DEFAULT_MODEL, load_model
 from app.pipelines.phantom.pillars import PillarMap, build_pillar_map
 from app.pipelines.phantom.point_labels import point_labels
+from app.pipelines.phantom.priors import apply_priors
 from app.pipelines.phantom.refine import refine
 from app.simulate.classes import PillarClass
 
@@ -69,7 +70,7 @@ def accumulate(survey: Survey, with_reference: bool = True) -> AccumulatedMap:
 class PhantomResult:
     map: AccumulatedMap
     pillar_map: PillarMap
-    probabilities: np.ndarray  # (P, 4) CNN softmax per occupied pillar (one-hot ground if gated)
+    probabilities: np.ndarray  # (P, 4) CNN posterior under the map priors (one-hot ground if gated)
     classified: np.ndarray  # (P,) bool: the CNN judged the pillar (PillarMap.candidates)
     raw_labels: np.ndarray  # (P,) argmax
     pillar_labels: np.ndarray  # (P,) after refinement
@@ -88,7 +89,8 @@ class PhantomPipeline:
         dense: bool = True,
     ):
         self.config = config or PhantomConfig()
-        self.net, self.card = load_model(model_path)
+        self.model_path = Path(model_path) if model_path is not None else DEFAULT_MODEL
+        self.net, self.card = load_model(self.model_path)
         self.dense = dense
 
     def run(self, survey: Survey, progress: Progress | None = None) -> PhantomResult:
@@ -126,6 +128,9 @@ class PhantomPipeline:
             probs[which] = classify_dense(self.net, pm, cfg.tile_pillars, step, which)
         else:
             probs[which] = classify_windows(self.net, pm, cfg.batch_size, step, which)
+        priors = self.card.get("class_priors")
+        if priors is not None:
+            probs[which] = apply_priors(probs[which], np.asarray(priors), cfg.prior_weight)
         lap("classify")
         raw = probs.argmax(axis=1).astype(np.uint8)
         labels = refine(pm.pillars, raw, cfg.refine_window) if cfg.refine else raw

@@ -35,7 +35,11 @@ def run_phantom_to_folder(
         "pipeline": "phantom",
         "survey": {"name": survey.name, "format": survey.format, "source": str(survey.source)},
         "config": config.model_dump(),
-        "model": pipeline.card.get("name", str(model_path or "default")),
+        "model": {
+            "path": str(pipeline.model_path),
+            "created": pipeline.card.get("created"),
+            "validation_f1": pipeline.card.get("validation", {}).get("macro", {}).get("f1"),
+        },
         "path": "dense" if dense else "per-window",
         "counts": {
             "frames": len(result.map.frame_ids),

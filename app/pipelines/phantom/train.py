@@ -56,6 +56,7 @@ from app.pipelines.phantom.dataset import (
 )
 from app.pipelines.phantom.model import save_model
 from app.pipelines.phantom.network import CLASS_NAMES, PillarCNN
+from app.pipelines.phantom.priors import class_priors
 from app.simulate.survey import SimulationConfig, simulate
 
 Progress = Callable[[str, float], None]  # (stage, fraction done)
@@ -446,6 +447,10 @@ def train_phantom_model(
         },
         "threads": torch.get_num_threads(),
     }
+    judged = np.zeros(N_CLASSES)
+    for source in samples.sources:
+        judged += [source["judged_pillars"][name] for name in CLASS_NAMES]
+    card["class_priors"] = class_priors(judged).round(5).tolist()
     save_model(Path(out), result.net, card)
     if progress is not None:
         progress("done", 1.0)

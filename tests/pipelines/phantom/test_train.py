@@ -271,6 +271,9 @@ def test_train_phantom_model_end_to_end(tmp_path):
     assert (cache / "sim-urban-20m-profile-seed0" / "ground_truth" / "simulation.json").is_file()
     net, loaded = load_model(out)
     assert loaded["samples_per_class"] == card["samples_per_class"]
+    # map priors for the pipeline: frequencies of the judged pillars of the training map
+    judged = np.array([source["judged_pillars"][name] for name in CLASS_NAMES], dtype=float)
+    assert np.allclose(loaded["class_priors"], np.maximum(judged / judged.sum(), 1e-3), atol=2e-3)
 
 
 def test_semantickitti_samples(real_data):
