@@ -188,6 +188,9 @@ def train_phantom(
     epochs: Annotated[int, typer.Option(help="training epochs")] = 10,
     folds_to_run: Annotated[int, typer.Option(help="folds of the 5-fold split to train")] = 1,
     seed: Annotated[int, typer.Option(help="sampling / initialisation seed")] = 0,
+    context: Annotated[
+        int, typer.Option(help="channels of the 6.2 m context branch (0: the paper's network)")
+    ] = 0,
 ) -> None:
     """Train the phantom 3D CNN on simulated surveys and SemanticKITTI sequences."""
     from rich.progress import Progress
@@ -202,7 +205,9 @@ def train_phantom(
     for folder in semantickitti or []:
         if not (folder / "velodyne").is_dir():
             raise ConfigError("--semantickitti", f"{folder} is not a SemanticKITTI sequence")
-    config = TrainConfig(per_class=per_class, epochs=epochs, folds_to_run=folds_to_run, seed=seed)
+    config = TrainConfig(
+        per_class=per_class, epochs=epochs, folds_to_run=folds_to_run, seed=seed, context=context
+    )
     with Progress(console=err_console, transient=True) as bar:
         task = bar.add_task("training", total=1.0)
         card = train_phantom_model(

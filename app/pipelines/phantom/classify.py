@@ -10,7 +10,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from app.pipelines.phantom.network import PillarCNN, dense_logits
+from app.pipelines.phantom.network import CONTEXT_BANDS, CONTEXT_SPAN, PillarCNN, dense_logits
 from app.pipelines.phantom.pillars import PillarMap, window_origin
 
 Progress = Callable[[float], None]
@@ -27,6 +27,26 @@ def window_tensor(pm: PillarMap, pillars: np.ndarray) -> torch.Tensor:
     r = np.arange(side)
     windows = block[:, ox[:, None, None] + r[None, :, None], oy[:, None, None] + r[None, None, :]]
     return torch.from_numpy(np.ascontiguousarray(windows.transpose(1, 0, 2, 3)))[:, None]
+
+
+def band_tensor(pm: PillarMap, pillars: np.ndarray) -> torch.Tensor:
+    """(N, 6, 31, 31) band counts of the pillars' surroundings (the context branch's input)."""
+    half = CONTEXT_SPAN // 2
+    lo = pillars.min(axis=0) - half
+    span = pillars.max(axis=0) + half + 1 - lo
+    block = pm.band_block(int(lo[0]), int(lo[1]), int(span[0]), int(span[1]), CONTEXT_BANDS)
+    ox, oy = (pillars - half - lo).T
+    r = np.arange(CONTEXT_SPAN)
+    bands = block[:, ox[:, None, None] + r[None, :, None], oy[:, None, None] + r[None, None, :]]
+    return torch.from_numpy(np.ascontiguousarray(bands.transpose(1, 0, 2, 3)))
+
+
+def network_inputs(
+    net: PillarCNN, pm: PillarMap, pillars: np.ndarray
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """What the network reads for each pillar: its window and, with a context branch, bands."""
+    bands = band_tensor(pm, pillars) if net.context else None
+    return window_tensor(pm, pillars), bands
 
 
 def _selected(pm: PillarMap, which: np.ndarray | None) -> np.ndarray:
@@ -46,8 +66,8 @@ def classify_windows(
     which = _selected(pm, which)
     out = np.zeros((len(which), 4), dtype=np.float32)
     for a in range(0, len(which), batch):
-        x = window_tensor(pm, pm.pillars[which[a : a + batch]])
-        out[a : a + batch] = torch.softmax(net(x), dim=1).numpy()
+        x, bands = network_inputs(net, pm, pm.pillars[which[a : a + batch]])
+        out[a : a + batch] = torch.softmax(net(x, bands), dim=1).numpy()
         if progress is not None:
             progress(min(a + batch, len(which)) / len(which))
     return out
@@ -80,7 +100,13 @@ def classify_dense(
         first = np.array([tx * tile - half, ty * tile - half])  # first window pillar P0
         v0 = first * per - 1
         block = pm.dense_block(int(v0[0]), int(v0[1]), side, side)
-        logits = dense_logits(net, torch.from_numpy(block)[None, None])
+        bands = None
+        if net.context:  # surroundings of the tile's pillars tx * tile.., ty * tile..
+            c0 = np.array([tx, ty]) * tile - CONTEXT_SPAN // 2
+            bands = pm.band_block(int(c0[0]), int(c0[1]), tile + CONTEXT_SPAN - 1,
+                                  tile + CONTEXT_SPAN - 1, CONTEXT_BANDS)  # fmt: skip
+            bands = torch.from_numpy(bands)[None]
+        logits = dense_logits(net, torch.from_numpy(block)[None, None], bands)
         local = pillars[members] - first - half
         probs = torch.softmax(logits[:, local[:, 0], local[:, 1]], dim=0)
         out[members] = probs.T.numpy()

@@ -17,16 +17,17 @@ a voxel's input from >= 5.55 to 5.55.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
 from app.io.survey import Survey
-from app.pipelines.phantom.classify import window_tensor
+from app.pipelines.phantom.classify import band_tensor, window_tensor
 from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.ground import estimate_ground
-from app.pipelines.phantom.network import CLASS_NAMES
+from app.pipelines.phantom.network import CLASS_NAMES, CONTEXT_BANDS, CONTEXT_SPAN
 from app.pipelines.phantom.pillars import PillarMap, build_pillar_map
 from app.pipelines.phantom.reference import reference_pillar_labels, static_and_moving
 from app.simulate.classes import PillarClass
@@ -96,6 +97,7 @@ class Samples:
     xy: np.ndarray | None = None
     group: np.ndarray | None = None
     sources: list[dict] = field(default_factory=list)
+    bands: np.ndarray | None = None  # (S, 6, 31, 31) uint8 context-branch input, when built
 
     def __post_init__(self) -> None:
         self.y = np.asarray(self.y, dtype=np.int64)
@@ -105,6 +107,8 @@ class Samples:
         if self.group is None:
             self.group = np.arange(len(self.y), dtype=np.int64)
         sizes = {len(self.x), len(self.y), len(self.source), len(self.xy), len(self.group)}
+        if self.bands is not None:
+            sizes.add(len(self.bands))
         if len(sizes) != 1:
             raise ValueError(
                 f"Samples: {len(self.x)} windows, {len(self.y)} labels, {len(self.source)} "
@@ -127,6 +131,7 @@ class Samples:
             self.xy[index],
             self.group[index],
             list(self.sources),
+            None if self.bands is None else self.bands[index],
         )
 
     def batch(self, index: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
@@ -134,6 +139,12 @@ class Samples:
         index = np.asarray(index, dtype=np.int64)
         x = torch.from_numpy(self.x[index]).to(torch.float32)
         return x, torch.from_numpy(self.y[index])
+
+    def context_batch(self, index: np.ndarray) -> torch.Tensor | None:
+        """float32 band counts (B, 6, 31, 31) of the given samples, None when not built."""
+        if self.bands is None:
+            return None
+        return torch.from_numpy(self.bands[np.asarray(index, dtype=np.int64)]).to(torch.float32)
 
 
 def concatenate(parts: list[Samples]) -> Samples:
@@ -151,6 +162,7 @@ def concatenate(parts: list[Samples]) -> Samples:
         xy=np.concatenate([p.xy for p in parts]),
         group=np.concatenate(groups),
         sources=[s for p in parts for s in p.sources],
+        bands=np.concatenate([p.bands for p in parts]) if parts[0].bands is not None else None,
     )
 
 
@@ -176,14 +188,20 @@ def labelled_pillars(
     return pm, reference_pillar_labels(pm, lmap.semantic, lmap.moving)
 
 
-def window_counts(pm: PillarMap, pillars: np.ndarray, batch: int = 512) -> np.ndarray:
+def window_counts(
+    pm: PillarMap, pillars: np.ndarray, batch: int = 512, cut: Callable = window_tensor
+) -> np.ndarray:
     """(S, 1, 30, 24, 24) uint8 windows of the given pillars (`window_tensor`, clipped at 255),
-    cut tile by tile (TILE_PILLARS) so each dense block covers only a small area."""
+    cut tile by tile (TILE_PILLARS) so each dense block covers only a small area; with
+    `cut=band_tensor` the (S, 6, 31, 31) band counts of the context branch instead."""
     pillars = np.asarray(pillars, dtype=np.int64).reshape(-1, 2)
-    side = pm.config.window_voxels + 2
-    out = np.empty((len(pillars), 1, pm.config.voxels_high, side, side), dtype=np.uint8)
+    out = None
     if not len(pillars):
-        return out
+        side = pm.config.window_voxels + 2
+        shape = (1, pm.config.voxels_high, side, side)
+        if cut is band_tensor:
+            shape = (CONTEXT_BANDS, CONTEXT_SPAN, CONTEXT_SPAN)
+        return np.empty((0, *shape), dtype=np.uint8)
     tiles = np.floor_divide(pillars, TILE_PILLARS)
     _, tile_id = np.unique(tiles, axis=0, return_inverse=True)
     order = np.argsort(tile_id.ravel(), kind="stable")
@@ -191,7 +209,9 @@ def window_counts(pm: PillarMap, pillars: np.ndarray, batch: int = 512) -> np.nd
     for members in np.split(order, bounds):
         for a in range(0, len(members), batch):
             part = members[a : a + batch]
-            windows = window_tensor(pm, pillars[part]).numpy()
+            windows = cut(pm, pillars[part]).numpy()
+            if out is None:
+                out = np.empty((len(pillars), *windows.shape[1:]), dtype=np.uint8)
             out[part] = np.minimum(windows, COUNT_CLIP).astype(np.uint8)
     return out
 
@@ -209,6 +229,7 @@ def pillar_samples(
     rotate: bool = True,
     max_per_class: int | dict[int, int] | None = None,
     batch: int = 512,
+    context: bool = False,
 ) -> Samples:
     """Every labelled pillar of the map that the pipeline would give to the CNN
     (`PillarMap.candidates`: the rest is ground without asking it) as a sample, a random subset of
@@ -218,6 +239,7 @@ def pillar_samples(
     cap: than the largest other class).
 
     With `rotate` the cloud is first turned about z through its centroid by a uniform random angle.
+    With `context` the samples also carry the context branch's band counts (network.py).
     `sources[0]` records the map's point count and pillars per class (before capping).
     """
     config = config or PhantomConfig()
@@ -261,6 +283,7 @@ def pillar_samples(
         centres = rotate_about_z(centres, -angle, lmap.xyz.mean(axis=0))
     return Samples(
         x=window_counts(pm, pm.pillars[index], batch),
+        bands=window_counts(pm, pm.pillars[index], batch, band_tensor) if context else None,
         y=y,
         source=np.full(len(index), lmap.source),
         xy=centres[:, :2],

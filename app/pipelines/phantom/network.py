@@ -11,6 +11,14 @@ anyway. This is what makes the dense (fully-convolutional) evaluation of `dense_
 windows could not share their convolutions.
 
 Tensor layout: (batch, 1, z, x, y).
+
+Beyond the paper, optional (`context=True`): a 2.2 m window cannot tell the middle of a parked car
+from the middle of a car smeared along the road, or a parked car from an oncoming one compressed to
+half its length; both need the object's extent. A second, 2D branch reads the pillar's
+`CONTEXT_SPAN` x `CONTEXT_SPAN` pillar surroundings (6.2 m) as counts per pillar and 0.5 m height
+band, through four 3 x 3 convolutions dilated 1, 2, 4, 8 (stride 1, no padding: exactly one
+output per pillar, so the dense path is the same convolutions over a larger block), and its
+features join the first fully connected layer.
 """
 
 from __future__ import annotations
@@ -20,6 +28,32 @@ import torch.nn.functional as F  # noqa: N812 (torch convention)
 from torch import nn
 
 CLASS_NAMES = ("ground", "high object", "short object", "phantom")
+COUNT_CLIP = 255.0  # voxel counts saturate here (training windows are stored as uint8)
+CONTEXT_BANDS = 6  # height bands of the context branch: 0.5 m each over the 3 m pillar
+CONTEXT_DILATIONS = (1, 2, 4, 8)
+CONTEXT_SPAN = 1 + 2 * sum(CONTEXT_DILATIONS)  # 31 pillars: the context branch's field of view
+
+
+def _counts(x: torch.Tensor) -> torch.Tensor:
+    return torch.log1p(torch.clamp(x, max=COUNT_CLIP))
+
+
+class ContextNet(nn.Module):
+    """The context branch: (N, 6, 31 + T - 1, 31 + T - 1) pillar band counts -> (N, C, T, T)."""
+
+    def __init__(self, channels: int = 16):
+        super().__init__()
+        sizes = [CONTEXT_BANDS] + [channels] * len(CONTEXT_DILATIONS)
+        self.convs = nn.ModuleList(
+            nn.Conv2d(a, b, 3, dilation=d)
+            for a, b, d in zip(sizes[:-1], sizes[1:], CONTEXT_DILATIONS, strict=True)
+        )
+
+    def forward(self, bands: torch.Tensor) -> torch.Tensor:
+        x = _counts(bands)
+        for conv in self.convs:
+            x = F.relu(conv(x))
+        return x
 
 
 class PillarCNN(nn.Module):
@@ -30,10 +64,12 @@ class PillarCNN(nn.Module):
         height: int = 30,
         window: int = 22,
         classes: int = 4,
+        context: int = 0,
     ):
         super().__init__()
         c1, c2, c3 = channels
         self.channels, self.hidden, self.height, self.window = channels, hidden, height, window
+        self.context = context  # channels of the context branch, 0 = the paper's network
         self.conv1 = nn.Conv3d(1, c1, 3, padding=(1, 0, 0))
         self.pool1 = nn.MaxPool3d(2)
         self.conv2 = nn.Conv3d(c1, c2, 3)
@@ -42,7 +78,9 @@ class PillarCNN(nn.Module):
         self.conv3 = nn.Conv3d(c2, c3, 3)
         self.drop2 = nn.Dropout(0.25)
         z, xy = self.conv3_shape(height, window)
-        self.fc1 = nn.Linear(c3 * z * xy * xy, hidden)
+        self.fine_features = c3 * z * xy * xy
+        self.context_net = ContextNet(context) if context else None
+        self.fc1 = nn.Linear(self.fine_features + context, hidden)
         self.fc2 = nn.Linear(hidden, classes)
 
     @staticmethod
@@ -53,14 +91,19 @@ class PillarCNN(nn.Module):
         return z, xy
 
     def features(self, x: torch.Tensor) -> torch.Tensor:
-        x = torch.log1p(x)
+        x = _counts(x)
         x = self.pool1(F.relu(self.conv1(x)))
         x = self.pool2(F.relu(self.conv2(x)))
         return F.relu(self.conv3(self.drop1(x)))
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """Logits (N, 4) of windows (N, 1, 30, 24, 24)."""
+    def forward(self, x: torch.Tensor, bands: torch.Tensor | None = None) -> torch.Tensor:
+        """Logits (N, 4) of windows (N, 1, 30, 24, 24) and, with a context branch, their
+        surroundings (N, 6, 31, 31)."""
         x = self.drop2(self.features(x)).flatten(1)
+        if self.context_net is not None:
+            if bands is None:
+                raise ValueError("this network has a context branch: pass the band counts")
+            x = torch.cat([x, self.context_net(bands).flatten(1)], dim=1)
         return self.fc2(F.relu(self.fc1(x)))
 
     def config(self) -> dict:
@@ -69,27 +112,39 @@ class PillarCNN(nn.Module):
             "hidden": self.hidden,
             "height": self.height,
             "window": self.window,
+            "context": self.context,
         }
 
 
 @torch.no_grad()
-def dense_logits(net: PillarCNN, block: torch.Tensor) -> torch.Tensor:
+def dense_logits(
+    net: PillarCNN, block: torch.Tensor, bands: torch.Tensor | None = None
+) -> torch.Tensor:
     """The network evaluated at every pillar of a block at once (shared convolutions).
 
     `block` (1, 1, 30, 2T + 22, 2T + 22) voxels starting one context voxel before pillar P0's
     window; returns logits (4, T, T) whose [:, u, v] is the per-window output of the window whose
     first pillar is P0 + (u, v), i.e. of the pillar P0 + (u, v) + 5. The second max-pool loses
     its stride (windows one pillar apart are not aligned with it), so later layers dilate by 2.
+    With a context branch, `bands` (1, 6, T + 30, T + 30) are the band counts from pillar
+    P0 + 5 - 15 on, and T is the smaller of the two sizes.
     """
-    x = torch.log1p(block)
+    x = _counts(block)
     x = F.max_pool3d(F.relu(net.conv1(x)), 2)
     x = F.relu(net.conv2(x))
     x = F.max_pool3d(x, kernel_size=2, stride=(2, 1, 1))
     x = F.relu(F.conv3d(x, net.conv3.weight, net.conv3.bias, dilation=(1, 2, 2)))
     z, xy = net.conv3_shape(net.height, net.window)
     c3 = net.channels[2]
-    w1 = net.fc1.weight.view(net.hidden, c3, z, xy, xy)
-    x = F.relu(F.conv3d(x, w1, net.fc1.bias, dilation=(1, 2, 2)))
-    x = F.conv3d(x, net.fc2.weight.view(-1, net.hidden, 1, 1, 1), net.fc2.bias)
+    w1 = net.fc1.weight[:, : net.fine_features].reshape(net.hidden, c3, z, xy, xy)
+    x = F.conv3d(x, w1, net.fc1.bias, dilation=(1, 2, 2))[0, :, 0]  # (hidden, t, t)
     t = (block.shape[-1] - net.window) // 2
-    return x[0, :, 0, :t, :t]
+    if net.context_net is not None:
+        if bands is None:
+            raise ValueError("this network has a context branch: pass the band counts")
+        context = net.context_net(bands)[0]  # (C, t', t')
+        t = min(t, context.shape[-1])
+        w_context = net.fc1.weight[:, net.fine_features :]
+        x = x[:, :t, :t] + torch.einsum("hc,cuv->huv", w_context, context[:, :t, :t])
+    x = F.relu(x[:, :t, :t])
+    return torch.einsum("kh,huv->kuv", net.fc2.weight, x) + net.fc2.bias[:, None, None]

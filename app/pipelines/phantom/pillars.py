@@ -53,6 +53,15 @@ class PillarMap:
         block[self.vz[a:b][sel], self.vx[a:b][sel] - vx0, vy[sel] - vy0] = self.counts[a:b][sel]
         return block
 
+    def band_block(self, px0: int, py0: int, nx: int, ny: int, bands: int = 6) -> np.ndarray:
+        """(bands, nx, ny) float32 point counts per pillar px0.., py0.. and height band (the
+        pillar's voxel columns summed in `bands` equal slices: 0.5 m each by default)."""
+        per, z = self.config.voxels_per_cell, self.config.voxels_high
+        if z % bands:
+            raise ValueError(f"{z} voxels per column do not split into {bands} bands")
+        block = self.dense_block(px0 * per, py0 * per, nx * per, ny * per)
+        return block.reshape(bands, z // bands, nx, per, ny, per).sum(axis=(1, 3, 5))
+
 
 def build_pillar_map(xyz: np.ndarray, ground: GroundModel, config: PhantomConfig) -> PillarMap:
     """Voxelise the points between `below_ground` under and `pillar_height` above the ground."""

@@ -80,6 +80,9 @@ class TrainConfig(BaseModel):
     threads: int = Field(0, ge=0, description="torch threads, 0 = all cores")
     channels: tuple[int, int, int] = (8, 16, 32)
     hidden: int = Field(64, ge=1)
+    context: int = Field(
+        0, ge=0, description="channels of the context branch (network.py), 0 = the paper's CNN"
+    )
     rotations: int = Field(8, ge=1, description="random rotations per map at most (scarce classes)")
     block_size: float = Field(
         10.0, ge=0, description="metres: k-fold splits keep map blocks whole, 0 = per sample"
@@ -144,7 +147,7 @@ def _evaluate(
     loss, predicted = 0.0, np.empty(len(index), dtype=np.int64)
     for a in range(0, len(index), batch):
         x, y = samples.batch(index[a : a + batch])
-        logits = net(x)
+        logits = net(x, samples.context_batch(index[a : a + batch]))
         loss += float(cross_entropy(logits, y, reduction="sum"))
         predicted[a : a + batch] = logits.argmax(dim=1).numpy()
     return loss / max(len(index), 1), predicted
@@ -165,7 +168,7 @@ def _train_fold(
     """One network trained on every fold but `fold`; returns it at its best validation epoch."""
     torch.manual_seed(config.seed + fold)
     rng = np.random.default_rng([config.seed, fold])
-    net = PillarCNN(channels=tuple(config.channels), hidden=config.hidden)
+    net = PillarCNN(channels=tuple(config.channels), hidden=config.hidden, context=config.context)
     optimiser = torch.optim.SGD(
         net.parameters(), lr=config.lr, momentum=config.momentum, weight_decay=config.weight_decay
     )
@@ -196,7 +199,7 @@ def _train_fold(
         total_loss, correct = 0.0, 0
         for step, a in enumerate(range(0, len(order), config.batch)):
             x, y = samples.batch(order[a : a + config.batch])
-            logits = net(x)
+            logits = net(x, samples.context_batch(order[a : a + config.batch]))
             loss = cross_entropy(logits, y)
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
@@ -292,6 +295,11 @@ def model_card(
             "per pillar: its 11 x 11 pillar neighbourhood plus one context voxel, 24 x 24 x 30 "
             "voxels of 0.1 m (height above the local ground), point counts clipped at 255, "
             "log1p inside the network"
+            + (
+                "; context branch: 31 x 31 pillars around it, point counts per 0.5 m height band"
+                if config.context
+                else ""
+            )
         ),
         "training_sources": samples.sources,
         "samples_per_class": samples.class_counts(),
@@ -398,7 +406,10 @@ def build_training_set(
             want = {c: int(max(cap - taken[c], 0)) for c in range(N_CLASSES)}
             if not any(want.values()):
                 break
-            part = pillar_samples(lmap, phantom_config, rng, rotate=True, max_per_class=want)
+            part = pillar_samples(
+                lmap, phantom_config, rng, rotate=True, max_per_class=want,
+                context=config.context > 0,
+            )  # fmt: skip
             taken += np.bincount(part.y, minlength=N_CLASSES)
             map_infos += part.sources
             parts.append(part)

@@ -6,7 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from app.pipelines.phantom.classify import classify_dense, classify_windows, window_tensor
+from app.pipelines.phantom.classify import (
+    classify_dense,
+    classify_windows,
+    network_inputs,
+    window_tensor,
+)
 from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.ground import estimate_ground
 from app.pipelines.phantom.network import PillarCNN
@@ -36,9 +41,9 @@ def street(n: int = 60_000, seed: int = 0, slope: float = 0.05) -> np.ndarray:
     return xyz
 
 
-def random_net(seed: int = 0) -> PillarCNN:
+def random_net(seed: int = 0, context: int = 0) -> PillarCNN:
     torch.manual_seed(seed)
-    net = PillarCNN()
+    net = PillarCNN(context=context)
     with torch.no_grad():
         for p in net.parameters():
             p.normal_(0.0, 0.3)
@@ -138,3 +143,31 @@ def test_classifying_a_subset_gives_the_same_rows(per_window: tuple) -> None:
     windows = classify_windows(net, pm, batch=256, which=which)
     assert np.abs(dense - ref[which]).max() < 1e-4
     assert np.abs(windows - ref[which]).max() < 1e-5
+
+
+def test_context_branch_dense_equals_per_window(per_window: tuple) -> None:
+    pm, _, _ = per_window
+    net = random_net(seed=3, context=8)
+    which = pm.candidates()
+    windows = classify_windows(net, pm, batch=128, which=which)
+    for tile in (16, 40):
+        dense = classify_dense(net, pm, tile=tile, which=which)
+        assert np.abs(windows - dense).max() < 1e-4
+    # the branch reads 6.2 m around the pillar: a car 3 m away changes the output
+    far = pm.pillars[which][:1]
+    x, bands = network_inputs(net, pm, far)
+    assert bands.shape == (1, 6, 31, 31) and bands.sum() > x.sum()
+    with pytest.raises(ValueError, match="context branch"):
+        net(x)
+
+
+def test_band_counts_sum_the_pillar_columns() -> None:
+    xyz = street()
+    pm = build_pillar_map(xyz, estimate_ground(xyz), CFG)
+    px, py = int(pm.pillars[:, 0].min()), int(pm.pillars[:, 1].min())
+    nx, ny = np.ptp(pm.pillars, axis=0) + 1
+    bands = pm.band_block(px, py, int(nx), int(ny))
+    assert bands.shape == (6, nx, ny) and bands.sum() == pm.counts.sum()
+    per_pillar = np.bincount(pm.point_pillar[pm.in_layer], minlength=len(pm.pillars))
+    i = np.argmax(per_pillar)
+    assert bands[:, pm.pillars[i, 0] - px, pm.pillars[i, 1] - py].sum() == per_pillar[i]

@@ -290,3 +290,20 @@ def test_semantickitti_samples(real_data):
     assert samples.class_counts() == dict.fromkeys(CLASS_NAMES, 30)
     assert samples.sources[0]["format"] == "semantickitti"
     assert samples.sources[0]["pillars"]["phantom"] > 0
+
+
+def test_context_samples_and_training(lmap, tmp_path):
+    samples = pillar_samples(lmap, PhantomConfig(), np.random.default_rng(0), context=True)
+    assert samples.bands.shape == (len(samples), 6, 31, 31) and samples.bands.dtype == np.uint8
+    both = concatenate([samples, samples.subset(np.arange(10))])
+    assert len(both.bands) == len(samples) + 10
+    assert torch.equal(both.context_batch([len(samples)]), samples.context_batch([0]))
+    config = TrainConfig(epochs=2, batch=32, folds=4, threads=2, context=4, block_size=0)
+    result = train(samples, config)
+    path = save_model(tmp_path / "context.pt", result.net, result.card)
+    net, card = load_model(path)
+    assert card["network"]["context"] == 4 and net.context_net is not None
+    x, _ = samples.batch(np.arange(8))
+    bands = samples.context_batch(np.arange(8))
+    with torch.no_grad():
+        assert torch.equal(net(x, bands), result.net.eval()(x, bands))
