@@ -121,7 +121,9 @@ def part_kitti(args) -> tuple[str, str, str]:
 
     real = Path(os.environ["MMSCLEAN_REAL_DATA"]) / "semantickitti" / "sequences"
     rows_tables = []
-    config = TrainConfig(per_class=args.kitti_per_class, epochs=args.kitti_epochs)
+    config = TrainConfig(
+        per_class=args.kitti_per_class, epochs=args.kitti_epochs, context=args.context
+    )
     # the simulator's profile scans do not look like 10 HDL-64E sweeps: mixing them in is optional
     sim_seeds = list(TRAIN_SEEDS) if args.kitti_with_sim else []
     started = time.perf_counter()
@@ -155,7 +157,7 @@ def part_train(args) -> tuple[str, str, str]:
     from app.pipelines.phantom.train import TrainConfig, train_phantom_model
 
     out = args.model or Path("models/phantom/phantom_cnn.pt")
-    config = TrainConfig(per_class=10_000, epochs=args.epochs)
+    config = TrainConfig(per_class=10_000, epochs=args.epochs, context=args.context)
     t0 = time.perf_counter()
     card = train_phantom_model(out, list(TRAIN_SEEDS), [], config)
     wall = time.perf_counter() - t0
@@ -175,6 +177,7 @@ def part_train(args) -> tuple[str, str, str]:
             f"{reached[1]:.0f} s (after epoch {reached[0]})" if reached else "not reached",
         ],
         ["whole command", f"{wall:.0f} s"],
+        ["network", "paper" if not args.context else f"paper + context branch ({args.context} ch)"],
         ["best epoch", str(card["best_epoch"])],
         ["validation F, overall (paper: object classes)", f"{best_f:.1f} (paper 91.5)"],
     ] + [[f"validation F, {c}", f"{v['classes'][c]['f1']:.1f}"] for c in CLASS_NAMES]
