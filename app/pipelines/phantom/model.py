@@ -11,7 +11,9 @@ import torch
 from app.core.errors import DependencyMissingError, InputError
 from app.pipelines.phantom.network import PillarCNN
 
-DEFAULT_MODEL = Path(__file__).resolve().parents[3] / "models" / "phantom" / "phantom_cnn.pt"
+MODELS = Path(__file__).resolve().parents[3] / "models" / "phantom"
+DEFAULT_MODEL = MODELS / "phantom_cnn_context.pt"  # paper network + context branch (network.py)
+PAPER_MODEL = MODELS / "phantom_cnn.pt"  # the paper's network alone
 
 
 def save_model(path: Path, net: PillarCNN, card: dict) -> Path:
