@@ -175,11 +175,11 @@ def run_phantom(
 @train_app.command("phantom")
 def train_phantom(
     out: Annotated[Path, typer.Option("--out", "-o", help="checkpoint to write (.pt)")] = Path(
-        "models/phantom/phantom_cnn.pt"
+        "models/phantom/phantom_cnn_context.pt"
     ),
     sim_seeds: Annotated[
         str, typer.Option(help="simulator seeds, comma separated (presets cycle)")
-    ] = "101,102,103,104,105,106,107,108,109",
+    ] = "101,102,103,104,105,106,107,108,109,110,114,115,116,117,118,119,120,121",
     sim_length: Annotated[float, typer.Option(help="metres per simulated survey")] = 200.0,
     semantickitti: Annotated[
         list[Path] | None, typer.Option(help="SemanticKITTI sequence folder (repeatable)")
@@ -190,7 +190,7 @@ def train_phantom(
     seed: Annotated[int, typer.Option(help="sampling / initialisation seed")] = 0,
     context: Annotated[
         int, typer.Option(help="channels of the 6.2 m context branch (0: the paper's network)")
-    ] = 0,
+    ] = 16,
 ) -> None:
     """Train the phantom 3D CNN on simulated surveys and SemanticKITTI sequences."""
     from rich.progress import Progress

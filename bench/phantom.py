@@ -109,10 +109,10 @@ def main() -> int:
     parser.add_argument("--no-record", action="store_true")
     parser.add_argument("--epochs", type=int, default=10, help="train: epochs")
     parser.add_argument(
-        "--context", type=int, default=0, help="train, kitti: context-branch channels (0: paper)"
+        "--context", type=int, default=16, help="train, kitti: context-branch channels (0: paper)"
     )
     parser.add_argument(
-        "--sim-seeds", default="", help="train: simulator seeds, comma separated (default 101-109)"
+        "--sim-seeds", default="", help="train: simulator seeds, comma separated (default: 18)"
     )
     parser.add_argument("--kitti-per-class", type=int, default=4000, help="kitti: pillars/class")
     parser.add_argument("--kitti-epochs", type=int, default=6, help="kitti: epochs per model")
