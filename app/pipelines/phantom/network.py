@@ -12,13 +12,13 @@ windows could not share their convolutions.
 
 Tensor layout: (batch, 1, z, x, y).
 
-Beyond the paper, optional (`context=True`): a 2.2 m window cannot tell the middle of a parked car
-from the middle of a car smeared along the road, or a parked car from an oncoming one compressed to
-half its length; both need the object's extent. A second, 2D branch reads the pillar's
-`CONTEXT_SPAN` x `CONTEXT_SPAN` pillar surroundings (6.2 m) as counts per pillar and 0.5 m height
-band, through four 3 x 3 convolutions dilated 1, 2, 4, 8 (stride 1, no padding: exactly one
-output per pillar, so the dense path is the same convolutions over a larger block), and its
-features join the first fully connected layer.
+Beyond the paper, optional (`context` > 0 channels): a 2.2 m window cannot tell the middle of a
+parked car from the middle of a car smeared along the road, or a parked car from an oncoming one
+compressed to half its length; both need the object's extent. A second, 2D branch reads the
+pillar's `CONTEXT_SPAN` x `CONTEXT_SPAN` pillar surroundings (6.2 m) as counts per pillar and
+0.5 m height band, through four 3 x 3 convolutions dilated 1, 2, 4, 8 (stride 1, no padding:
+exactly one output per pillar, so the dense path is the same convolutions over a larger block),
+and its features join the first fully connected layer.
 """
 
 from __future__ import annotations
