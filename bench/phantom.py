@@ -6,10 +6,12 @@
   accuracy  held-out simulated surveys (seeds never used in training): Table I per class and
             Table II with both baselines
   kitti     SemanticKITTI 04 / 05 / 08 (10 posed frames accumulated), leave-one-sequence-out:
-            trains on two sequences (plus the simulator), tests on the third
-  train     training time on 40k pillars (10k per class) to the paper's validation F
+            trains on the two others (--kitti-with-sim adds the simulator maps), tests on the third
+  train     training time on 40k pillars (10k per class) to the paper's validation F; writes the
+            checkpoint (--model; default the shipped file of the network trained: --context 16, the
+            default, or --context 0 for the paper network); --sim-seeds chooses the maps
 
-Usage: python -m bench.phantom PART [--model PATH] [--no-record]
+Usage: python -m bench.phantom PART [--model PATH] [--context N] [--no-record]
 Simulated maps are synthetic (app.simulate); they are cached under $MMSCLEAN_DATA_DIR/cache.
 """
 

@@ -155,9 +155,10 @@ def object_f(f1: dict[str, float]) -> float:
 
 
 def part_train(args) -> tuple[str, str, str]:
+    from app.pipelines.phantom.model import DEFAULT_MODEL, PAPER_MODEL
     from app.pipelines.phantom.train import TrainConfig, train_phantom_model
 
-    out = args.model or Path("models/phantom/phantom_cnn.pt")
+    out = args.model or (DEFAULT_MODEL if args.context else PAPER_MODEL)
     config = TrainConfig(per_class=10_000, epochs=args.epochs, context=args.context)
     seeds = [int(s) for s in args.sim_seeds.split(",") if s] or list(TRAIN_SEEDS)
     overlap = sorted(set(seeds) & {s for s, _ in HELD_OUT_SEEDS + VALIDATION_SEEDS})
