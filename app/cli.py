@@ -178,8 +178,8 @@ def train_phantom(
         "models/phantom/phantom_cnn_context.pt"
     ),
     sim_seeds: Annotated[
-        str, typer.Option(help="simulator seeds, comma separated (presets cycle)")
-    ] = "101,102,103,104,105,106,107,108,109,110,114,115,116,117,118,119,120,121",
+        str, typer.Option(help="simulator seeds: 101,102 or 101-110 (presets cycle)")
+    ] = "101-110,114-139",
     sim_length: Annotated[float, typer.Option(help="metres per simulated survey")] = 200.0,
     semantickitti: Annotated[
         list[Path] | None, typer.Option(help="SemanticKITTI sequence folder (repeatable)")
@@ -199,7 +199,10 @@ def train_phantom(
     from app.pipelines.phantom.train import TrainConfig, train_phantom_model
 
     try:
-        seeds = [int(s) for s in sim_seeds.split(",") if s.strip()]
+        seeds = []
+        for part in filter(None, (p.strip() for p in sim_seeds.split(","))):
+            first, _, last = part.partition("-")
+            seeds += list(range(int(first), int(last or first) + 1))
     except ValueError:
         raise ConfigError("--sim-seeds", f"not a list of integers: {sim_seeds!r}") from None
     for folder in semantickitti or []:

@@ -114,7 +114,7 @@ def main() -> int:
         "--context", type=int, default=16, help="train, kitti: context-branch channels (0: paper)"
     )
     parser.add_argument(
-        "--sim-seeds", default="", help="train: simulator seeds, comma separated (default: 18)"
+        "--sim-seeds", default="", help="train: simulator seeds, comma separated (default: 36)"
     )
     parser.add_argument("--kitti-per-class", type=int, default=4000, help="kitti: pillars/class")
     parser.add_argument("--kitti-epochs", type=int, default=6, help="kitti: epochs per model")
