@@ -27,13 +27,12 @@ from app.io.survey import Survey
 from app.pipelines.phantom.classify import band_tensor, window_tensor
 from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.ground import estimate_ground
-from app.pipelines.phantom.network import CLASS_NAMES, CONTEXT_BANDS, CONTEXT_SPAN
+from app.pipelines.phantom.network import CLASS_NAMES, CONTEXT_BANDS, CONTEXT_SPAN, COUNT_CLIP
 from app.pipelines.phantom.pillars import PillarMap, build_pillar_map
 from app.pipelines.phantom.reference import reference_pillar_labels, static_and_moving
 from app.simulate.classes import PillarClass
 
 N_CLASSES = len(CLASS_NAMES)
-COUNT_CLIP = 255  # uint8 storage of the voxel counts (module docstring)
 TILE_PILLARS = 32  # windows are cut tile by tile so each dense block stays small
 
 
