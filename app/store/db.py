@@ -16,6 +16,7 @@ from __future__ import annotations
 import re
 import sqlite3
 import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -32,11 +33,12 @@ from app.core.errors import ConflictError
 from app.core.settings import get_settings
 from app.store.migrations import migrate
 
+SQLITE_BUSY_TIMEOUT_S = 30.0
 SQLITE_PRAGMAS = (
+    f"PRAGMA busy_timeout={int(SQLITE_BUSY_TIMEOUT_S * 1000)}",
     "PRAGMA journal_mode=WAL",
     "PRAGMA foreign_keys=ON",
     "PRAGMA synchronous=NORMAL",
-    "PRAGMA busy_timeout=30000",
 )
 
 _engines: dict[str, Engine] = {}
@@ -56,11 +58,33 @@ def _sqlite_file(url: sa.URL) -> Path | None:
     return Path(database)
 
 
+def _execute_waiting_for_lock(cursor: sqlite3.Cursor, statement: str) -> None:
+    """Run `statement`, retrying while another connection holds the lock.
+
+    Switching a new file to WAL while other connections open it at the same moment can fail
+    with "database is locked" at once: SQLite does not call the busy handler on that path.
+    Retry for up to `SQLITE_BUSY_TIMEOUT_S`, as the busy timeout would have waited.
+    """
+    deadline = time.monotonic() + SQLITE_BUSY_TIMEOUT_S
+    delay = 0.002
+    while True:
+        try:
+            cursor.execute(statement)
+            return
+        except sqlite3.OperationalError as exc:
+            message = str(exc).lower()
+            busy = "locked" in message or "busy" in message
+            if not busy or time.monotonic() >= deadline:
+                raise
+        time.sleep(delay)
+        delay = min(delay * 2, 0.1)
+
+
 def _set_sqlite_pragmas(dbapi_connection: sqlite3.Connection, _record: Any) -> None:
     cursor = dbapi_connection.cursor()
     try:
         for pragma in SQLITE_PRAGMAS:
-            cursor.execute(pragma)
+            _execute_waiting_for_lock(cursor, pragma)
     finally:
         cursor.close()
 
@@ -76,7 +100,7 @@ def make_engine(url: str | None = None, **kwargs: Any) -> Engine:
         path = _sqlite_file(parsed)
         if path is not None:
             path.resolve().parent.mkdir(parents=True, exist_ok=True)
-        connect_args = {"check_same_thread": False, "timeout": 30}
+        connect_args = {"check_same_thread": False, "timeout": SQLITE_BUSY_TIMEOUT_S}
         connect_args.update(kwargs.pop("connect_args", {}))
         engine = sa.create_engine(parsed, connect_args=connect_args, **kwargs)
         event.listen(engine, "connect", _set_sqlite_pragmas)
