@@ -23,10 +23,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from app.geometry.ground import estimate_ground
 from app.io.survey import Survey
 from app.pipelines.phantom.classify import band_tensor, window_tensor
 from app.pipelines.phantom.config import PhantomConfig
-from app.pipelines.phantom.ground import estimate_ground
 from app.pipelines.phantom.network import CLASS_NAMES, CONTEXT_BANDS, CONTEXT_SPAN, COUNT_CLIP
 from app.pipelines.phantom.pillars import PillarMap, build_pillar_map
 from app.pipelines.phantom.reference import reference_pillar_labels, static_and_moving

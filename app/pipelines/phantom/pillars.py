@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from app.geometry.ground import GroundModel
 from app.pipelines.phantom.config import PhantomConfig
-from app.pipelines.phantom.ground import GroundModel
 
 _BIAS = 1 << 27  # voxel indices within +-2^27 (13,000 km at 0.1 m): UTM coordinates fit
 

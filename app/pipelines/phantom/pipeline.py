@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from app.geometry.ground import estimate_ground
 from app.io.survey import Survey
 from app.pipelines.phantom.classify import classify_dense, classify_windows
 from app.pipelines.phantom.config import PhantomConfig
-from app.pipelines.phantom.ground import estimate_ground
 from app.pipelines.phantom.model import DEFAULT_MODEL, load_model
 from app.pipelines.phantom.pillars import PillarMap, build_pillar_map
 from app.pipelines.phantom.point_labels import point_labels

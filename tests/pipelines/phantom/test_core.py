@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from app.geometry.ground import estimate_ground
 from app.pipelines.phantom.classify import (
     classify_dense,
     classify_windows,
@@ -13,7 +14,6 @@ from app.pipelines.phantom.classify import (
     window_tensor,
 )
 from app.pipelines.phantom.config import PhantomConfig
-from app.pipelines.phantom.ground import estimate_ground
 from app.pipelines.phantom.network import PillarCNN
 from app.pipelines.phantom.pillars import build_pillar_map
 from app.pipelines.phantom.point_labels import point_labels

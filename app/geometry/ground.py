@@ -1,4 +1,4 @@
-"""Local ground height, so that pillars reach 3 m above the ground on sloped streets too.
+"""Local ground height: phantom pillars reach 3 m above it, clutter clusters start above it.
 
 Per `ground_cell` x `ground_cell` cell the 5th percentile of z; a grey opening (minimum then
 maximum filter over `ground_opening` cells) removes anything narrower than that which covers whole

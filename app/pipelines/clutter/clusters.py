@@ -1,0 +1,86 @@
+"""Euclidean clusters of one frame's non-ground points (the 3D expansion works on these).
+
+Ground first (5th-percentile height per cell, `app.geometry.ground`), then connected components
+of the occupied `voxel`-sized voxels with 26-neighbourhood: two points share a cluster when a
+chain of occupied voxels links them, which is Euclidean clustering with a tolerance of about one
+voxel, computed with one sort and a sparse-graph labelling instead of a radius search per point.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from app.geometry.ground import estimate_ground
+from app.geometry.voxels import voxel_indices
+
+# half of the 26 neighbours: each undirected voxel edge is found once
+_HALF_NEIGHBOURS = np.array(
+    [
+        (i, j, k)
+        for i in (-1, 0, 1)
+        for j in (-1, 0, 1)
+        for k in (-1, 0, 1)
+        if (i, j, k) > (0, 0, 0)
+    ],
+    dtype=np.int64,
+)
+
+
+@dataclass
+class FrameClusters:
+    """Cluster id per point (-1: ground or out of range) and the height above the ground."""
+
+    label: np.ndarray  # (N,) int32
+    above_ground: np.ndarray  # (N,) float64 metres
+
+    @property
+    def count(self) -> int:
+        return int(self.label.max()) + 1 if len(self.label) else 0
+
+
+def voxel_components(xyz: np.ndarray, voxel: float) -> np.ndarray:
+    """(N,) int32 component id per point: connected occupied voxels (26-neighbourhood)."""
+    if len(xyz) == 0:
+        return np.zeros(0, dtype=np.int32)
+    ijk = voxel_indices(xyz, voxel)
+    ijk -= ijk.min(axis=0) - 1  # a free layer on every side: neighbours never wrap
+    dims = ijk.max(axis=0) + 2
+    keys = np.ravel_multi_index(tuple(ijk.T), tuple(dims))
+    occupied, point_voxel = np.unique(keys, return_inverse=True)
+    cells = np.stack(np.unravel_index(occupied, tuple(dims)), axis=1)
+    rows, cols = [], []
+    for offset in _HALF_NEIGHBOURS:
+        neighbour = np.ravel_multi_index(tuple((cells + offset).T), tuple(dims))
+        at = np.searchsorted(occupied, neighbour)
+        at[at == len(occupied)] = 0
+        hit = occupied[at] == neighbour
+        rows.append(np.flatnonzero(hit))
+        cols.append(at[hit])
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    graph = coo_matrix((np.ones(len(r), dtype=np.int8), (r, c)), shape=(len(occupied),) * 2)
+    _, voxel_label = connected_components(graph, directed=False)
+    return voxel_label[point_voxel.reshape(-1)].astype(np.int32)
+
+
+def frame_clusters(
+    xyz: np.ndarray,
+    voxel: float,
+    ground_cell: float,
+    ground_tolerance: float,
+    max_range: float,
+) -> FrameClusters:
+    """Clusters of the points more than `ground_tolerance` above the ground, within range."""
+    label = np.full(len(xyz), -1, dtype=np.int32)
+    above = np.zeros(len(xyz))
+    if len(xyz) == 0:
+        return FrameClusters(label, above)
+    ground = estimate_ground(xyz, cell=ground_cell)
+    above = xyz[:, 2] - ground.height(xyz)
+    near = np.einsum("ij,ij->i", xyz[:, :2], xyz[:, :2]) <= max_range**2
+    objects = np.flatnonzero(near & (above > ground_tolerance))
+    label[objects] = voxel_components(xyz[objects], voxel)
+    return FrameClusters(label, above)

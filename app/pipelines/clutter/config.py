@@ -1,0 +1,72 @@
+"""Parameters of the clutter pipeline; defaults are Lee et al.'s numbers where the paper has one.
+
+Everything beyond the paper (3D expansion, free space, tracking) was set on simulated surveys
+or by leave-one-sequence-out on SemanticKITTI (see bench/clutter.py), never on the sequences a
+figure is reported for.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, Field
+
+Mode = Literal["clutter", "dynamic"]
+Expansion = Literal["cluster", "pad"]
+
+
+class ClutterConfig(BaseModel):
+    mode: Mode = Field(
+        "clutter",
+        description="clutter: remove every movable object (the paper, HD maps); "
+        "dynamic: remove only objects that moved",
+    )
+    # camera masks (the paper)
+    camera: str | None = Field(None, description="camera to segment; None = the survey's first")
+    mask_padding_px: int = Field(30, ge=0, description="the paper's mask buffer, pixels")
+    expansion: Expansion = Field(
+        "cluster",
+        description="cluster: grow masked instances to their 3D cluster (mmsclean); "
+        "pad: remove the points under the padded masks (the paper)",
+    )
+    use_camera: bool = True
+    use_free_space: bool = True
+    use_tracking: bool = True
+    # camera instances (connected components of a class mask, split at depth jumps)
+    depth_gap: float = Field(1.5, gt=0, description="metres between depth layers of one instance")
+    min_instance_points: int = Field(5, ge=1, description="smaller depth layers are not objects")
+    # per-frame 3D clusters
+    max_range: float = Field(80.0, gt=0, description="points farther from the sensor: untouched")
+    ground_cell: float = Field(1.0, gt=0, description="metres: cells of the per-frame ground")
+    ground_tolerance: float = Field(0.25, ge=0, description="points this close above: ground")
+    cluster_voxel: float = Field(0.3, gt=0, description="voxel edge of the Euclidean clustering")
+    min_mask_fraction: float = Field(
+        0.5, ge=0, le=1, description="share of a cluster's seen points on instances to expand it"
+    )
+    min_seed_share: float = Field(
+        0.2, ge=0, le=1, description="share of a cluster's points on an instance to take it whole"
+    )
+    max_object_extent: float = Field(
+        12.0, gt=0, description="metres: larger clusters are background merged with an object"
+    )
+    max_object_height: float = Field(4.5, gt=0, description="metres above ground, ditto")
+    halo_radius: float = Field(
+        0.3, ge=0, description="in a background cluster, points this near an instance go with it"
+    )
+    # free space (DUFOMap)
+    dufomap_resolution: float = Field(0.1, gt=0, description="voxel edge of the free-space map")
+    dufomap_d_s: float = Field(0.2, ge=0, description="DUFOMap d_s: hit inflation, metres")
+    dufomap_d_p: int = Field(1, ge=0, description="DUFOMap d_p: unknown inflation, voxels")
+    min_free_fraction: float = Field(
+        0.3, ge=0, le=1, description="share of a track's points in free space to call it moving"
+    )
+    # tracking
+    track_gate: float = Field(2.5, gt=0, description="metres a cluster may be from its prediction")
+    min_speed: float = Field(1.0, ge=0, description="m/s: slower tracks did not move")
+    min_track_points: int = Field(20, ge=1, description="smaller clusters are not tracked")
+    min_track_frames: int = Field(3, ge=2, description="frames a track needs to estimate its speed")
+    # accumulation
+    voxel_dedup: float | None = Field(
+        None, gt=0, description="voxel edge for de-duplicating the clean map; None keeps all"
+    )
+    threads: int = Field(0, ge=0, description="worker threads (DUFOMap, torch), 0 = all cores")

@@ -1,0 +1,62 @@
+"""Fusion by mode: which points of each frame go.
+
+- `dynamic`: objects that moved. A tracked object moved when at least `min_free_fraction` of its
+  points lie in observed free space, or when the camera classified it and its speed reaches
+  `min_speed` (the centroid of an unclassified cluster drifts with the viewpoint: a fence whose
+  visible part slides along with the vehicle "moves" at walking pace); it goes in every frame of
+  its track, inside and outside the camera view. Free-space points outside any tracked
+  object (DUFOMap's own decision) go too.
+- `clutter` (the paper's definition, for HD maps): every movable object, parked ones included:
+  the camera's expanded instances, every frame of a track the camera ever classified (after the
+  object left the view), and everything the dynamic mode removes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from app.pipelines.clutter.config import ClutterConfig
+from app.pipelines.clutter.tracking import TrackEvidence
+
+
+@dataclass
+class FrameEvidence:
+    """Per point of one frame: what each source says."""
+
+    in_view: np.ndarray  # (N,) bool
+    camera_removed: np.ndarray  # (N,) bool: camera instance after expansion (or padded mask)
+    cluster: np.ndarray  # (N,) int32 cluster id, -1 = ground / out of range
+    free: np.ndarray  # (N,) bool: DUFOMap free-space flag
+
+
+def track_decisions(tracks: TrackEvidence, config: ClutterConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(moving, movable) per track."""
+    movable = tracks.camera_class > 0
+    moving = movable & (tracks.speed >= config.min_speed)
+    if config.use_free_space:
+        moving |= tracks.free_fraction >= config.min_free_fraction
+    return moving, movable
+
+
+def fuse(
+    evidence: list[FrameEvidence], tracks: TrackEvidence | None, config: ClutterConfig
+) -> list[np.ndarray]:
+    """Per frame, (N,) bool removed."""
+    if tracks is not None:
+        moving, movable = track_decisions(tracks, config)
+    removed = []
+    for i, ev in enumerate(evidence):
+        gone = ev.free.copy() if config.use_free_space else np.zeros(len(ev.free), dtype=bool)
+        if config.mode == "clutter" and config.use_camera:
+            gone |= ev.camera_removed
+        if tracks is not None:
+            point_track = np.full(len(ev.cluster), -1, dtype=np.int64)
+            clustered = ev.cluster >= 0
+            point_track[clustered] = tracks.cluster_track[i][ev.cluster[clustered]]
+            tracked = point_track >= 0
+            decided = moving | movable if config.mode == "clutter" else moving
+            gone[tracked] |= decided[point_track[tracked]]
+        removed.append(gone)
+    return removed

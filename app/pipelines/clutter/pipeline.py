@@ -1,0 +1,243 @@
+"""The clutter pipeline, step by step (Lee et al. 2020, then past it):
+
+1. segment each frame's camera image (people, riders, cars, trucks, buses, trams, motorcycles,
+   bicycles), cached per frame;
+2. project the frame's LiDAR points into the image, look up the masks (`masking.py`);
+3. camera instances: mask components split at depth jumps (`instances.py`);
+4. 3D expansion: instances grown to their frame's Euclidean cluster (`expansion.py`), or the
+   paper's padded masks (`expansion="pad"`);
+5. free-space evidence: every frame's rays into DUFOMap (`freespace.py`);
+6. tracking: object-sized clusters linked across frames (`tracking.py`);
+7. fusion by mode (`fusion.py`): removed points per frame;
+8. accumulation: the kept points of every frame into the world map (`accumulate.py`).
+
+Frames are read twice (steps 1-5, then 5-7) instead of being held in memory: a long drive costs
+per-point flags, not point clouds.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from app.core.errors import ConfigError
+from app.io.survey import Camera, Frame, Survey
+from app.pipelines.clutter.clusters import frame_clusters
+from app.pipelines.clutter.config import ClutterConfig
+from app.pipelines.clutter.expansion import cluster_shapes, expand_instances, majority_class
+from app.pipelines.clutter.freespace import FreeSpaceMap
+from app.pipelines.clutter.fusion import FrameEvidence, fuse
+from app.pipelines.clutter.instances import camera_instances, mask_components
+from app.pipelines.clutter.masking import mask_points
+from app.pipelines.clutter.tracking import Observation, TrackEvidence, track_clusters
+
+Progress = Callable[[str, float], None]
+ClassMaps = Callable[[Frame], np.ndarray]  # frame -> (H, W) uint8 clutter class map
+
+FRAME_PERIOD = 0.1  # seconds between frames when the survey has no timestamps (10 Hz)
+
+
+@dataclass
+class ClutterResult:
+    frame_ids: list[str]
+    removed: list[np.ndarray]  # per frame, (N,) bool in file order
+    in_view: list[np.ndarray]  # per frame, (N,) bool: the point projects into the camera image
+    evidence: list[FrameEvidence]
+    tracks: TrackEvidence | None
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def frame_labels(self) -> dict[str, np.ndarray]:
+        """The contract's labels: per frame, uint8 1 = removed, 0 = kept."""
+        return {f: r.astype(np.uint8) for f, r in zip(self.frame_ids, self.removed, strict=True)}
+
+
+class ClutterPipeline:
+    def __init__(self, config: ClutterConfig | None = None, class_maps: ClassMaps | None = None):
+        self.config = config or ClutterConfig()
+        self.class_maps = class_maps
+
+    def camera(self, survey: Survey) -> Camera | None:
+        """The camera whose images are segmented; None when the survey has none or it is off."""
+        if not self.config.use_camera or not survey.cameras:
+            return None
+        name = self.config.camera or next(iter(survey.cameras))
+        if name not in survey.cameras:
+            known = ", ".join(survey.cameras)
+            raise ConfigError("camera", f"survey {survey.name} has no camera {name!r} ({known})")
+        return survey.cameras[name]
+
+    def run(self, survey: Survey, progress: Progress | None = None) -> ClutterResult:
+        cfg = self.config
+        report = progress or (lambda stage, fraction: None)
+        timings: dict[str, float] = {}
+
+        def timed(stage: str, started: float) -> None:
+            timings[stage] = timings.get(stage, 0.0) + time.perf_counter() - started
+
+        camera = self.camera(survey)
+        if camera is not None and self.class_maps is None:
+            raise ConfigError("class_maps", "a camera is in use but no segmenter was given")
+        space = (
+            FreeSpaceMap(cfg.dufomap_resolution, cfg.dufomap_d_s, cfg.dufomap_d_p, cfg.threads)
+            if cfg.use_free_space
+            else None
+        )
+        frames = list(survey.frames)
+        evidence: list[FrameEvidence] = []
+        observations: list[Observation] = []
+        times = _frame_times(frames)
+        for i, frame in enumerate(frames):
+            report("frames", i / max(len(frames), 1))
+            t0 = time.perf_counter()
+            xyz = frame.points().xyz
+            timed("read", t0)
+            t0 = time.perf_counter()
+            clusters = frame_clusters(
+                xyz, cfg.cluster_voxel, cfg.ground_cell, cfg.ground_tolerance, cfg.max_range
+            )
+            object_sized = cluster_shapes(
+                xyz, clusters, cfg.max_object_extent, cfg.max_object_height
+            )
+            timed("clusters", t0)
+            n = len(xyz)
+            in_view = np.zeros(n, dtype=bool)
+            padded = np.zeros(n, dtype=bool)
+            instance = np.full(n, -1, dtype=np.int32)
+            mask_class = np.zeros(n, dtype=np.uint8)
+            if camera is not None and camera.name in frame.image_paths:
+                t0 = time.perf_counter()
+                class_map = self.class_maps(frame)
+                timed("segmentation", t0)
+                t0 = time.perf_counter()
+                masking = mask_points(xyz, camera, class_map, cfg.mask_padding_px)
+                timed("projection_masking", t0)
+                t0 = time.perf_counter()
+                components = mask_components(class_map)
+                instance = camera_instances(
+                    masking,
+                    components,
+                    cfg.depth_gap,
+                    cfg.min_instance_points,
+                    eligible=clusters.label >= 0,
+                )
+                timed("instances", t0)
+                in_view, padded, mask_class = masking.in_view, masking.padded, masking.mask_class
+            t0 = time.perf_counter()
+            if cfg.expansion == "pad":
+                camera_removed = padded
+                cluster_class = majority_class(clusters.label, mask_class, clusters.count)
+            else:
+                grown = expand_instances(
+                    xyz,
+                    clusters,
+                    instance,
+                    mask_class,
+                    in_view,
+                    cfg.min_mask_fraction,
+                    object_sized,
+                    cfg.halo_radius,
+                    cfg.min_seed_share,
+                    cfg.min_instance_points,
+                )
+                camera_removed, cluster_class = grown.removed, grown.cluster_class
+            timed("expansion", t0)
+            if space is not None:
+                t0 = time.perf_counter()
+                space.integrate(xyz, frame.pose)
+                timed("free_space", t0)
+            world = xyz @ frame.pose[:3, :3].T + frame.pose[:3, 3]
+            observations.append(
+                _observation(
+                    i,
+                    times[i],
+                    world,
+                    clusters.label,
+                    cluster_class,
+                    object_sized,
+                    cfg.min_track_points,
+                )
+            )
+            evidence.append(
+                FrameEvidence(
+                    in_view=in_view,
+                    camera_removed=camera_removed,
+                    cluster=clusters.label,
+                    free=np.zeros(n, dtype=bool),
+                )
+            )
+        if space is not None:
+            for i, frame in enumerate(frames):
+                report("free space", i / max(len(frames), 1))
+                t0 = time.perf_counter()
+                xyz = frame.points().xyz
+                timed("read", t0)
+                t0 = time.perf_counter()
+                free = space.flags(xyz, frame.pose)
+                evidence[i].free = free
+                label = evidence[i].cluster
+                inside = label >= 0
+                observations[i].free_points = np.bincount(
+                    label[inside], weights=free[inside], minlength=len(observations[i].points)
+                )
+                timed("free_space", t0)
+        tracks = None
+        if cfg.use_tracking:
+            report("tracking", 0.0)
+            t0 = time.perf_counter()
+            tracks = track_clusters(observations, cfg.track_gate, cfg.min_track_frames)
+            timed("tracking", t0)
+        t0 = time.perf_counter()
+        removed = fuse(evidence, tracks, cfg)
+        timed("fusion", t0)
+        report("done", 1.0)
+        return ClutterResult(
+            frame_ids=[f.frame_id for f in frames],
+            removed=removed,
+            in_view=[e.in_view for e in evidence],
+            evidence=evidence,
+            tracks=tracks,
+            timings={k: round(v, 3) for k, v in timings.items()},
+        )
+
+
+def _frame_times(frames: list[Frame]) -> np.ndarray:
+    stamps = [f.timestamp for f in frames]
+    if all(s is not None for s in stamps) and len(set(stamps)) == len(stamps):
+        return np.asarray(stamps, dtype=np.float64)
+    return np.arange(len(frames)) * FRAME_PERIOD
+
+
+def _observation(
+    frame: int,
+    time_s: float,
+    world: np.ndarray,
+    label: np.ndarray,
+    cluster_class: np.ndarray,
+    object_sized: np.ndarray,
+    min_points: int,
+) -> Observation:
+    count = len(object_sized)
+    inside = label >= 0
+    points = np.bincount(label[inside], minlength=count).astype(np.float64)
+    centroids = (
+        np.stack(
+            [
+                np.bincount(label[inside], weights=world[inside, k], minlength=count)
+                for k in range(3)
+            ],
+            axis=1,
+        )
+        / np.maximum(points, 1)[:, None]
+    )
+    return Observation(
+        frame=frame,
+        time=float(time_s),
+        centroids=centroids,
+        points=points,
+        camera_class=cluster_class,
+        free_points=np.zeros(count),
+        trackable=object_sized & (points >= min_points),
+    )
