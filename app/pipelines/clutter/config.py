@@ -57,6 +57,10 @@ class ClutterConfig(BaseModel):
     dufomap_resolution: float = Field(0.1, gt=0, description="voxel edge of the free-space map")
     dufomap_d_s: float = Field(0.2, ge=0, description="DUFOMap d_s: hit inflation, metres")
     dufomap_d_p: int = Field(1, ge=0, description="DUFOMap d_p: unknown inflation, voxels")
+    free_in_view: Literal["all", "masked"] = Field(
+        "masked",
+        description="free-space points inside the camera view: all go, or only under a padded mask",
+    )
     min_free_fraction: float = Field(
         0.3, ge=0, le=1, description="share of a track's points in free space to call it moving"
     )

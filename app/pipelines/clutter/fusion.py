@@ -27,6 +27,7 @@ class FrameEvidence:
 
     in_view: np.ndarray  # (N,) bool
     camera_removed: np.ndarray  # (N,) bool: camera instance after expansion (or padded mask)
+    padded: np.ndarray  # (N,) bool: under a padded mask
     cluster: np.ndarray  # (N,) int32 cluster id, -1 = ground / out of range
     free: np.ndarray  # (N,) bool: DUFOMap free-space flag
 
@@ -40,6 +41,14 @@ def track_decisions(tracks: TrackEvidence, config: ClutterConfig) -> tuple[np.nd
     return moving, movable
 
 
+def _out_of_view_clusters(ev: FrameEvidence, count: int) -> np.ndarray:
+    """(count,) bool: fewer than half of the cluster's points are seen by the camera."""
+    clustered = ev.cluster >= 0
+    size = np.bincount(ev.cluster[clustered], minlength=count)
+    seen = np.bincount(ev.cluster[clustered & ev.in_view], minlength=count)
+    return 2 * seen < size
+
+
 def fuse(
     evidence: list[FrameEvidence], tracks: TrackEvidence | None, config: ClutterConfig
 ) -> list[np.ndarray]:
@@ -48,7 +57,11 @@ def fuse(
         moving, movable = track_decisions(tracks, config)
     removed = []
     for i, ev in enumerate(evidence):
-        gone = ev.free.copy() if config.use_free_space else np.zeros(len(ev.free), dtype=bool)
+        gone = np.zeros(len(ev.free), dtype=bool)
+        if config.use_free_space:
+            # in the view the camera vouches for objects: a free-space point it sees as background
+            # (no padded mask on it) is DUFOMap's noise at surfaces grazed by rays
+            gone |= ev.free & (~ev.in_view | ev.padded | (config.free_in_view == "all"))
         if config.mode == "clutter" and config.use_camera:
             gone |= ev.camera_removed
         if tracks is not None:
@@ -56,7 +69,15 @@ def fuse(
             clustered = ev.cluster >= 0
             point_track[clustered] = tracks.cluster_track[i][ev.cluster[clustered]]
             tracked = point_track >= 0
-            decided = moving | movable if config.mode == "clutter" else moving
-            gone[tracked] |= decided[point_track[tracked]]
+            gone[tracked] |= moving[point_track[tracked]]
+            if config.mode == "clutter":
+                # a classified object keeps its class where the camera cannot see it; in the view
+                # each frame's own camera decision stands
+                track_ids = tracks.cluster_track[i]
+                hidden = _out_of_view_clusters(ev, len(track_ids))
+                carry = np.zeros(len(track_ids), dtype=bool)
+                linked = track_ids >= 0
+                carry[linked] = movable[track_ids[linked]] & hidden[linked]
+                gone[clustered] |= carry[ev.cluster[clustered]]
         removed.append(gone)
     return removed

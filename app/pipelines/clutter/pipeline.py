@@ -164,6 +164,7 @@ class ClutterPipeline:
                 FrameEvidence(
                     in_view=in_view,
                     camera_removed=camera_removed,
+                    padded=padded,
                     cluster=clusters.label,
                     free=np.zeros(n, dtype=bool),
                 )
