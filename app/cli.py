@@ -171,7 +171,8 @@ def run_clutter(
         option = {"mask_padding_px": "padding", "use_free_space": "free-space"}.get(
             str(first["loc"][0]), str(first["loc"][0])
         )
-        raise ConfigError(f"--{option}".replace("_", "-"), first["msg"]) from None
+        problem = f"{first['msg']} (got {first.get('input')!r})"
+        raise ConfigError(f"--{option}".replace("_", "-"), problem) from None
     survey = open_survey(source, fmt)
     with Progress(console=err_console, transient=True) as bar:
         task = bar.add_task("clutter", total=1.0)

@@ -1,8 +1,8 @@
 """The clutter run against reference labels: the paper's error matrix and SA / DA / AA, inside
 the camera view and on the full 360 degree map.
 
-References (SemanticKITTI ids; the simulator writes the same ids):
-- `dynamic`: the moving classes 252-259;
+References (SemanticKITTI ids; the simulator writes the same ids and a per-point `moving` flag):
+- `dynamic`: the moving classes 252-259, or the simulator's `moving` flag;
 - `clutter`: every movable class, parked or moving (cars, bicycles, buses, motorcycles, trams,
   trucks, other vehicles, persons, bicyclists, motorcyclists: 10-32 and 252-259).
 Unlabelled (0) and outlier (1) points have no reference class and are left out of every score.
@@ -19,21 +19,29 @@ MOVABLE_IDS = np.array([10, 11, 13, 15, 16, 18, 20, 30, 31, 32, *MOVING_IDS])
 UNSCORED_IDS = np.array([0, 1])
 
 
-def reference_masks(semantic: np.ndarray) -> dict[str, np.ndarray]:
+def reference_masks(
+    semantic: np.ndarray, moving: np.ndarray | None = None
+) -> dict[str, np.ndarray]:
     """Per point: `scored`, `dynamic` (moving) and `clutter` (movable) reference flags."""
     semantic = np.asarray(semantic) & 0xFFFF
+    dynamic = np.isin(semantic, MOVING_IDS)
+    if moving is not None:
+        dynamic |= np.asarray(moving).astype(bool)
     return {
         "scored": ~np.isin(semantic, UNSCORED_IDS),
-        "dynamic": np.isin(semantic, MOVING_IDS),
-        "clutter": np.isin(semantic, MOVABLE_IDS),
+        "dynamic": dynamic,
+        "clutter": np.isin(semantic, MOVABLE_IDS) | dynamic,
     }
 
 
 def removal_metrics(
-    semantic: np.ndarray, removed: np.ndarray, in_view: np.ndarray
+    semantic: np.ndarray,
+    removed: np.ndarray,
+    in_view: np.ndarray,
+    moving: np.ndarray | None = None,
 ) -> dict[str, dict[str, dict]]:
     """{scope: {reference: {"error_matrix": ..., "scores": SA/DA/AA}}} for scope in view / 360."""
-    ref = reference_masks(semantic)
+    ref = reference_masks(semantic, moving)
     removed = np.asarray(removed, dtype=bool)
     out: dict[str, dict[str, dict]] = {}
     for scope, where in (("in_view", ref["scored"] & in_view), ("full", ref["scored"])):

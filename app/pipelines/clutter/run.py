@@ -104,9 +104,13 @@ def run_clutter_to_folder(
     if "semantic" in survey.reference_label_kinds:
         from app.pipelines.clutter.evaluate import removal_metrics
 
-        semantic = np.concatenate([f.reference_labels()["semantic"] for f in survey.frames])
+        references = [f.reference_labels() for f in survey.frames]
+        semantic = np.concatenate([r["semantic"] for r in references])
+        moving = None
+        if "moving" in survey.reference_label_kinds:  # the simulator's per-point flag
+            moving = np.concatenate([r["moving"] for r in references])
         report["metrics"] = removal_metrics(
-            semantic, np.concatenate(result.removed), np.concatenate(result.in_view)
+            semantic, np.concatenate(result.removed), np.concatenate(result.in_view), moving
         )
     report["timings"]["total"] = round(time.perf_counter() - started, 3)
     write_report(out, report)

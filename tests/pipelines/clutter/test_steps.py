@@ -1,0 +1,150 @@
+"""The clutter pipeline's steps on small synthetic scenes with known answers."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from app.io.survey import Camera
+from app.pipelines.clutter.clusters import frame_clusters, voxel_components
+from app.pipelines.clutter.config import ClutterConfig
+from app.pipelines.clutter.expansion import cluster_shapes, expand_instances
+from app.pipelines.clutter.fusion import FrameEvidence, fuse
+from app.pipelines.clutter.instances import camera_instances, mask_components
+from app.pipelines.clutter.masking import mask_points, pad_mask
+from app.pipelines.clutter.tracking import Observation, track_clusters
+
+RNG = np.random.default_rng(0)
+
+
+def box(center, size, n) -> np.ndarray:
+    return np.asarray(center) + (RNG.random((n, 3)) - 0.5) * np.asarray(size)
+
+
+def ground(extent=20.0, n=4000) -> np.ndarray:
+    xy = (RNG.random((n, 2)) - 0.5) * 2 * extent
+    return np.c_[xy, RNG.normal(0, 0.01, n)]
+
+
+def forward_camera(width=400, height=200, f=200.0) -> Camera:
+    """A camera looking along +x of the sensor (x forward, y left, z up)."""
+    T = np.eye(4)
+    T[:3, :3] = [[0, -1, 0], [0, 0, -1], [1, 0, 0]]  # camera x right, y down, z forward
+    P = np.array([[f, 0, width / 2, 0], [0, f, height / 2, 0], [0, 0, 1, 0]], dtype=float)
+    return Camera("cam", P, T, width, height)
+
+
+def test_voxel_components_separate_objects_and_join_touching_voxels() -> None:
+    a = box((0, 0, 1), (1, 1, 1), 300)
+    b = box((5, 0, 1), (1, 1, 1), 300)
+    label = voxel_components(np.r_[a, b], 0.3)
+    assert len(np.unique(label[:300])) == 1 and len(np.unique(label[300:])) == 1
+    assert label[0] != label[300]
+
+
+def test_frame_clusters_leave_the_ground_out() -> None:
+    xyz = np.r_[
+        ground(), box((6, 2, 1.05), (4, 1.8, 1.4), 800), box((6, -4, 1.2), (0.5, 0.5, 1.6), 200)
+    ]
+    clusters = frame_clusters(xyz, 0.3, 1.0, 0.25, 80.0)
+    assert (clusters.label[:4000] == -1).mean() > 0.99
+    assert len(np.unique(clusters.label[4000:4800])) == 1
+    assert clusters.label[4000] != clusters.label[4800]
+    sized = cluster_shapes(xyz, clusters, 12.0, 4.5)
+    assert sized[clusters.label[4000]]
+
+
+def test_padding_grows_masks_by_the_buffer() -> None:
+    mask = np.zeros((100, 100), bool)
+    mask[50, 50] = True
+    grown = pad_mask(mask, 30)
+    assert grown[50, 80] and grown[20, 50] and not grown[50, 81] and not grown[10, 10]
+
+
+def test_depth_layers_split_a_mask_and_ground_is_not_a_layer() -> None:
+    camera = forward_camera()
+    car = box((10, 0, 0.8), (0.2, 2.0, 1.2), 400)
+    wall = box((25, 0, 1.5), (0.2, 8.0, 3.0), 400)
+    road = np.c_[RNG.uniform(6, 9, 200), RNG.uniform(-1, 1, 200), np.zeros(200)]
+    xyz = np.r_[car, wall, road]
+    class_map = np.zeros((camera.height, camera.width), np.uint8)
+    class_map[:, :] = 3  # everything under one car mask
+    masking = mask_points(xyz, camera, class_map, 0)
+    assert masking.in_view.all()
+    eligible = np.r_[np.ones(800, bool), np.zeros(200, bool)]
+    instance = camera_instances(masking, mask_components(class_map), 1.5, 5, eligible)
+    assert len(np.unique(instance[:400])) == 1 and len(np.unique(instance[400:800])) == 1
+    assert instance[0] != instance[400] and instance[0] >= 0
+    assert (instance[800:] == -1).all()
+
+
+def test_expansion_takes_objects_whole_and_only_the_masked_part_of_background() -> None:
+    car = box((8, 0, 1.05), (4, 1.8, 1.4), 600)
+    hedge = box((8, 3, 1.2), (30, 0.6, 1.6), 3000)  # background, far too long
+    xyz = np.r_[ground(), car, hedge]
+    clusters = frame_clusters(xyz, 0.3, 1.0, 0.25, 80.0)
+    sized = cluster_shapes(xyz, clusters, 12.0, 4.5)
+    n = len(xyz)
+    in_view = np.zeros(n, bool)
+    in_view[4000:4300] = True
+    in_view[4600 : 4600 + 150] = True  # the camera sees the end of the hedge, mostly masked
+    instance = np.full(n, -1, np.int32)
+    mask_class = np.zeros(n, np.uint8)
+    instance[4000:4300] = 0  # half the car is on the mask, its other half is out of view
+    mask_class[4000:4300] = 3
+    hedge_masked = 4600 + np.arange(100)
+    instance[hedge_masked] = 1
+    mask_class[hedge_masked] = 3
+    grown = expand_instances(xyz, clusters, instance, mask_class, in_view, 0.5, sized, 0.0)
+    assert grown.removed[4000:4600].all()  # the whole car, out-of-view half included
+    # the hedge is chosen but too long to be an object: its masked points go, the rest stays
+    assert grown.removed[hedge_masked].all()
+    assert not grown.removed[4600 + 100 :].any()
+    assert grown.cluster_class[clusters.label[4000]] == 3
+    assert grown.cluster_class[clusters.label[4600]] == 0
+
+
+def _observations(positions: list[np.ndarray], camera_class: int = 3) -> list[Observation]:
+    return [
+        Observation(
+            frame=i,
+            time=0.1 * i,
+            centroids=np.asarray(p, dtype=float),
+            points=np.full(len(p), 100.0),
+            camera_class=np.full(len(p), camera_class, np.uint8),
+            free_points=np.zeros(len(p)),
+            trackable=np.ones(len(p), bool),
+        )
+        for i, p in enumerate(positions)
+    ]
+
+
+def test_tracking_links_a_moving_and_a_parked_car() -> None:
+    frames = [[[10 + 1.0 * i, 0, 1], [20, 5, 1]] for i in range(6)]  # 10 m/s and parked
+    tracks = track_clusters(_observations(frames), gate=2.5, min_frames=3)
+    assert len(tracks.tracks) == 2
+    moving = tracks.cluster_track[0][0]
+    assert all(ids[0] == moving for ids in tracks.cluster_track)
+    assert abs(tracks.speed[moving] - 10.0) < 0.1
+    assert tracks.speed[tracks.cluster_track[0][1]] < 0.1
+    assert (tracks.camera_class == 3).all()
+
+
+def test_fusion_modes() -> None:
+    frames = [[[10 + 1.0 * i, 0, 1], [20, 5, 1]] for i in range(4)]
+    tracks = track_clusters(_observations(frames), gate=2.5, min_frames=3)
+    # per frame: 4 points, 2 of the moving car (cluster 0), 2 of the parked one (cluster 1)
+    evidence = [
+        FrameEvidence(
+            in_view=np.array([i == 0] * 4),  # the camera sees the cars only in frame 0
+            camera_removed=np.array([True] * 4) & (i == 0),
+            padded=np.array([True] * 4) & (i == 0),
+            cluster=np.array([0, 0, 1, 1], np.int32),
+            free=np.zeros(4, bool),
+        )
+        for i in range(4)
+    ]
+    dynamic = fuse(evidence, tracks, ClutterConfig(mode="dynamic", min_speed=2.0))
+    clutter = fuse(evidence, tracks, ClutterConfig(mode="clutter", min_speed=2.0))
+    for i in range(4):
+        assert dynamic[i].tolist() == [True, True, False, False]  # only the car that moved
+        assert clutter[i].all()  # both cars, after they left the view too
