@@ -5,6 +5,8 @@
   memory    peak resident memory of a whole run on a ~10M-point simulated map (own process)
   accuracy  held-out simulated surveys (seeds never used in training): Table I per class and
             Table II with both baselines
+  validation  whole validation maps (seeds 111-113), the figures models and settings are
+            chosen by
   kitti     SemanticKITTI 04 / 05 / 08 (10 posed frames accumulated), leave-one-sequence-out:
             trains on the two others (--kitti-with-sim adds the simulator maps), tests on the third
   train     training time on 40k pillars (10k per class) to the paper's validation F; writes the
@@ -106,7 +108,9 @@ def part_memory(args) -> tuple[str, str, str]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("part", choices=["speed", "memory", "accuracy", "kitti", "train"])
+    parser.add_argument(
+        "part", choices=["speed", "memory", "accuracy", "validation", "kitti", "train"]
+    )
     parser.add_argument("--model", type=Path, default=None, help="checkpoint (default: shipped)")
     parser.add_argument("--no-record", action="store_true")
     parser.add_argument("--epochs", type=int, default=10, help="train: epochs")
