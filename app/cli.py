@@ -27,6 +27,18 @@ cli = typer.Typer(
 console = Console()
 err_console = Console(stderr=True)
 
+
+def option_error(exc, renames: dict[str, str] | None = None) -> MmscleanError:
+    """The first problem of a config's pydantic ValidationError, named by its command-line
+    option (`field_name` -> `--field-name`, or as `renames` says) and the value given."""
+    from app.core.errors import ConfigError
+
+    first = exc.errors()[0]
+    field = str(first["loc"][0])
+    option = (renames or {}).get(field, field).replace("_", "-")
+    return ConfigError(f"--{option}", f"{first['msg']} (got {first.get('input')!r})")
+
+
 FormatOption = Annotated[
     str, typer.Option("--format", "-f", help="kitti-raw, semantickitti, las, ply, pcd, sim")
 ]
@@ -86,7 +98,6 @@ def simulate(
     from pydantic import ValidationError
     from rich.progress import Progress
 
-    from app.core.errors import ConfigError
     from app.simulate.survey import SimulationConfig
     from app.simulate.survey import simulate as run_simulation
 
@@ -103,8 +114,7 @@ def simulate(
             compressed=compressed,
         )
     except ValidationError as exc:
-        first = exc.errors()[0]
-        raise ConfigError(f"--{first['loc'][0]}".replace("_", "-"), first["msg"]) from None
+        raise option_error(exc) from None
     with Progress(console=err_console, transient=True) as bar:
         task = bar.add_task(f"simulating {config.scene} ({config.scanner})", total=None)
         summary = run_simulation(
@@ -151,7 +161,6 @@ def run_clutter(
     from pydantic import ValidationError
     from rich.progress import Progress
 
-    from app.core.errors import ConfigError
     from app.io import open_survey
     from app.pipelines.clutter.config import ClutterConfig
     from app.pipelines.clutter.run import run_clutter_to_folder
@@ -167,12 +176,7 @@ def run_clutter(
             voxel_dedup=voxel_dedup,
         )
     except ValidationError as exc:
-        first = exc.errors()[0]
-        option = {"mask_padding_px": "padding", "use_free_space": "free-space"}.get(
-            str(first["loc"][0]), str(first["loc"][0])
-        )
-        problem = f"{first['msg']} (got {first.get('input')!r})"
-        raise ConfigError(f"--{option}".replace("_", "-"), problem) from None
+        raise option_error(exc, {"mask_padding_px": "padding"}) from None
     survey = open_survey(source, fmt)
     with Progress(console=err_console, transient=True) as bar:
         task = bar.add_task("clutter", total=1.0)

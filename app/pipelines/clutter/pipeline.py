@@ -18,7 +18,8 @@ per-point flags, not point clouds.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -72,60 +73,92 @@ class ClutterPipeline:
     def run(self, survey: Survey, progress: Progress | None = None) -> ClutterResult:
         cfg = self.config
         report = progress or (lambda stage, fraction: None)
-        timings: dict[str, float] = {}
-
-        def timed(stage: str, started: float) -> None:
-            timings[stage] = timings.get(stage, 0.0) + time.perf_counter() - started
-
+        clock = Stopwatch()
         camera = self.camera(survey)
         if camera is not None and self.class_maps is None:
             raise ConfigError("class_maps", "a camera is in use but no segmenter was given")
-        space = (
-            FreeSpaceMap(cfg.dufomap_resolution, cfg.dufomap_d_s, cfg.dufomap_d_p, cfg.threads)
-            if cfg.use_free_space
-            else None
-        )
+        space = None
+        if cfg.use_free_space:
+            space = FreeSpaceMap(
+                cfg.dufomap_resolution, cfg.dufomap_d_s, cfg.dufomap_d_p, cfg.threads
+            )
         frames = list(survey.frames)
+        times = _frame_times(frames)
         evidence: list[FrameEvidence] = []
         observations: list[Observation] = []
-        times = _frame_times(frames)
-        for i, frame in enumerate(frames):
+        for i, frame in enumerate(frames):  # steps 1-5 (free space: rays in)
             report("frames", i / max(len(frames), 1))
-            t0 = time.perf_counter()
-            xyz = frame.points().xyz
-            timed("read", t0)
-            t0 = time.perf_counter()
+            with clock("read"):
+                xyz = frame.points().xyz
+            ev, obs = self._frame(i, times[i], frame, xyz, camera, clock)
+            if space is not None:
+                with clock("free_space"):
+                    space.integrate(xyz, frame.pose)
+            evidence.append(ev)
+            observations.append(obs)
+        if space is not None:  # step 5: which points lie in free space
+            for i, frame in enumerate(frames):
+                report("free space", i / max(len(frames), 1))
+                with clock("read"):
+                    xyz = frame.points().xyz
+                with clock("free_space"):
+                    evidence[i].free = space.flags(xyz, frame.pose)
+                    observations[i].count_free(evidence[i].cluster, evidence[i].free)
+        tracks = None
+        if cfg.use_tracking:
+            report("tracking", 0.0)
+            with clock("tracking"):
+                tracks = track_clusters(observations, cfg.track_gate, cfg.min_track_frames)
+        with clock("fusion"):
+            removed = fuse(evidence, tracks, cfg)
+        report("done", 1.0)
+        return ClutterResult(
+            frame_ids=[f.frame_id for f in frames],
+            removed=removed,
+            in_view=[e.in_view for e in evidence],
+            evidence=evidence,
+            tracks=tracks,
+            timings=clock.rounded(),
+        )
+
+    def _frame(
+        self,
+        index: int,
+        time_s: float,
+        frame: Frame,
+        xyz: np.ndarray,
+        camera: Camera | None,
+        clock: Stopwatch,
+    ) -> tuple[FrameEvidence, Observation]:
+        """Steps 2-4 on one frame: clusters, masks, instances, expansion."""
+        cfg = self.config
+        with clock("clusters"):
             clusters = frame_clusters(
                 xyz, cfg.cluster_voxel, cfg.ground_cell, cfg.ground_tolerance, cfg.max_range
             )
             object_sized = cluster_shapes(
                 xyz, clusters, cfg.max_object_extent, cfg.max_object_height
             )
-            timed("clusters", t0)
-            n = len(xyz)
-            in_view = np.zeros(n, dtype=bool)
-            padded = np.zeros(n, dtype=bool)
-            instance = np.full(n, -1, dtype=np.int32)
-            mask_class = np.zeros(n, dtype=np.uint8)
-            if camera is not None and camera.name in frame.image_paths:
-                t0 = time.perf_counter()
+        n = len(xyz)
+        in_view = np.zeros(n, dtype=bool)
+        padded = np.zeros(n, dtype=bool)
+        instance = np.full(n, -1, dtype=np.int32)
+        mask_class = np.zeros(n, dtype=np.uint8)
+        if camera is not None and camera.name in frame.image_paths:
+            with clock("segmentation"):
                 class_map = self.class_maps(frame)
-                timed("segmentation", t0)
-                t0 = time.perf_counter()
+            with clock("projection_masking"):
                 masking = mask_points(xyz, camera, class_map, cfg.mask_padding_px)
-                timed("projection_masking", t0)
-                t0 = time.perf_counter()
-                components = mask_components(class_map)
+            with clock("instances"):
                 instance = camera_instances(
                     masking,
-                    components,
+                    mask_components(class_map),
                     cfg.depth_gap,
                     cfg.min_instance_points,
                     eligible=clusters.label >= 0,
                 )
-                timed("instances", t0)
-                in_view, padded, mask_class = masking.in_view, masking.padded, masking.mask_class
-            t0 = time.perf_counter()
+            in_view, padded, mask_class = masking.in_view, masking.padded, masking.mask_class
+        with clock("expansion"):
             if cfg.expansion == "pad":
                 camera_removed = padded
                 cluster_class = majority_class(clusters.label, mask_class, clusters.count)
@@ -143,65 +176,38 @@ class ClutterPipeline:
                     cfg.min_instance_points,
                 )
                 camera_removed, cluster_class = grown.removed, grown.cluster_class
-            timed("expansion", t0)
-            if space is not None:
-                t0 = time.perf_counter()
-                space.integrate(xyz, frame.pose)
-                timed("free_space", t0)
-            world = xyz @ frame.pose[:3, :3].T + frame.pose[:3, 3]
-            observations.append(
-                _observation(
-                    i,
-                    times[i],
-                    world,
-                    clusters.label,
-                    cluster_class,
-                    object_sized,
-                    cfg.min_track_points,
-                )
-            )
-            evidence.append(
-                FrameEvidence(
-                    in_view=in_view,
-                    camera_removed=camera_removed,
-                    padded=padded,
-                    cluster=clusters.label,
-                    free=np.zeros(n, dtype=bool),
-                )
-            )
-        if space is not None:
-            for i, frame in enumerate(frames):
-                report("free space", i / max(len(frames), 1))
-                t0 = time.perf_counter()
-                xyz = frame.points().xyz
-                timed("read", t0)
-                t0 = time.perf_counter()
-                free = space.flags(xyz, frame.pose)
-                evidence[i].free = free
-                label = evidence[i].cluster
-                inside = label >= 0
-                observations[i].free_points = np.bincount(
-                    label[inside], weights=free[inside], minlength=len(observations[i].points)
-                )
-                timed("free_space", t0)
-        tracks = None
-        if cfg.use_tracking:
-            report("tracking", 0.0)
-            t0 = time.perf_counter()
-            tracks = track_clusters(observations, cfg.track_gate, cfg.min_track_frames)
-            timed("tracking", t0)
-        t0 = time.perf_counter()
-        removed = fuse(evidence, tracks, cfg)
-        timed("fusion", t0)
-        report("done", 1.0)
-        return ClutterResult(
-            frame_ids=[f.frame_id for f in frames],
-            removed=removed,
-            in_view=[e.in_view for e in evidence],
-            evidence=evidence,
-            tracks=tracks,
-            timings={k: round(v, 3) for k, v in timings.items()},
+        world = xyz @ frame.pose[:3, :3].T + frame.pose[:3, 3]
+        observation = _observation(
+            index, time_s, world, clusters.label, cluster_class, object_sized,
+            cfg.min_track_points,
+        )  # fmt: skip
+        evidence = FrameEvidence(
+            in_view=in_view,
+            camera_removed=camera_removed,
+            padded=padded,
+            cluster=clusters.label,
+            free=np.zeros(n, dtype=bool),
         )
+        return evidence, observation
+
+
+class Stopwatch:
+    """Seconds per stage, summed over frames: `with clock("stage"): ...`."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, stage: str) -> Iterator[None]:
+        started = time.perf_counter()
+        try:
+            yield
+        finally:
+            elapsed = time.perf_counter() - started
+            self.seconds[stage] = self.seconds.get(stage, 0.0) + elapsed
+
+    def rounded(self) -> dict[str, float]:
+        return {k: round(v, 3) for k, v in self.seconds.items()}
 
 
 def _frame_times(frames: list[Frame]) -> np.ndarray:

@@ -27,6 +27,13 @@ class Observation:
     free_points: np.ndarray  # (C,) points in observed free space
     trackable: np.ndarray  # (C,) bool: object-sized
 
+    def count_free(self, label: np.ndarray, free: np.ndarray) -> None:
+        """Set `free_points` from the frame's per-point cluster labels and free-space flags."""
+        inside = label >= 0
+        self.free_points = np.bincount(
+            label[inside], weights=free[inside], minlength=len(self.points)
+        )
+
 
 @dataclass
 class Track:
