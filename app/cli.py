@@ -256,12 +256,12 @@ def train_phantom(
     ),
     sim_seeds: Annotated[
         str, typer.Option(help="simulator seeds: 101,102 or 101-110 (presets cycle)")
-    ] = "101-110,114-139",
+    ] = "101-110,114-175",
     sim_length: Annotated[float, typer.Option(help="metres per simulated survey")] = 200.0,
     semantickitti: Annotated[
         list[Path] | None, typer.Option(help="SemanticKITTI sequence folder (repeatable)")
     ] = None,
-    per_class: Annotated[int, typer.Option(help="pillars per class (paper: 10,000)")] = 10_000,
+    per_class: Annotated[int, typer.Option(help="pillars per class (paper: 10,000)")] = 20_000,
     epochs: Annotated[int, typer.Option(help="training epochs")] = 10,
     folds_to_run: Annotated[int, typer.Option(help="folds of the 5-fold split to train")] = 1,
     seed: Annotated[int, typer.Option(help="sampling / initialisation seed")] = 0,
