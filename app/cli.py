@@ -275,13 +275,7 @@ def train_phantom(
     from app.core.errors import ConfigError
     from app.pipelines.phantom.train import TrainConfig, train_phantom_model
 
-    try:
-        seeds = []
-        for part in filter(None, (p.strip() for p in sim_seeds.split(","))):
-            first, _, last = part.partition("-")
-            seeds += list(range(int(first), int(last or first) + 1))
-    except ValueError:
-        raise ConfigError("--sim-seeds", f"not a list of integers: {sim_seeds!r}") from None
+    seeds = _seed_list("--sim-seeds", sim_seeds)
     for folder in semantickitti or []:
         if not (folder / "velodyne").is_dir():
             raise ConfigError("--semantickitti", f"{folder} is not a SemanticKITTI sequence")
@@ -303,6 +297,56 @@ def train_phantom(
     console.print(
         f"{out}: validation F per class: {per_class}; macro {validation['macro']['f1']:.1f}"
     )
+
+
+@train_app.command("guardrail")
+def train_guardrail(
+    out: Annotated[Path, typer.Option("--out", "-o", help="checkpoint to write (.pt)")] = Path(
+        "models/guardrail/slice_classifier.pt"
+    ),
+    sim_seeds: Annotated[str, typer.Option(help="training simulator seeds: 401-409")] = "401-409",
+    validation_seeds: Annotated[str, typer.Option(help="validation seeds")] = "410-412",
+    length: Annotated[float, typer.Option(help="metres per simulated survey")] = 100.0,
+    epochs: Annotated[int, typer.Option(help="epochs of the classifier heads")] = 60,
+) -> None:
+    """Train the guardrail slice classifier on simulated surveys (camera crops + geometry)."""
+    from rich.progress import Progress
+
+    from app.pipelines.guardrail.train import train_guardrail_model
+
+    seeds, validation = (
+        _seed_list("--sim-seeds", sim_seeds),
+        _seed_list("--validation-seeds", validation_seeds),
+    )
+    with Progress(console=err_console, transient=True) as bar:
+        task = bar.add_task("training", total=1.0)
+        card = train_guardrail_model(
+            out,
+            seeds,
+            validation,
+            length,
+            epochs,
+            lambda stage, f: bar.update(task, completed=f, description=stage),
+        )
+    scores = card["validation"]["scores"]
+    console.print(
+        f"{out}: validation slice F "
+        + ", ".join(f"{name} {s['f1']:.1f}" for name, s in scores.items())
+    )
+
+
+def _seed_list(option: str, text: str) -> list[int]:
+    """ "101,102" or "101-110" (or both, comma separated) -> the seeds."""
+    from app.core.errors import ConfigError
+
+    try:
+        seeds = []
+        for part in filter(None, (p.strip() for p in text.split(","))):
+            first, _, last = part.partition("-")
+            seeds += list(range(int(first), int(last or first) + 1))
+    except ValueError:
+        raise ConfigError(option, f"not a list of integers: {text!r}") from None
+    return seeds
 
 
 @cli.command()

@@ -11,7 +11,6 @@ from __future__ import annotations
 import datetime
 import json
 import os
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -21,24 +20,13 @@ from torch import nn
 from app.core.errors import InputError
 from app.metrics.classification import binary_scores
 from app.pipelines.guardrail.classifier import Inputs, SliceHead, predict
-
-
-@dataclass
-class SliceSamples:
-    embedding: np.ndarray  # (N, 1280) float32
-    geometry: np.ndarray  # (N, G) float32
-    label: np.ndarray  # (N,) int64: 1 guardrail, 0 other
-    group: np.ndarray  # (N,) int64 survey id
-    geometry_names: list[str]
-
-    def subset(self, keep: np.ndarray) -> SliceSamples:
-        return SliceSamples(
-            self.embedding[keep],
-            self.geometry[keep],
-            self.label[keep],
-            self.group[keep],
-            self.geometry_names,
-        )
+from app.pipelines.guardrail.dataset import (
+    HELD_OUT_SEEDS,
+    TRAIN_SEEDS,
+    VALIDATION_SEEDS,
+    SliceSamples,
+    build_samples,
+)
 
 
 def fit_head(
@@ -82,36 +70,90 @@ def slice_scores(head: SliceHead, samples: SliceSamples) -> dict:
     return binary_scores(samples.label == 1, guess).as_dict()
 
 
-def save_head(path: Path, head: SliceHead, card: dict) -> Path:
-    """Checkpoint (weights + shape + card) and the card as JSON beside it; written atomically."""
+def save_heads(path: Path, heads: dict[str, SliceHead], card: dict) -> Path:
+    """One checkpoint holding a head per input set (`image`, `geometry`, `image+geometry`) and
+    the card; the card also goes beside it as JSON. Written atomically."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     card = {"created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"), **card}
-    partial = path.with_suffix(".partial")
-    torch.save(
-        {
-            "state_dict": head.state_dict(),
-            "inputs": head.inputs,
-            "n_geometry": head.n_geometry,
-            "card": card,
+    blob = {
+        "heads": {
+            name: {"state_dict": h.state_dict(), "inputs": h.inputs, "n_geometry": h.n_geometry}
+            for name, h in heads.items()
         },
-        partial,
-    )
+        "card": card,
+    }
+    partial = path.with_suffix(".partial")
+    torch.save(blob, partial)
     os.replace(partial, path)
-    card_path = path.with_suffix(".json")
-    card_path.write_text(json.dumps(card, indent=1, sort_keys=True) + "\n")
+    path.with_suffix(".json").write_text(json.dumps(card, indent=1, sort_keys=True) + "\n")
     return path
 
 
-def load_head(path: Path) -> tuple[SliceHead, dict]:
+def load_heads(path: Path) -> tuple[dict[str, SliceHead], dict]:
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "guardrail classifier checkpoint is missing")
     try:
         blob = torch.load(path, map_location="cpu", weights_only=False)
-        head = SliceHead(blob["inputs"], int(blob["n_geometry"]))
-        head.load_state_dict(blob["state_dict"])
+        heads = {}
+        for name, h in blob["heads"].items():
+            head = SliceHead(h["inputs"], int(h["n_geometry"]))
+            head.load_state_dict(h["state_dict"])
+            heads[name] = head.eval()
     except Exception as exc:  # any failure means the file is unusable
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise InputError(path, f"not a guardrail classifier checkpoint ({reason})") from None
-    return head.eval(), blob.get("card", {})
+    return heads, blob.get("card", {})
+
+
+HEAD_INPUTS: tuple[Inputs, ...] = ("image+geometry", "image", "geometry")
+
+
+def train_guardrail_model(
+    out: Path,
+    seeds: list[int] | None = None,
+    validation_seeds: list[int] | None = None,
+    length: float = 100.0,
+    epochs: int = 60,
+    progress=None,
+) -> dict:
+    """Fit one head per input set on the training surveys, score them on the validation
+    surveys, save them with the card; returns the card."""
+    import time
+
+    seeds = list(seeds or TRAIN_SEEDS)
+    validation_seeds = list(validation_seeds or VALIDATION_SEEDS)
+    if set(seeds) & set(HELD_OUT_SEEDS):
+        raise ValueError(f"seeds {sorted(set(seeds) & set(HELD_OUT_SEEDS))} are held out")
+    started = time.perf_counter()
+    train = build_samples(seeds, length, progress=progress)
+    valid = build_samples(validation_seeds, length, progress=progress)
+    built = time.perf_counter() - started
+    heads, scores = {}, {}
+    for inputs in HEAD_INPUTS:
+        heads[inputs] = fit_head(train, inputs=inputs, epochs=epochs)
+        scores[inputs] = slice_scores(heads[inputs], valid)
+    card = {
+        "model": "EfficientNet-Lite0 (ImageNet, frozen) + MLP heads; geometric slice features",
+        "classes": ["other", "guardrail"],
+        "training": {
+            "simulation_seeds": seeds,
+            "length_m": length,
+            "scanner": "profile",
+            "slices": int(len(train.label)),
+            "guardrail_slices": int(train.label.sum()),
+            "epochs": epochs,
+        },
+        "validation": {
+            "simulation_seeds": validation_seeds,
+            "slices": int(len(valid.label)),
+            "guardrail_slices": int(valid.label.sum()),
+            "scores": scores,
+        },
+        "geometry_features": train.geometry_names,
+        "default_head": "image+geometry",
+        "seconds": {"samples": round(built, 1), "total": round(time.perf_counter() - started, 1)},
+    }
+    save_heads(out, heads, card)
+    return card

@@ -9,7 +9,13 @@ import pytest
 
 from app.core.errors import InputError
 from app.pipelines.guardrail.classifier import EMBEDDING, CropEncoder, predict
-from app.pipelines.guardrail.train import SliceSamples, fit_head, load_head, save_head, slice_scores
+from app.pipelines.guardrail.dataset import SliceSamples
+from app.pipelines.guardrail.train import (
+    fit_head,
+    load_heads,
+    save_heads,
+    slice_scores,
+)
 
 
 def _samples(n: int, seed: int) -> SliceSamples:
@@ -29,8 +35,9 @@ def test_head_learns_separable_slices_and_round_trips(inputs: str, tmp_path: Pat
     test = _samples(1000, 1)
     scores = slice_scores(head, test)
     assert scores["f1"] > 90, scores
-    path = save_head(tmp_path / "head.pt", head, {"name": "test"})
-    loaded, card = load_head(path)
+    path = save_heads(tmp_path / "head.pt", {inputs: head}, {"name": "test"})
+    heads, card = load_heads(path)
+    loaded = heads[inputs]
     assert card["name"] == "test" and (tmp_path / "head.json").is_file()
     np.testing.assert_allclose(
         predict(loaded, test.embedding, test.geometry), predict(head, test.embedding, test.geometry)
@@ -39,11 +46,11 @@ def test_head_learns_separable_slices_and_round_trips(inputs: str, tmp_path: Pat
 
 def test_missing_or_bad_checkpoint(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="missing"):
-        load_head(tmp_path / "none.pt")
+        load_heads(tmp_path / "none.pt")
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a checkpoint")
     with pytest.raises(InputError, match="not a guardrail classifier"):
-        load_head(bad)
+        load_heads(bad)
 
 
 def test_pretrained_encoder_tells_crops_apart() -> None:

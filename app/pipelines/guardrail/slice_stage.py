@@ -1,0 +1,119 @@
+"""The guardrail pipeline up to the classifier's input, shared by running and training:
+points -> road removal -> connected components -> 0.5 m slices -> camera crops -> crop
+embeddings and geometric features."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from app.io.survey import Survey
+from app.pipelines.guardrail.classifier import EMBEDDING, CropEncoder
+from app.pipelines.guardrail.components import (
+    Components,
+    ScanPoints,
+    connected_components,
+    load_scan_points,
+)
+from app.pipelines.guardrail.crops import slice_crops
+from app.pipelines.guardrail.features import slice_features
+from app.pipelines.guardrail.road import RoadRemoval, road_removal
+from app.pipelines.guardrail.slices import SliceSet, cut_slices
+
+Progress = Callable[[str, float], None]
+
+
+@dataclass
+class SliceStage:
+    points: ScanPoints
+    trajectory: np.ndarray  # (M, 3) sensor positions in drive order
+    road: RoadRemoval
+    components: Components
+    slices: SliceSet
+    geometry: np.ndarray  # (K, G) float32
+    geometry_names: list[str]
+    embedding: np.ndarray  # (K, 1280) float32, zeros where no image shows the slice whole
+    has_crop: np.ndarray  # (K,) bool
+    crop_frames: np.ndarray  # (K,) int64 frame of the crop, -1 without
+    crop_boxes: np.ndarray  # (K, 4) int64 (u0, v0, u1, v1), -1 without
+    timings: dict[str, float]
+
+
+def prepare_slices(
+    survey: Survey,
+    encoder: CropEncoder | None,
+    spacing: float = 0.5,
+    progress: Progress | None = None,
+    min_slice_points: int = 5,
+) -> SliceStage:
+    """Everything the classifier needs; `encoder=None` skips the images (geometry only)."""
+    import time
+
+    report = progress or (lambda stage, fraction: None)
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    report("points", 0.0)
+    points = load_scan_points(survey)
+    trajectory = survey.poses()[:, :3, 3]
+    timings["load"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    report("road removal", 0.1)
+    road = road_removal(points.xyz, trajectory)
+    timings["road"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    report("components", 0.2)
+    components = connected_components(points, road.keep, above_ground=road.above_ground)
+    timings["components"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    slices = cut_slices(points.xyz, components.label, trajectory, spacing,
+                        min_points=min_slice_points)  # fmt: skip
+    geometry, names = slice_features(points.xyz, slices, above_ground=road.above_ground)
+    timings["slices"] = time.perf_counter() - t0
+    k = len(slices)
+    embedding = np.zeros((k, EMBEDDING), dtype=np.float32)
+    has_crop = np.zeros(k, dtype=bool)
+    crop_frames = np.full(k, -1, dtype=np.int64)
+    crop_boxes = np.full((k, 4), -1, dtype=np.int64)
+    if encoder is not None and survey.cameras and k:
+        t0 = time.perf_counter()
+        report("crops", 0.4)
+        crops = slice_crops(survey, slices, points.xyz)
+        timings["crops"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        report("crop embeddings", 0.6)
+        if crops:
+            which = np.array([c.slice for c in crops], dtype=np.int64)
+            embedding[which] = encoder.embed([c.image for c in crops])
+            has_crop[which] = True
+            crop_frames[which] = [c.frame for c in crops]
+            crop_boxes[which] = [c.box for c in crops]
+        timings["embeddings"] = time.perf_counter() - t0
+    return SliceStage(
+        points, trajectory, road, components, slices, geometry, names, embedding, has_crop,
+        crop_frames, crop_boxes, {k: round(v, 3) for k, v in timings.items()},
+    )  # fmt: skip
+
+
+def slice_truth(stage: SliceStage, guardrail_index: np.ndarray) -> np.ndarray:
+    """(K,) int64 reference slice label: 1 when most of its points belong to a guardrail.
+
+    `guardrail_index` is the simulator's per-point guardrail index (-1 elsewhere), in the order
+    of `stage.points`.
+    """
+    s = stage.slices
+    on_rail = (guardrail_index[s.indices] >= 0).astype(np.int64)
+    per_slice = np.add.reduceat(on_rail, s.offsets[:-1]) if len(s) else np.zeros(0, np.int64)
+    return (2 * per_slice > np.diff(s.offsets)).astype(np.int64)
+
+
+def point_reference(survey: Survey, points: ScanPoints, kind: str) -> np.ndarray:
+    """A per-frame reference label (e.g. "guardrail", "semantic") in the order of `points`."""
+    frames = {}
+    out = np.zeros(len(points), dtype=np.int64)
+    for f in np.unique(points.frame):
+        frames[int(f)] = survey.frames[int(f)].reference_labels()[kind]
+        sel = points.frame == f
+        out[sel] = frames[int(f)][points.index[sel]]
+    return out
