@@ -249,6 +249,55 @@ def run_phantom(
         )
 
 
+@run_app.command("guardrail")
+def run_guardrail(
+    source: Annotated[Path, typer.Argument(help="survey folder (frames with poses and images)")],
+    fmt: FormatOption,
+    out: Annotated[Path, typer.Option("--out", "-o", help="output folder")],
+    model: Annotated[
+        Path | None, typer.Option(help="classifier checkpoint (default: shipped)")
+    ] = None,
+    head: Annotated[
+        str, typer.Option(help="classifier inputs: image+geometry, image (the paper), geometry")
+    ] = "image+geometry",
+    reconstruct: Annotated[bool, typer.Option(help="model the guardrails as meshes")] = True,
+) -> None:
+    """Guardrails (Matsumoto et al.): slices, camera-crop classifier, poles, unit shapes, meshes."""
+    from pydantic import ValidationError
+    from rich.progress import Progress
+
+    from app.io import open_survey
+    from app.pipelines.guardrail.pipeline import GuardrailConfig
+    from app.pipelines.guardrail.run import run_guardrail_to_folder
+
+    try:
+        config = GuardrailConfig(head=head, reconstruct=reconstruct)
+    except ValidationError as exc:
+        raise option_error(exc) from None
+    survey = open_survey(source, fmt)
+    with Progress(console=err_console, transient=True) as bar:
+        task = bar.add_task("guardrail", total=1.0)
+        report = run_guardrail_to_folder(
+            survey,
+            out,
+            config,
+            model,
+            progress=lambda stage, f: bar.update(task, completed=f, description=stage),
+        )
+    counts = report["counts"]
+    console.print(
+        f"{out}: {counts['points']:,} points, {counts['slices']:,} slices, "
+        f"{counts['guardrail_slices']:,} guardrail slices, {counts['guardrails']} guardrails "
+        f"({report['timings']['total']:.1f} s)"
+    )
+    if "metrics" in report:
+        s = report["metrics"]["slice"]
+        console.print(
+            f"slices vs {report['metrics']['reference']}: precision {s['precision']:.1f}, "
+            f"recall {s['recall']:.1f}, F {s['f1']:.1f}"
+        )
+
+
 @train_app.command("phantom")
 def train_phantom(
     out: Annotated[Path, typer.Option("--out", "-o", help="checkpoint to write (.pt)")] = Path(

@@ -1,0 +1,167 @@
+"""The guardrail pipeline, in the paper's order: road removal -> connected components -> 0.5 m
+slices -> camera crops -> slice classifier -> adjacency correction -> guardrail points ->
+poles, unit shapes, superimposition, pipe / beam reconstruction -> meshes."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, Field
+
+from app.io.survey import Survey
+from app.pipelines.guardrail.classifier import CropEncoder, predict
+from app.pipelines.guardrail.correction import correct_labels
+from app.pipelines.guardrail.slice_stage import SliceStage, prepare_slices
+from app.pipelines.guardrail.train import load_heads
+
+Progress = Callable[[str, float], None]
+DEFAULT_MODEL = Path(__file__).resolve().parents[3] / "models" / "guardrail" / "slice_classifier.pt"
+
+
+class GuardrailConfig(BaseModel):
+    spacing: float = Field(0.5, gt=0, description="slice length along the trajectory (paper)")
+    head: Literal["image+geometry", "image", "geometry"] = Field(
+        "image+geometry", description="classifier inputs: image (the paper), geometry, or both"
+    )
+    threshold: float = Field(0.5, gt=0, lt=1, description="guardrail probability to say yes")
+    max_gap: int = Field(2, ge=0, description="other slices filled inside a guardrail run")
+    max_isolated: int = Field(1, ge=0, description="guardrail runs this short become other")
+    min_guardrail_length: float = Field(
+        3.0, gt=0, description="metres: shorter guardrail runs are not reconstructed"
+    )
+    reconstruct: bool = True
+
+
+@dataclass
+class GuardrailInstance:
+    """One guardrail: its slices and points (indices into the stage's points)."""
+
+    id: str
+    slices: np.ndarray
+    points: np.ndarray
+    model: object | None = None  # ReconstructedGuardrail when reconstructed
+    error: str | None = None  # why reconstruction failed, when it did
+
+
+@dataclass
+class GuardrailResult:
+    stage: SliceStage
+    probability: np.ndarray  # (K,) guardrail probability per slice
+    raw_labels: np.ndarray  # (K,) bool before correction
+    slice_labels: np.ndarray  # (K,) bool after correction
+    point_labels: np.ndarray  # (N,) uint8 per point of stage.points: 1 guardrail
+    guardrails: list[GuardrailInstance]
+    frame_ids: list[str]
+    frame_sizes: list[int]
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def frame_labels(self) -> dict[str, np.ndarray]:
+        """The contract's labels: per frame, one uint8 per raw point, 1 = guardrail."""
+        pts = self.stage.points
+        sizes = zip(self.frame_ids, self.frame_sizes, strict=True)
+        out = {f: np.zeros(n, dtype=np.uint8) for f, n in sizes}
+        for i, frame_id in enumerate(self.frame_ids):
+            sel = pts.frame == i
+            out[frame_id][pts.index[sel]] = self.point_labels[sel]
+        return out
+
+
+class GuardrailPipeline:
+    def __init__(self, config: GuardrailConfig | None = None, model_path: Path | None = None):
+        self.config = config or GuardrailConfig()
+        self.model_path = Path(model_path or DEFAULT_MODEL)
+        self.heads, self.card = load_heads(self.model_path)
+        if self.config.head not in self.heads:
+            from app.core.errors import ConfigError
+
+            known = ", ".join(self.heads)
+            problem = f"{self.model_path} has no {self.config.head!r} head ({known})"
+            raise ConfigError("head", problem)
+
+    def run(self, survey: Survey, progress: Progress | None = None) -> GuardrailResult:
+        cfg = self.config
+        report = progress or (lambda stage, fraction: None)
+        uses_image = "image" in cfg.head
+        encoder = CropEncoder() if uses_image and survey.cameras else None
+        stage = prepare_slices(survey, encoder, cfg.spacing, report)
+        timings = dict(stage.timings)
+        t0 = time.perf_counter()
+        report("classifier", 0.7)
+        probability = self.classify(stage)
+        raw = probability >= cfg.threshold
+        corrected = correct_labels(
+            stage.slices, raw, max_gap=cfg.max_gap, max_isolated=cfg.max_isolated
+        ).astype(bool)
+        timings["classify"] = round(time.perf_counter() - t0, 3)
+        point_slice = stage.slices.point_slice
+        point_labels = np.zeros(len(stage.points), dtype=np.uint8)
+        inside = point_slice >= 0
+        point_labels[inside] = corrected[point_slice[inside]]
+        guardrails = self.instances(stage, corrected)
+        if cfg.reconstruct:
+            t0 = time.perf_counter()
+            for i, g in enumerate(guardrails):
+                report("reconstruction", 0.8 + 0.2 * i / max(len(guardrails), 1))
+                self.reconstruct(stage, g)
+            timings["reconstruction"] = round(time.perf_counter() - t0, 3)
+        frames = list(survey.frames)
+        sizes = np.bincount(stage.points.frame, minlength=len(frames))
+        frame_sizes = [
+            int(f.point_count) if f.point_count is not None else int(s)
+            for f, s in zip(frames, sizes, strict=True)
+        ]
+        report("done", 1.0)
+        return GuardrailResult(
+            stage, probability, raw, corrected, point_labels, guardrails,
+            [f.frame_id for f in frames], frame_sizes, timings,
+        )  # fmt: skip
+
+    def classify(self, stage: SliceStage) -> np.ndarray:
+        """Guardrail probability per slice: the configured head where the slice has a crop (or
+        the head needs none), the geometry head elsewhere."""
+        k = len(stage.slices)
+        probability = np.zeros(k)
+        head = self.heads[self.config.head]
+        needs_image = "image" in self.config.head
+        with_image = stage.has_crop if needs_image else np.ones(k, dtype=bool)
+        if with_image.any():
+            probability[with_image] = predict(
+                head, stage.embedding[with_image], stage.geometry[with_image]
+            )[:, 1]
+        rest = ~with_image
+        if rest.any():
+            fallback = self.heads["geometry"]
+            probability[rest] = predict(fallback, stage.embedding[rest], stage.geometry[rest])[:, 1]
+        return probability
+
+    def instances(self, stage: SliceStage, labels: np.ndarray) -> list[GuardrailInstance]:
+        """Guardrails: runs of guardrail slices per (component, side), long enough to model."""
+        s = stage.slices
+        keep = np.flatnonzero(labels)
+        if len(keep) == 0:
+            return []
+        min_slices = int(np.ceil(self.config.min_guardrail_length / self.config.spacing))
+        out = []
+        keys = np.stack([s.component[keep], s.side[keep]], axis=1)
+        for key in np.unique(keys, axis=0):
+            members = keep[(keys == key).all(axis=1)]
+            if len(members) < min_slices:
+                continue
+            points = np.concatenate([s.points(int(k)) for k in members])
+            out.append(GuardrailInstance(f"guardrail_{len(out):03d}", members, points))
+        return out
+
+    def reconstruct(self, stage: SliceStage, guardrail: GuardrailInstance) -> None:
+        from app.pipelines.guardrail.assemble import reconstruct_guardrail
+
+        try:
+            guardrail.model = reconstruct_guardrail(
+                stage.points.xyz[guardrail.points], stage.trajectory
+            )
+        except (ValueError, RuntimeError) as exc:  # too few poles, degenerate unit ...
+            guardrail.error = str(exc).splitlines()[0] if str(exc) else type(exc).__name__

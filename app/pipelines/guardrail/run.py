@@ -1,0 +1,116 @@
+"""A guardrail run from survey to output folder: labels, guardrail points (LAZ), one mesh set
+per guardrail (glb, obj, ply) and the report, with the paper's slice scores when the survey has
+reference labels (simulator: guardrail index; SemanticKITTI: the fence class)."""
+
+from __future__ import annotations
+
+import datetime
+import time
+from pathlib import Path
+
+import numpy as np
+
+from app.io.asprs import GUARDRAIL_ASPRS
+from app.io.las import write_laz
+from app.io.survey import Survey
+from app.metrics.classification import binary_scores
+from app.pipelines.guardrail.pipeline import (
+    GuardrailConfig,
+    GuardrailPipeline,
+    GuardrailResult,
+    Progress,
+)
+from app.pipelines.guardrail.slice_stage import point_reference, slice_truth
+from app.pipelines.outputs import write_frame_labels, write_report
+
+FENCE = 51  # SemanticKITTI labels highway guardrails "fence"
+
+
+def reference_points(survey: Survey, result: GuardrailResult) -> tuple[np.ndarray, str] | None:
+    """Per point of the run: True on a guardrail (simulator) or a fence (SemanticKITTI)."""
+    kinds = survey.reference_label_kinds
+    points = result.stage.points
+    if "guardrail" in kinds:
+        return point_reference(survey, points, "guardrail") >= 0, "simulator guardrails"
+    if "semantic" in kinds:
+        semantic = point_reference(survey, points, "semantic") & 0xFFFF
+        return semantic == FENCE, "SemanticKITTI fence (51); not every urban fence is a guardrail"
+    return None
+
+
+def slice_metrics(result: GuardrailResult, truth_points: np.ndarray) -> dict:
+    """The paper's Table 2 (slice precision / recall / F), before and after correction, and the
+    point-level scores."""
+    truth = slice_truth(result.stage, np.where(truth_points, 0, -1)).astype(bool)
+    return {
+        "slices": int(len(truth)),
+        "reference_guardrail_slices": int(truth.sum()),
+        "slice_raw": binary_scores(truth, result.raw_labels).as_dict(),
+        "slice": binary_scores(truth, result.slice_labels).as_dict(),
+        "point": binary_scores(truth_points, result.point_labels == 1).as_dict(),
+    }
+
+
+def run_guardrail_to_folder(
+    survey: Survey,
+    out: Path,
+    config: GuardrailConfig | None = None,
+    model_path: Path | None = None,
+    progress: Progress | None = None,
+) -> dict:
+    started = time.perf_counter()
+    pipeline = GuardrailPipeline(config, model_path)
+    result = pipeline.run(survey, progress)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_frame_labels(out, result.frame_labels())
+    files = {}
+    pts = result.stage.points
+    on_rail = result.point_labels == 1
+    write_laz(
+        out / "guardrail_points.laz",
+        pts.xyz[on_rail],
+        mmsclean_label=np.ones(int(on_rail.sum()), dtype=np.uint8),
+        classification=np.full(int(on_rail.sum()), GUARDRAIL_ASPRS, dtype=np.uint8),
+        source_frame=pts.frame[on_rail].astype(np.uint32),
+        source_index=pts.index[on_rail].astype(np.uint32),
+        creation_date=datetime.date.today(),
+    )
+    files["guardrail_points"] = "guardrail_points.laz"
+    guardrails = []
+    for g in result.guardrails:
+        entry: dict = {"id": g.id, "slices": int(len(g.slices)), "points": int(len(g.points))}
+        if g.model is not None:
+            from app.pipelines.guardrail.assemble import export_guardrail
+
+            written = export_guardrail(g.model, out / "guardrails", g.id)
+            entry["files"] = {k: str(Path("guardrails") / Path(v).name) for k, v in written.items()}
+            entry["model"] = g.model.model
+        if g.error:
+            entry["error"] = g.error
+        guardrails.append(entry)
+    report: dict = {
+        "pipeline": "guardrail",
+        "survey": {"name": survey.name, "format": survey.format, "source": str(survey.source)},
+        "config": pipeline.config.model_dump(),
+        "model": {"path": str(pipeline.model_path), "created": pipeline.card.get("created")},
+        "counts": {
+            "frames": len(result.frame_ids),
+            "points": int(len(pts)),
+            "slices": int(len(result.slice_labels)),
+            "slices_with_crop": int(result.stage.has_crop.sum()),
+            "guardrail_slices": int(result.slice_labels.sum()),
+            "guardrail_points": int(on_rail.sum()),
+            "guardrails": len(result.guardrails),
+        },
+        "guardrails": guardrails,
+        "timings": dict(result.timings),
+        "files": files,
+    }
+    reference = reference_points(survey, result)
+    if reference is not None:
+        truth, what = reference
+        report["metrics"] = {"reference": what, **slice_metrics(result, truth)}
+    report["timings"]["total"] = round(time.perf_counter() - started, 3)
+    write_report(out, report)
+    return report
