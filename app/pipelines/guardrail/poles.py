@@ -1,0 +1,694 @@
+"""Pole detection (Matsumoto, Mori & Masuda, section 4.1, after Fukano & Masuda 2015).
+
+The guardrail points are cut by horizontal section planes; in every section the points are
+grouped along the rail, and groups that are compact (narrower than a pole) are fitted with
+circles. Circles that line up vertically form a cylinder: a pole. Its height runs from the
+ground (lowest point) to its highest point. What makes a pole and not a vertical pipe is that it
+stands on the ground: its column reaches the lowest guardrail points around it.
+
+Sparse scans (a profile scanner at speed hits a 7 cm pole once, or not at all) leave poles with
+a one-sided arc or a single scan line. So the circle fit is robust (RANSAC on 3-point circles,
+then an inlier least-squares fit), poles share one radius (a guardrail uses one pole type), a
+pole whose own arc cannot fix its radius is fitted with the shared radius behind its visible
+side, and gaps of whole unit lengths get poles inferred from the spacing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components, minimum_spanning_tree, shortest_path
+from scipy.spatial import Delaunay, QhullError, cKDTree
+
+_Z = np.array([0.0, 0.0, 1.0])
+
+
+# ----------------------------------------------------------------------------- rail curve
+
+
+@dataclass
+class RailCurve:
+    """The guardrail's course in plan view: a smoothed polyline through its points, with
+    stations (arc length) so points can be addressed as (station s, signed lateral offset d,
+    positive to the left of the direction of increasing s)."""
+
+    xy: np.ndarray  # (K, 2) vertices
+    stations: np.ndarray  # (K,) arc length at each vertex
+
+    def project(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Station and signed lateral offset (n,), (n,) of plan positions `xy` (n, 2)."""
+        P, S = self.xy, self.stations
+        seg_d = np.diff(P, axis=0)
+        seg_l = np.maximum(np.linalg.norm(seg_d, axis=1), 1e-12)
+        seg_u = seg_d / seg_l[:, None]
+        _, v = cKDTree(P).query(xy, workers=-1)
+        best_s = np.zeros(len(xy))
+        best_d = np.full(len(xy), np.inf)
+        last = len(seg_u) - 1
+        for off in (-1, 0):  # the segments before and after the nearest vertex
+            j = np.clip(v + off, 0, last)
+            w = xy - P[j]
+            t = np.einsum("ij,ij->i", w, seg_u[j])
+            lo = np.where(j == 0, -np.inf, 0.0)  # the open ends extrapolate
+            hi = np.where(j == last, np.inf, seg_l[j])
+            t = np.clip(t, lo, hi)
+            r = w - t[:, None] * seg_u[j]
+            dist = np.linalg.norm(r, axis=1)
+            lat = seg_u[j, 0] * r[:, 1] - seg_u[j, 1] * r[:, 0]
+            take = dist < np.abs(best_d)
+            best_s = np.where(take, S[j] + t, best_s)
+            best_d = np.where(take, lat, best_d)
+        return best_s, best_d
+
+    def at(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Plan positions (n, 2) and unit tangents (n, 2) at stations `s` (extrapolated)."""
+        s = np.atleast_1d(np.asarray(s, dtype=np.float64))
+        P, S = self.xy, self.stations
+        j = np.clip(np.searchsorted(S, s, side="right") - 1, 0, len(S) - 2)
+        d = P[j + 1] - P[j]
+        u = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+        return P[j] + (s - S[j])[:, None] * u, u
+
+    def left(self, s: np.ndarray) -> np.ndarray:
+        """Unit normals (n, 2) to the left of the course at stations `s`."""
+        _, u = self.at(s)
+        return np.column_stack([-u[:, 1], u[:, 0]])
+
+
+def _diameter_path(xy: np.ndarray) -> np.ndarray:
+    """Vertex order along the longest path of the Euclidean minimum spanning tree of `xy`: the
+    course of a band-like point set, whatever its curvature."""
+    n = len(xy)
+    if n < 4:
+        return np.argsort(_principal_coordinate(xy))
+    try:
+        tri = Delaunay(xy, qhull_options="QJ")
+        e = np.concatenate([tri.simplices[:, [0, 1]], tri.simplices[:, [1, 2]],
+                            tri.simplices[:, [2, 0]]])  # fmt: skip
+    except QhullError:
+        return np.argsort(_principal_coordinate(xy))
+    e = np.unique(np.sort(e, axis=1), axis=0)
+    w = np.linalg.norm(xy[e[:, 0]] - xy[e[:, 1]], axis=1) + 1e-9
+    mst = minimum_spanning_tree(coo_matrix((w, (e[:, 0], e[:, 1])), shape=(n, n)).tocsr())
+    d0 = shortest_path(mst, directed=False, indices=0)
+    a = int(np.argmax(np.where(np.isfinite(d0), d0, -1)))
+    da, pred = shortest_path(mst, directed=False, indices=a, return_predecessors=True)
+    b = int(np.argmax(np.where(np.isfinite(da), da, -1)))
+    path = [b]
+    while path[-1] != a:
+        path.append(int(pred[path[-1]]))
+    return np.array(path[::-1])
+
+
+def _principal_coordinate(xy: np.ndarray) -> np.ndarray:
+    c = xy - xy.mean(0)
+    if len(xy) < 2:
+        return np.zeros(len(xy))
+    _, _, vt = np.linalg.svd(c, full_matrices=False)
+    return c @ vt[0]
+
+
+def rail_curve(
+    points: np.ndarray,
+    trajectory: np.ndarray | None = None,
+    cell: float = 0.5,  # m, plan cells the course is traced through
+    smooth: int = 5,  # cells in the moving average that smooths the course
+    extend: float = 2.0,  # m, straight extension at both ends
+) -> RailCurve:
+    """The course of the guardrail from its own points (cell centroids ordered along the
+    longest path of their spanning tree, smoothed). Oriented like the trajectory when one is
+    given (stations grow in the driving direction), else along the first principal axis."""
+    xy = np.asarray(points, dtype=np.float64)[:, :2]
+    keys = np.floor((xy - xy.min(0)) / cell).astype(np.int64)
+    _, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+    cent = np.column_stack(
+        [np.bincount(inv, xy[:, k], minlength=len(counts)) / counts for k in range(2)]
+    )
+    order = _diameter_path(cent)
+    P = cent[order]
+    if len(P) >= 3 and smooth > 1:
+        k = min(smooth, len(P) if len(P) % 2 else len(P) - 1)
+        pad = k // 2
+        Pp = np.concatenate([np.repeat(P[:1], pad, 0), P, np.repeat(P[-1:], pad, 0)])
+        kern = np.ones(k) / k
+        P = np.column_stack([np.convolve(Pp[:, j], kern, mode="valid") for j in range(2)])
+        P[0], P[-1] = cent[order[0]], cent[order[-1]]
+    keep = np.r_[True, np.linalg.norm(np.diff(P, axis=0), axis=1) > 1e-6]
+    P = P[keep]
+    if len(P) < 2:  # a single cell: any horizontal direction through it
+        P = np.array([P[0] - [0.5 * cell, 0.0], P[0] + [0.5 * cell, 0.0]])
+    direction = P[-1] - P[0]
+    if trajectory is not None and len(trajectory) >= 2:
+        T = np.asarray(trajectory, dtype=np.float64)[:, :2]
+        _, i0 = cKDTree(T).query(P[[0, -1]])
+        if i0[1] < i0[0] or (i0[1] == i0[0] and direction @ (T[-1] - T[0]) < 0):
+            P = P[::-1]
+    elif direction @ _principal_axis_sign(xy) < 0:
+        P = P[::-1]
+    u0 = (P[1] - P[0]) / np.linalg.norm(P[1] - P[0])
+    u1 = (P[-1] - P[-2]) / np.linalg.norm(P[-1] - P[-2])
+    P = np.concatenate([[P[0] - extend * u0], P, [P[-1] + extend * u1]])
+    S = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))]
+    return RailCurve(P, S - extend)
+
+
+def _principal_axis_sign(xy: np.ndarray) -> np.ndarray:
+    """A fixed orientation for the first principal axis (largest |component| positive)."""
+    c = xy - xy.mean(0)
+    _, _, vt = np.linalg.svd(c[:: max(1, len(c) // 5000)], full_matrices=False)
+    v = vt[0]
+    return v if v[np.argmax(np.abs(v))] > 0 else -v
+
+
+# ----------------------------------------------------------------------------- circles
+
+
+def fit_circle_algebraic(xy: np.ndarray, w: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """Kasa fit: the circle x^2 + y^2 + D x + E y + F = 0 by linear least squares."""
+    w = np.ones(len(xy)) if w is None else w
+    A = np.column_stack([xy, np.ones(len(xy))]) * w[:, None]
+    b = -(xy**2).sum(1) * w
+    (D, E, F), *_ = np.linalg.lstsq(A, b, rcond=None)
+    c = -0.5 * np.array([D, E])
+    return c, float(np.sqrt(max(c @ c - F, 0.0)))
+
+
+def fit_circle_geometric(
+    xy: np.ndarray, c0: np.ndarray, r0: float, iterations: int = 20, radius: float | None = None
+) -> tuple[np.ndarray, float]:
+    """Gauss-Newton on sum (|p - c| - r)^2 from (c0, r0); with `radius` given, r is held fixed
+    (a pole of known radius seen from one side)."""
+    c, r = np.asarray(c0, dtype=np.float64).copy(), float(r0 if radius is None else radius)
+    for _ in range(iterations):
+        v = xy - c
+        rho = np.maximum(np.linalg.norm(v, axis=1), 1e-9)
+        res = rho - r
+        J = -v / rho[:, None]
+        if radius is None:
+            J = np.column_stack([J, -np.ones(len(xy))])
+        step, *_ = np.linalg.lstsq(J, -res, rcond=None)
+        c += step[:2]
+        if radius is None:
+            r += step[2]
+        if np.linalg.norm(step) < 1e-7:
+            break
+    return c, abs(r)
+
+
+def _circumcircles(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Centres (m, 2) and radii (m,) of the circles through point triples p (m, 3, 2)."""
+    a, b, c = p[:, 0], p[:, 1], p[:, 2]
+    d = 2.0 * (a[:, 0] * (b[:, 1] - c[:, 1]) + b[:, 0] * (c[:, 1] - a[:, 1])
+               + c[:, 0] * (a[:, 1] - b[:, 1]))  # fmt: skip
+    a2, b2, c2 = (a**2).sum(1), (b**2).sum(1), (c**2).sum(1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ux = (a2 * (b[:, 1] - c[:, 1]) + b2 * (c[:, 1] - a[:, 1]) + c2 * (a[:, 1] - b[:, 1])) / d
+        uy = (a2 * (c[:, 0] - b[:, 0]) + b2 * (a[:, 0] - c[:, 0]) + c2 * (b[:, 0] - a[:, 0])) / d
+    centre = np.column_stack([ux, uy])
+    return centre, np.linalg.norm(centre - a, axis=1)
+
+
+def arc_span(xy: np.ndarray, c: np.ndarray) -> float:
+    """Angle (radians) of the circle around `c` covered by the points (2 pi minus the largest
+    angular gap): how well the points pin down a circle."""
+    if len(xy) < 2:
+        return 0.0
+    a = np.sort(np.arctan2(xy[:, 1] - c[1], xy[:, 0] - c[0]))
+    gaps = np.diff(np.r_[a, a[0] + 2.0 * np.pi])
+    return float(2.0 * np.pi - gaps.max())
+
+
+@dataclass
+class Circle:
+    centre: np.ndarray
+    radius: float
+    inliers: int
+    span: float  # radians of arc covered by the inliers
+    rms: float
+
+
+def fit_circle_ransac(
+    xy: np.ndarray,
+    rng: np.random.Generator,
+    radius_range: tuple[float, float] = (0.015, 0.12),
+    inlier_tol: float = 0.01,
+    iterations: int = 128,
+    min_inliers: int = 8,
+) -> Circle | None:
+    """Robust circle: the 3-point circle (radius in range) with most points within
+    `inlier_tol`, refined by an algebraic then a geometric fit on its inliers. None when no
+    plausible circle exists (fewer than 3 points, collinear points)."""
+    n = len(xy)
+    if n < 3:
+        return None
+    idx = rng.integers(0, n, size=(iterations, 3)) if n > 3 else np.arange(3)[None]
+    idx = idx[(idx[:, 0] != idx[:, 1]) & (idx[:, 1] != idx[:, 2]) & (idx[:, 0] != idx[:, 2])]
+    if not len(idx):
+        return None
+    c, r = _circumcircles(xy[idx])
+    ok = np.isfinite(r) & (r >= radius_range[0]) & (r <= radius_range[1])
+    if not ok.any():
+        return None
+    c, r = c[ok], r[ok]
+    res = np.abs(np.linalg.norm(xy[None, :, :] - c[:, None, :], axis=2) - r[:, None])
+    count = (res < inlier_tol).sum(1)
+    best = int(np.argmax(count))
+    inl = res[best] < inlier_tol
+    if inl.sum() < 3:
+        return None
+    c1, r1 = fit_circle_algebraic(xy[inl])
+    c1, r1 = fit_circle_geometric(xy[inl], c1, r1)
+    if not (radius_range[0] <= r1 <= radius_range[1]) or not np.all(np.isfinite(c1)):
+        c1, r1 = c[best], float(r[best])
+    d = np.abs(np.linalg.norm(xy - c1, axis=1) - r1)
+    inl = d < inlier_tol
+    q = xy[inl] - xy[inl].mean(0)
+    if len(q) < min_inliers or np.ptp(q @ np.linalg.svd(q, full_matrices=False)[2][0]) < 1.5 * r1:
+        return None  # the points cover no real chord: a noise blob fits any small circle
+    return Circle(
+        c1, r1, int(inl.sum()), arc_span(xy[inl], c1), float(np.sqrt((d[inl] ** 2).mean()))
+    )
+
+
+# ----------------------------------------------------------------------------- poles
+
+
+@dataclass
+class Pole:
+    """A cylindrical pole: plan centre, radius, ground (base) and top heights."""
+
+    centre: np.ndarray  # (2,) world xy
+    radius: float
+    base: float  # ground height under the pole (z)
+    top: float  # height of its highest point (z)
+    station: float  # along the rail curve
+    points: int  # points of its column (0 when inferred)
+    detected: bool = True  # False: inferred in a gap from the pole spacing
+    fitted: bool = False  # True when its own arc fixed the circle (not the shared radius)
+    support: np.ndarray | None = field(default=None, repr=False)  # (n, 2) plan points
+    away: np.ndarray | None = field(default=None, repr=False)  # sensor -> pole, unit (2,)
+
+    @property
+    def base_point(self) -> np.ndarray:
+        return np.array([self.centre[0], self.centre[1], self.base])
+
+    @property
+    def top_point(self) -> np.ndarray:
+        return np.array([self.centre[0], self.centre[1], self.top])
+
+    def to_dict(self) -> dict:
+        return {
+            "base": self.base_point.tolist(),
+            "top": self.top_point.tolist(),
+            "radius": float(self.radius),
+            "station": float(self.station),
+            "points": int(self.points),
+            "detected": bool(self.detected),
+        }
+
+
+@dataclass
+class _Column:
+    """Compact section clusters that line up vertically: a pole or vertical pipe candidate."""
+
+    members: np.ndarray  # point indices (the column's core)
+    station: float
+    offset: float
+    z_min: float
+    z_max: float
+    sections: int
+    ground: float  # lowest guardrail point around it
+    under: float  # lowest point of the long structures (rails, beam) around it; inf if none
+
+
+def scan_spacing(s: np.ndarray, bin_size: float = 0.02, max_gap: float = 1.0) -> float:
+    """Typical along-rail distance between scan lines: a profile scanner cuts the rail in
+    lines one profile apart (10-25 cm at road speeds), a rotating scanner fills it densely.
+    The 90th percentile of the gaps between occupied `bin_size` bins (occlusions excluded)."""
+    b = np.unique(np.floor(s / bin_size).astype(np.int64))
+    g = np.diff(b) * bin_size
+    g = g[g < max_gap]
+    return float(np.percentile(g, 90)) if len(g) else bin_size
+
+
+def _section_blobs(
+    s: np.ndarray, z: np.ndarray, section_step: float, cluster_gap: float, max_pole_width: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per point: its section index and the id of its compact cluster in that section (-1 if
+    its cluster is wider than a pole along the rail: a rail, a beam)."""
+    sec = np.floor((z - z.min()) / section_step).astype(np.int64)
+    order = np.lexsort((s, sec))
+    ss, sc = s[order], sec[order]
+    new = np.r_[True, (np.diff(sc) != 0) | (np.diff(ss) > cluster_gap)]
+    run = np.cumsum(new) - 1
+    first = np.flatnonzero(new)
+    last = np.r_[first[1:] - 1, len(ss) - 1]
+    compact = ss[last] - ss[first] <= max_pole_width
+    blob = np.full(len(s), -1, dtype=np.int64)
+    blob[order] = np.where(compact[run], run, -1)
+    return sec, blob
+
+
+def _window_min(s_sorted: np.ndarray, z_sorted: np.ndarray, centre: float, half: float) -> float:
+    lo, hi = np.searchsorted(s_sorted, [centre - half, centre + half])
+    return float(z_sorted[lo:hi].min()) if hi > lo else float("inf")
+
+
+def _columns(
+    s: np.ndarray,
+    d: np.ndarray,
+    z: np.ndarray,
+    section_step: float,
+    cluster_gap: float,
+    max_pole_width: float,
+    column_tol: float,
+    ground_window: float,
+    core_halfwidth: float,
+) -> list[_Column]:
+    """Vertically aligned compact section clusters, grouped by their (station, offset), each
+    cut down to its core around the station of its lowest sections (where a pole stands alone;
+    higher up a diagonal leaving the pole can join its clusters)."""
+    sec, blob = _section_blobs(s, z, section_step, cluster_gap, max_pole_width)
+    sel = np.flatnonzero(blob >= 0)
+    if not len(sel):
+        return []
+    ids, inv, cnt = np.unique(blob[sel], return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+    bs = np.bincount(inv, s[sel]) / cnt
+    bd = np.bincount(inv, d[sel]) / cnt
+    pairs = cKDTree(np.column_stack([bs, bd])).query_pairs(column_tol, output_type="ndarray")
+    n = len(ids)
+    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    ncomp, comp = connected_components(g, directed=False)
+    point_comp = comp[inv]
+    order = np.argsort(point_comp, kind="stable")
+    bounds = np.searchsorted(point_comp[order], np.arange(ncomp + 1))
+    o_all = np.argsort(s)
+    s_all, z_all = s[o_all], z[o_all]
+    long_pts = np.flatnonzero(blob < 0)
+    o_long = long_pts[np.argsort(s[long_pts])]
+    s_long, z_long = s[o_long], z[o_long]
+    cols = []
+    for k in range(ncomp):
+        members = sel[order[bounds[k] : bounds[k + 1]]]
+        low = members[sec[members] <= sec[members].min() + 2]
+        sc, dc = float(np.median(s[low])), float(np.median(d[low]))
+        members = members[
+            (np.abs(s[members] - sc) <= core_halfwidth) & (np.abs(d[members] - dc) <= column_tol)
+        ]
+        if not len(members):
+            continue
+        sc = float(np.median(s[members]))
+        cols.append(
+            _Column(
+                members=members,
+                station=sc,
+                offset=float(np.median(d[members])),
+                z_min=float(z[members].min()),
+                z_max=float(z[members].max()),
+                sections=len(np.unique(sec[members])),
+                ground=_window_min(s_all, z_all, sc, ground_window),
+                under=_window_min(s_long, z_long, sc, 0.5),
+            )
+        )
+    return cols
+
+
+def _fit_pole_circle(
+    xy: np.ndarray,
+    z: np.ndarray,
+    rng: np.random.Generator,
+    section_step: float,
+    radius_range: tuple[float, float],
+    inlier_tol: float,
+    min_span: float,
+    iterations: int,
+) -> Circle | None:
+    """The paper's circles per horizontal section, then their vertically aligned consensus:
+    sections whose centres agree with the median centre are pooled into one fit (the axis is
+    vertical, so all sections share the centre)."""
+    sec = np.floor((z - z.min()) / section_step).astype(np.int64)
+    centres, good = [], []
+    for k in np.unique(sec):
+        m = sec == k
+        if m.sum() < 5:
+            continue
+        c = fit_circle_ransac(xy[m], rng, radius_range, inlier_tol, iterations)
+        if c is not None and c.span >= min_span and c.inliers >= 0.6 * m.sum():
+            centres.append(c.centre)
+            good.append(k)
+    if centres:
+        med = np.median(np.array(centres), axis=0)
+        aligned = [k for k, c in zip(good, centres, strict=True) if np.linalg.norm(c - med) < 0.03]
+        pool = np.isin(sec, aligned)
+        pooled = fit_circle_ransac(xy[pool], rng, radius_range, inlier_tol, iterations)
+        if pooled is not None and pooled.span >= min_span:
+            return pooled
+    whole = fit_circle_ransac(xy, rng, radius_range, inlier_tol, iterations)
+    if whole is not None and whole.span >= min_span and whole.inliers >= 0.6 * len(xy):
+        return whole
+    return None
+
+
+def _away_direction(
+    xy: np.ndarray, trajectory: np.ndarray | None, circle: Circle | None
+) -> np.ndarray | None:
+    """Horizontal unit vector from the sensor towards the pole: the pole's centre lies behind
+    its visible side. From the trajectory, else from a (radius-unreliable) circle fit."""
+    m = xy.mean(0)
+    if trajectory is not None and len(trajectory):
+        T = np.asarray(trajectory, dtype=np.float64)[:, :2]
+        v = m - T[np.argmin(np.linalg.norm(T - m, axis=1))]
+    elif circle is not None:
+        v = circle.centre - m
+    else:
+        return None
+    n = np.linalg.norm(v)
+    return v / n if n > 1e-9 else None
+
+
+def detect_poles(
+    points: np.ndarray,
+    trajectory: np.ndarray | None = None,
+    curve: RailCurve | None = None,
+    section_step: float = 0.05,  # m, horizontal section planes (Fukano & Masuda: 5-10 cm)
+    cluster_gap: float = 0.3,  # m, gap along the rail that separates section clusters (wider
+    # than a profile scanner's line spacing at road speed, so rails stay one cluster)
+    max_pole_width: float = 0.3,  # m, a section cluster wider than this is a rail or beam
+    core_halfwidth: float = 0.1,  # m, a pole's points lie this close to its station
+    column_tol: float = 0.08,  # m, plan distance of vertically aligned clusters
+    min_pole_height: float = 0.15,  # m, vertical extent of a pole's compact column
+    min_sections: int = 3,  # sections a pole's column occupies
+    ground_tol: float = 0.08,  # m, a pole reaches this close to the local ground
+    below_rails: float = 0.08,  # m, ... and this far below the lowest rail / beam around it
+    ground_window: float = 1.0,  # m, along-rail half window of the local ground
+    radius_range: tuple[float, float] = (0.02, 0.12),  # m, plausible pole radii
+    radius_prior: float = 0.04,  # m, pole radius when no pole's arc fixes it
+    inlier_tol: float = 0.01,  # m, RANSAC circle inlier distance
+    min_arc: float = np.radians(100.0),  # arc a circle fit needs to fix a radius
+    ransac_iterations: int = 128,
+    infer_missing: bool = True,  # add poles in gaps of whole unit lengths
+    seed: int = 0,
+) -> list[Pole]:
+    """Poles of one guardrail from its points (N, 3) world, sorted along the rail (the
+    direction of travel when the trajectory is given)."""
+    pts = np.asarray(points, dtype=np.float64)
+    if len(pts) < 10:
+        return []
+    curve = curve if curve is not None else rail_curve(pts, trajectory)
+    s, d = curve.project(pts[:, :2])
+    z = pts[:, 2]
+    rng = np.random.default_rng(seed)
+    # sections of a rail must join across scan lines, whatever the scanner's line spacing
+    gap = max(cluster_gap, 1.5 * scan_spacing(s))
+    cols = _columns(s, d, z, section_step, gap, max(max_pole_width, gap), column_tol,
+                    ground_window, core_halfwidth)  # fmt: skip
+    cand = [
+        c
+        for c in cols
+        if c.sections >= min_sections
+        and c.z_max - c.z_min >= min_pole_height
+        and c.z_min - c.ground <= ground_tol
+        and c.z_min <= c.under - below_rails
+    ]
+    if not cand:
+        return []
+    circles = []
+    for c in cand:
+        circles.append(
+            _fit_pole_circle(
+                pts[c.members, :2],
+                z[c.members],
+                rng,
+                section_step,
+                radius_range,
+                inlier_tol,
+                min_arc,
+                ransac_iterations,
+            )  # fmt: skip
+        )
+    fitted = [c.radius for c in circles if c is not None]
+    shared = float(np.median(fitted)) if fitted else radius_prior
+    plan = cKDTree(pts[:, :2])
+    poles = []
+    for c, circ in zip(cand, circles, strict=True):
+        xy = pts[c.members, :2]
+        own = circ is not None and abs(circ.radius - shared) <= 0.25 * shared
+        pole = Pole(centre=xy.mean(0), radius=shared, base=c.z_min, top=c.z_max,
+                    station=c.station, points=len(c.members), detected=True,
+                    fitted=bool(own), support=xy,
+                    away=_away_direction(xy, trajectory, circ))  # fmt: skip
+        if own:
+            pole.centre, pole.radius = circ.centre, circ.radius
+        else:
+            _place(pole, shared)
+        # the highest point of the pole: anything above its footprint (top rail included)
+        near = plan.query_ball_point(pole.centre, pole.radius + 0.03)
+        pole.top = float(z[near].max()) if len(near) else c.z_max
+        poles.append(pole)
+    poles.sort(key=lambda p: p.station)
+    poles = _drop_off_spacing(poles)
+    if infer_missing and len(poles) >= 2:
+        poles = _infer_missing(poles, curve, s, trajectory)
+    return poles
+
+
+def _place(pole: Pole, radius: float, depth_factor: float = 0.8) -> None:
+    """Centre of a pole whose own arc does not fix its circle, given the radius: a fixed-radius
+    circle fit when its points span a chord of at least one radius, else its visible points'
+    centroid pushed `depth_factor` radii away from the sensor (the mean depth of a
+    cylinder's visible side is pi/4 of its radius; a box post's face lies deeper)."""
+    pole.radius = radius
+    xy = pole.support
+    if xy is None or not len(xy):
+        return
+    m = xy.mean(0)
+    if pole.away is None:
+        pole.centre = m
+        return
+    across = np.array([-pole.away[1], pole.away[0]])
+    c0 = m + depth_factor * radius * pole.away
+    pole.centre = c0
+    if np.ptp(xy @ across) >= radius:
+        c, _ = fit_circle_geometric(xy, m + radius * pole.away, radius, radius=radius)
+        if np.linalg.norm(c - c0) <= radius:
+            pole.centre = c
+
+
+def place_poles(poles: list[Pole], radius: float) -> None:
+    """Give every pole whose own arc did not fix its circle `radius` and re-place its centre
+    (e.g. once the guardrail kind is known and its pole-size prior applies)."""
+    for p in poles:
+        if not p.fitted:
+            _place(p, radius)
+
+
+def pole_spacing(
+    poles: list[Pole],
+    spacing_range: tuple[float, float] = (0.8, 6.0),  # m, plausible unit lengths
+    tol: float = 0.15,  # m, a gap "is" k units when within this of k * L
+    inlier_share: float = 0.75,  # share of gaps that must be whole numbers of units
+) -> float:
+    """Unit length: the longest L (on a 1 cm grid) for which most pole gaps (weighted by the
+    support of their weaker pole) are whole multiples of L (missed poles make gaps of 2 L,
+    3 L; a spurious pole makes an odd one), refined as the median of gap / k over them."""
+    g = np.diff([p.station for p in poles])
+    support = np.array([max(p.points, 1) * max(p.top - p.base, 0.01) for p in poles])
+    w = np.minimum(support[:-1], support[1:])  # a gap is as trustworthy as its weaker pole
+    w, g = w[g > 0.0], g[g > 0.0]
+    if not len(g):
+        return float("nan")
+    L = np.arange(spacing_range[0], spacing_range[1] + 1e-9, 0.01)
+    k = np.maximum(1.0, np.round(g[None, :] / L[:, None]))
+    ok = np.abs(g[None, :] - k * L[:, None]) <= tol
+    good = np.flatnonzero((ok * w).sum(1) >= inlier_share * w.sum())
+    if not len(good):
+        return float(np.median(g))
+    i = good[-1]
+    return float(np.median(g[ok[i]] / k[i, ok[i]]))
+
+
+def _drop_off_spacing(poles: list[Pole], tol: float = 0.2) -> list[Pole]:
+    """Detections whose gaps to both neighbours are no whole number of units are spurious
+    (a column at the data's edge, a vertical pipe); also, of two poles closer than 0.6 units,
+    the less supported one goes."""
+    for _ in range(len(poles)):
+        if len(poles) < 3:
+            break
+        L = pole_spacing(poles)
+        st = np.array([p.station for p in poles])
+        g = np.diff(st)
+        off = np.abs(g - np.maximum(1.0, np.round(g / L)) * L) > tol
+        off |= g < 0.6 * L
+        bad_prev = np.r_[True, off]  # gap to the previous pole is off (or there is none)
+        bad_next = np.r_[off, True]
+        bad = np.flatnonzero(bad_prev & bad_next)
+        if not len(bad):
+            break
+        score = np.array([poles[i].points * (poles[i].top - poles[i].base) for i in bad])
+        poles.pop(int(bad[np.argmin(score)]))
+    return poles
+
+
+def _infer_missing(
+    poles: list[Pole], curve: RailCurve, s_all: np.ndarray, trajectory: np.ndarray | None
+) -> list[Pole]:
+    """Poles in gaps of k >= 2 unit lengths, and beyond the ends while the guardrail's points
+    go on for most of a unit: plan position on the rail course at the detected poles' lateral
+    offset, the median pole height, and a base that follows the road: the trajectory's height
+    there plus the height above it of the detected poles (interpolated), or without a
+    trajectory the bases themselves interpolated."""
+    L = pole_spacing(poles)
+    if not np.isfinite(L) or L <= 0:
+        return poles
+    st = np.array([p.station for p in poles])
+    centres = np.array([p.centre for p in poles])
+    _, lat = curve.project(centres)
+    off = float(np.median(lat))
+    height = float(np.median([p.top - p.base for p in poles if p.detected]))
+    radius = float(np.median([p.radius for p in poles]))
+    if trajectory is not None and len(trajectory):
+        T = np.asarray(trajectory, dtype=np.float64)
+        tree = cKDTree(T[:, :2])
+
+        def road(xy: np.ndarray) -> np.ndarray:
+            return T[tree.query(xy)[1], 2]
+    else:
+
+        def road(xy: np.ndarray) -> np.ndarray:
+            return np.zeros(len(xy))
+
+    rel = np.array([p.base for p in poles]) - road(centres)  # base above the road
+    new_s = []
+    for i in range(len(poles) - 1):
+        k = int(round((st[i + 1] - st[i]) / L))
+        new_s += [st[i] + j / k * (st[i + 1] - st[i]) for j in range(1, k)]
+    lo, hi = np.percentile(s_all, [0.5, 99.5])
+    x = st[0] - L
+    while x >= lo - 0.3 * L:
+        new_s.append(x)
+        x -= L
+    x = st[-1] + L
+    while x <= hi + 0.3 * L:
+        new_s.append(x)
+        x += L
+    if not new_s:
+        return poles
+    new_s = np.array(new_s)
+    xy, _ = curve.at(new_s)
+    xy = xy + off * curve.left(new_s)
+    if trajectory is not None and len(trajectory):
+        base = road(xy) + np.interp(new_s, st, rel)
+    else:  # linear between neighbours, the end slope beyond the ends
+        slope = (rel[-1] - rel[0]) / max(st[-1] - st[0], 1e-9)
+        base = np.interp(new_s, st, rel)
+        base = np.where(new_s < st[0], rel[0] + slope * (new_s - st[0]), base)
+        base = np.where(new_s > st[-1], rel[-1] + slope * (new_s - st[-1]), base)
+    for sv, b, c in zip(new_s, base, xy, strict=True):
+        poles.append(Pole(centre=c, radius=radius, base=float(b), top=float(b) + height,
+                          station=float(sv), points=0, detected=False))  # fmt: skip
+    poles.sort(key=lambda p: p.station)
+    return poles
