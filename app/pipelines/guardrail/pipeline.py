@@ -34,6 +34,11 @@ class GuardrailConfig(BaseModel):
     min_guardrail_length: float = Field(
         3.0, gt=0, description="metres: shorter guardrail runs are not reconstructed"
     )
+    join_gap: float = Field(2.0, ge=0, description="metres between runs of one guardrail")
+    join_lateral: float = Field(0.75, ge=0, description="metres of lateral offset, ditto")
+    ground_clearance: float = Field(
+        0.1, ge=0, description="points lower above the ground are not modelled"
+    )
     reconstruct: bool = True
 
 
@@ -140,19 +145,27 @@ class GuardrailPipeline:
         return probability
 
     def instances(self, stage: SliceStage, labels: np.ndarray) -> list[GuardrailInstance]:
-        """Guardrails: runs of guardrail slices per (component, side), long enough to model."""
+        """Guardrails: guardrail slices grouped by (component, side), then groups on one side
+        joined when they follow each other along the road (gap <= `join_gap`) at the same
+        lateral offset (within `join_lateral`): a rail broken into several components by a
+        gap in the scan is still one guardrail. Runs shorter than `min_guardrail_length` are
+        not modelled. Points at ground level (the ground under the rail) are left out."""
+        cfg = self.config
         s = stage.slices
         keep = np.flatnonzero(labels)
         if len(keep) == 0:
             return []
-        min_slices = int(np.ceil(self.config.min_guardrail_length / self.config.spacing))
-        out = []
         keys = np.stack([s.component[keep], s.side[keep]], axis=1)
-        for key in np.unique(keys, axis=0):
-            members = keep[(keys == key).all(axis=1)]
+        groups = [keep[(keys == key).all(axis=1)] for key in np.unique(keys, axis=0)]
+        groups = _join_groups(groups, s.station, s.lateral, s.side, cfg.join_gap, cfg.join_lateral)
+        min_slices = int(np.ceil(cfg.min_guardrail_length / cfg.spacing))
+        out = []
+        above = stage.road.above_ground
+        for members in sorted(groups, key=lambda m: float(s.station[m].min())):
             if len(members) < min_slices:
                 continue
             points = np.concatenate([s.points(int(k)) for k in members])
+            points = points[above[points] > cfg.ground_clearance]
             out.append(GuardrailInstance(f"guardrail_{len(out):03d}", members, points))
         return out
 
@@ -165,3 +178,34 @@ class GuardrailPipeline:
             )
         except (ValueError, RuntimeError) as exc:  # too few poles, degenerate unit ...
             guardrail.error = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+
+
+def _join_groups(
+    groups: list[np.ndarray],
+    station: np.ndarray,
+    lateral: np.ndarray,
+    side: np.ndarray,
+    max_gap: float,
+    max_lateral: float,
+) -> list[np.ndarray]:
+    """Merge slice groups that continue each other along the road (loop over groups only)."""
+    spans = [(float(station[g].min()), float(station[g].max())) for g in groups]
+    lats = [float(np.median(lateral[g])) for g in groups]
+    sides = [int(side[g[0]]) for g in groups]
+    parent = list(range(len(groups)))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i in range(len(groups)):
+        for j in range(i + 1, len(groups)):
+            gap = max(spans[i][0], spans[j][0]) - min(spans[i][1], spans[j][1])
+            if sides[i] == sides[j] and gap <= max_gap and abs(lats[i] - lats[j]) <= max_lateral:
+                parent[root(i)] = root(j)
+    merged: dict[int, list[np.ndarray]] = {}
+    for i, g in enumerate(groups):
+        merged.setdefault(root(i), []).append(g)
+    return [np.sort(np.concatenate(parts)) for parts in merged.values()]
