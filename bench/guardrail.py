@@ -120,6 +120,8 @@ def reconstruction_table(reconstructions) -> str:
             if "beam" in scores and scores["beam"]["median"] is not None:
                 sections.append(scores["beam"]["median"])
 
+    units = _pipes_vs_units(reconstructions)
+
     def med(values, scale):
         return f"{np.median(values) * scale:.1f}" if values else "n/a"
 
@@ -131,8 +133,32 @@ def reconstruction_table(reconstructions) -> str:
         ["beam section distance, median of guardrails (cm)", med(sections, 100), "<= 2"],
         ["units stacked per guardrail, median", med(stacked, 1), "-"],
     ]
+    rows += [[f"pipes recovered with {k} unit(s) stacked", f"{share:.0f} %", "-"]
+             for k, share in units.items()]  # fmt: skip
     return markdown_table(["reconstruction (against the simulator's models)", "value", "target"],
                           rows)  # fmt: skip
+
+
+def _pipes_vs_units(reconstructions) -> dict[int, float]:
+    """The paper's finding (4 units stacked recover far less than 25): share of true pipes
+    recovered when only k units are stacked, pooled over the held-out pipe guardrails."""
+    from app.pipelines.guardrail.reconstruction_metrics import pipes_recovered_vs_units
+
+    shares: dict[int, list[float]] = {}
+    for result, models, truth_index in reconstructions:
+        for g in result.guardrails:
+            owners = truth_index[g.points]
+            owners = owners[owners >= 0]
+            if g.model is None or len(owners) == 0:
+                continue
+            truth = models[int(np.bincount(owners).argmax())]
+            if truth.get("kind") != "pipe":
+                continue
+            points = result.stage.points.xyz[g.points]
+            per_k = pipes_recovered_vs_units(points, result.stage.trajectory, truth)
+            for k, share in per_k.items():
+                shares.setdefault(k, []).append(share)
+    return {k: 100.0 * float(np.mean(v)) for k, v in sorted(shares.items())}
 
 
 def part_kitti(args) -> tuple[str, str, str]:
