@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from app.geometry.mesh_grid import grid_faces
 from app.simulate.scene import Mesh
 
 _Z = np.array([0.0, 0.0, 1.0])
@@ -88,15 +89,6 @@ def _mitre(P: np.ndarray, d: np.ndarray, q: np.ndarray) -> np.ndarray:
     return P[:, None, :] + q
 
 
-def _grid(K: int, S: int, wrap: bool) -> np.ndarray:
-    """Triangles joining K consecutive rows of S vertices (row-major); `wrap` closes each row."""
-    k = np.arange(K - 1)[:, None]
-    s = np.arange(S if wrap else S - 1)[None, :]
-    s1 = (s + 1) % S
-    a, b, c, e = k * S + s, k * S + s1, (k + 1) * S + s1, (k + 1) * S + s
-    return np.concatenate([np.stack([a, b, c], -1), np.stack([a, c, e], -1)], 1).reshape(-1, 3)
-
-
 def tube(polyline: np.ndarray, radius: float, segments: int = 12, caps: bool = True) -> Mesh:
     """A circle of `radius` swept along `polyline` (K, 3): pipes, bent pipes, limbs.
 
@@ -117,7 +109,7 @@ def tube(polyline: np.ndarray, radius: float, segments: int = 12, caps: bool = T
     )
     K, S = len(P), segments
     V = _mitre(P, d, q).reshape(-1, 3)
-    T = _grid(K, S, wrap=True)
+    T = grid_faces(K, S, wrap=True)
     if caps:
         s = np.arange(S)
         s1 = (s + 1) % S
@@ -170,7 +162,7 @@ def sweep_profile(
         return _mitre(P, d, q).reshape(-1, 3)
 
     K, S = len(P), len(prof)
-    T = _grid(K, S, wrap=False)  # wound so its normal is the profile tangent turned clockwise
+    T = grid_faces(K, S, wrap=False)  # wound so its normal is the profile tangent turned clockwise
     if thickness <= 0.0:
         return Mesh(place(prof), np.concatenate([T, T[:, ::-1]]))
     tangent = _unit(np.gradient(prof, axis=0))

@@ -18,6 +18,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from app.geometry.mesh_grid import grid_faces
+
 Mesh = tuple[np.ndarray, np.ndarray]  # (vertices (V, 3) float64, faces (F, 3) int64)
 _Z = np.array([0.0, 0.0, 1.0])
 
@@ -40,15 +42,6 @@ def merge(meshes: list[Mesh]) -> Mesh:
 def _unit(v: np.ndarray) -> np.ndarray:
     n = np.linalg.norm(v, axis=-1, keepdims=True)
     return v / np.where(n > 0.0, n, 1.0)
-
-
-def _ring_faces(K: int, S: int, wrap: bool) -> np.ndarray:
-    """Quads (as two triangles) between K consecutive rings of S vertices."""
-    k = np.arange(K - 1)[:, None]
-    s = np.arange(S if wrap else S - 1)[None, :]
-    s1 = (s + 1) % S
-    a, b, c, d = k * S + s, k * S + s1, (k + 1) * S + s1, (k + 1) * S + s
-    return np.concatenate([np.stack([a, b, c], -1), np.stack([a, c, d], -1)], 1).reshape(-1, 3)
 
 
 def _segment_normals(d: np.ndarray) -> np.ndarray:
@@ -84,7 +77,7 @@ def tube(polyline: np.ndarray, radius: float, segments: int = 12, caps: bool = T
     q = q - (np.einsum("ksc,kc->ks", q, t) / cosang[:, None])[..., None] * dj[:, None, :]
     K, S = len(P), segments
     V = (P[:, None, :] + q).reshape(-1, 3)
-    F = _ring_faces(K, S, wrap=True)
+    F = grid_faces(K, S, wrap=True)
     if caps:
         s_ = np.arange(S)
         s1 = (s_ + 1) % S
@@ -117,7 +110,7 @@ def sweep_section(
         return empty()
     V = (P[:, None, :] + sec[None, :, 0, None] * across[:, None, :]
          + sec[None, :, 1, None] * up[:, None, :]).reshape(-1, 3)  # fmt: skip
-    F = _ring_faces(len(P), len(sec), wrap=False)
+    F = grid_faces(len(P), len(sec), wrap=False)
     if double_sided:
         F = np.concatenate([F, F[:, ::-1]])
     return V, F.astype(np.int64)
