@@ -305,7 +305,7 @@ def train_phantom(
     ),
     sim_seeds: Annotated[
         str, typer.Option(help="simulator seeds: 101,102 or 101-110 (presets cycle)")
-    ] = "101-110,114-175",
+    ] = "101-110,114-200,204-250",
     sim_length: Annotated[float, typer.Option(help="metres per simulated survey")] = 200.0,
     semantickitti: Annotated[
         list[Path] | None, typer.Option(help="SemanticKITTI sequence folder (repeatable)")
