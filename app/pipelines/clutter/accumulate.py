@@ -23,34 +23,44 @@ class WorldMap:
 
 
 def accumulate(
-    survey: Survey, keep: list[np.ndarray], voxel_dedup: float | None = None
-) -> WorldMap:
-    """The points with `keep[i]` True of every frame i, in world coordinates."""
-    xyz, intensity, frame, index = [], [], [], []
-    with_intensity = True
-    for i, (f, mask) in enumerate(zip(survey.frames, keep, strict=True)):
+    survey: Survey, removed: list[np.ndarray], voxel_dedup: float | None = None
+) -> tuple[WorldMap, WorldMap]:
+    """(kept, removed) points of every frame in world coordinates, each frame read once;
+    `voxel_dedup` thins the kept map only."""
+    kept_parts, removed_parts = [], []
+    for i, (f, gone) in enumerate(zip(survey.frames, removed, strict=True)):
         cloud = f.points()
-        if len(cloud) != len(mask):
-            raise ValueError(f"frame {f.frame_id}: {len(cloud)} points, {len(mask)} decisions")
-        selected = np.flatnonzero(mask)
-        xyz.append(cloud.xyz[selected] @ f.pose[:3, :3].T + f.pose[:3, 3])
-        with_intensity &= cloud.intensity is not None
-        if with_intensity:
-            intensity.append(np.asarray(cloud.intensity, dtype=np.float32)[selected])
-        frame.append(np.full(len(selected), i, dtype=np.uint32))
-        index.append(selected.astype(np.uint32))
-    world = WorldMap(
-        xyz=np.concatenate(xyz) if xyz else np.zeros((0, 3)),
-        intensity=np.concatenate(intensity) if with_intensity and intensity else None,
-        source_frame=np.concatenate(frame) if frame else np.zeros(0, np.uint32),
-        source_index=np.concatenate(index) if index else np.zeros(0, np.uint32),
-    )
-    if voxel_dedup and len(world.xyz):
-        first = voxel_downsample(world.xyz, voxel_dedup, origin=world.xyz.min(axis=0))
-        world = WorldMap(
-            world.xyz[first],
-            None if world.intensity is None else world.intensity[first],
-            world.source_frame[first],
-            world.source_index[first],
+        if len(cloud) != len(gone):
+            raise ValueError(f"frame {f.frame_id}: {len(cloud)} points, {len(gone)} decisions")
+        world = cloud.xyz @ f.pose[:3, :3].T + f.pose[:3, 3]
+        kept_parts.append(_part(world, cloud.intensity, i, np.flatnonzero(~gone)))
+        removed_parts.append(_part(world, cloud.intensity, i, np.flatnonzero(gone)))
+    kept, gone_map = _world_map(kept_parts), _world_map(removed_parts)
+    if voxel_dedup and len(kept.xyz):
+        first = voxel_downsample(kept.xyz, voxel_dedup, origin=kept.xyz.min(axis=0))
+        kept = WorldMap(
+            kept.xyz[first],
+            None if kept.intensity is None else kept.intensity[first],
+            kept.source_frame[first],
+            kept.source_index[first],
         )
-    return world
+    return kept, gone_map
+
+
+def _part(world, intensity, frame: int, selected: np.ndarray) -> tuple:
+    values = None if intensity is None else np.asarray(intensity, np.float32)[selected]
+    frames = np.full(len(selected), frame, dtype=np.uint32)
+    return world[selected], values, frames, selected.astype(np.uint32)
+
+
+def _world_map(parts: list[tuple]) -> WorldMap:
+    if not parts:
+        return WorldMap(np.zeros((0, 3)), None, np.zeros(0, np.uint32), np.zeros(0, np.uint32))
+    xyz, intensity, frame, index = zip(*parts, strict=True)
+    with_intensity = all(v is not None for v in intensity)
+    return WorldMap(
+        xyz=np.concatenate(xyz),
+        intensity=np.concatenate(intensity) if with_intensity else None,
+        source_frame=np.concatenate(frame),
+        source_index=np.concatenate(index),
+    )

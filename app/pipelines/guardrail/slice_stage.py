@@ -110,10 +110,8 @@ def slice_truth(stage: SliceStage, guardrail_index: np.ndarray) -> np.ndarray:
 
 def point_reference(survey: Survey, points: ScanPoints, kind: str) -> np.ndarray:
     """A per-frame reference label (e.g. "guardrail", "semantic") in the order of `points`."""
-    frames = {}
     out = np.zeros(len(points), dtype=np.int64)
     for f in np.unique(points.frame):
-        frames[int(f)] = survey.frames[int(f)].reference_labels()[kind]
         sel = points.frame == f
-        out[sel] = frames[int(f)][points.index[sel]]
+        out[sel] = survey.frames[int(f)].reference_labels()[kind][points.index[sel]]
     return out

@@ -33,14 +33,6 @@ def sim_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
-@pytest.fixture
-def weights() -> Path:
-    value = os.environ.get("MMSCLEAN_WEIGHTS_DIR")
-    if not value or not (Path(value) / "espnetv2_s_2.0_city_1024x512.pth").is_file():
-        pytest.skip("MMSCLEAN_WEIGHTS_DIR does not hold the ESPNetv2 weights")
-    return Path(value)
-
-
 def first_frames(survey: Survey, n: int) -> Survey:
     return replace(survey, frames=list(survey.frames)[:n])
 
@@ -61,7 +53,7 @@ def check_contract(out: Path, survey: Survey, report: dict) -> None:
     assert json.loads((out / "report.json").read_text())["counts"] == report["counts"]
 
 
-def test_run_clutter_cli_on_a_simulated_survey(sim_dir: Path, weights: Path, tmp_path: Path):
+def test_run_clutter_cli_on_a_simulated_survey(sim_dir: Path, weights_dir: Path, tmp_path: Path):
     out = tmp_path / "out"
     result = subprocess.run(
         [
@@ -132,7 +124,7 @@ def test_pipeline_on_a_simulated_street_with_reference_masks(sim_dir: Path) -> N
 
 
 @pytest.mark.real_data
-def test_run_clutter_on_real_semantickitti(real_data: Path, weights: Path, tmp_path: Path):
+def test_run_clutter_on_real_semantickitti(real_data: Path, weights_dir: Path, tmp_path: Path):
     survey = first_frames(
         open_survey(real_data / "semantickitti" / "sequences" / "08", "semantickitti"), 3
     )
@@ -144,7 +136,7 @@ def test_run_clutter_on_real_semantickitti(real_data: Path, weights: Path, tmp_p
 
 
 @pytest.mark.real_data
-def test_run_clutter_on_real_kitti_raw(real_data: Path, weights: Path, tmp_path: Path):
+def test_run_clutter_on_real_kitti_raw(real_data: Path, weights_dir: Path, tmp_path: Path):
     drive = real_data / "kitti_raw" / "2011_09_26" / "2011_09_26_drive_00xx_sync"
     survey = first_frames(open_survey(drive, "kitti-raw"), 3)
     report = run_clutter_to_folder(survey, tmp_path / "out", ClutterConfig(mode="clutter"))

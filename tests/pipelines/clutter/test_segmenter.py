@@ -3,7 +3,6 @@ KITTI frames, the per-frame cache, the overlay, and the missing-weights error.""
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import cv2
@@ -28,18 +27,6 @@ from app.pipelines.clutter.segmenter import (
 CAR = CLUTTER_CLASSES.index("car") + 1
 PERSON, RIDER = CLUTTER_CLASSES.index("person") + 1, CLUTTER_CLASSES.index("rider") + 1
 VELODYNE_HEIGHT = 1.73  # m above the road (KITTI setup): z of the road in the sensor frame
-
-
-@pytest.fixture(scope="session")
-def weights_dir() -> Path:
-    """The folder named by MMSCLEAN_WEIGHTS_DIR holding the ESPNetv2 weights; skip without."""
-    value = os.environ.get("MMSCLEAN_WEIGHTS_DIR")
-    if not value:
-        pytest.skip("MMSCLEAN_WEIGHTS_DIR is not set (pretrained ESPNetv2 weights)")
-    path = Path(value).resolve()
-    if not (path / WEIGHTS_FILE).is_file():
-        pytest.skip(f"MMSCLEAN_WEIGHTS_DIR={value} holds no {WEIGHTS_FILE}")
-    return path
 
 
 @pytest.fixture(scope="session")
