@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from app.geometry.mesh_grid import grid_faces
+from app.geometry.mesh_grid import cap_faces, grid_faces
 from app.simulate.scene import Mesh
 
 _Z = np.array([0.0, 0.0, 1.0])
@@ -111,14 +111,8 @@ def tube(polyline: np.ndarray, radius: float, segments: int = 12, caps: bool = T
     V = _mitre(P, d, q).reshape(-1, 3)
     T = grid_faces(K, S, wrap=True)
     if caps:
-        s = np.arange(S)
-        s1 = (s + 1) % S
-        c0, c1 = K * S, K * S + 1
-        last = (K - 1) * S
-        start = np.stack([np.full(S, c0), s1, s], -1)
-        end = np.stack([np.full(S, c1), last + s, last + s1], -1)
         V = np.concatenate([V, P[:1], P[-1:]])
-        T = np.concatenate([T, start, end])
+        T = np.concatenate([T, cap_faces(K, S)])
     return Mesh(V, T)
 
 

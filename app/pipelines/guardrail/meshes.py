@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from app.geometry.mesh_grid import grid_faces
+from app.geometry.mesh_grid import cap_faces, grid_faces
 
 Mesh = tuple[np.ndarray, np.ndarray]  # (vertices (V, 3) float64, faces (F, 3) int64)
 _Z = np.array([0.0, 0.0, 1.0])
@@ -79,12 +79,7 @@ def tube(polyline: np.ndarray, radius: float, segments: int = 12, caps: bool = T
     V = (P[:, None, :] + q).reshape(-1, 3)
     F = grid_faces(K, S, wrap=True)
     if caps:
-        s_ = np.arange(S)
-        s1 = (s_ + 1) % S
-        c0, c1 = K * S, K * S + 1
-        last = (K - 1) * S
-        F = np.concatenate([F, np.stack([np.full(S, c0), s1, s_], -1),
-                            np.stack([np.full(S, c1), last + s_, last + s1], -1)])  # fmt: skip
+        F = np.concatenate([F, cap_faces(K, S)])
         V = np.concatenate([V, P[:1], P[-1:]])
     return V, F.astype(np.int64)
 
