@@ -41,10 +41,57 @@ from app.store import models  # noqa: F401  (registers every table on SQLModel.m
 
 log = logging.getLogger(__name__)
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+
+
+def _to_v2(conn: Connection) -> None:
+    """Version 2: per-user undo / redo of pillar labels, job cancel / attempts / result, and a
+    covering index for tile reads of pillar labels."""
+    conn.exec_driver_sql(
+        """CREATE TABLE pillar_edit_batch (
+            id INTEGER NOT NULL,
+            created_at DATETIME NOT NULL,
+            survey_id INTEGER NOT NULL,
+            user_id INTEGER,
+            state VARCHAR(32) NOT NULL,
+            size INTEGER NOT NULL,
+            PRIMARY KEY (id),
+            FOREIGN KEY(survey_id) REFERENCES survey (id) ON DELETE CASCADE,
+            FOREIGN KEY(user_id) REFERENCES user (id) ON DELETE SET NULL
+        )"""
+    )
+    conn.exec_driver_sql(
+        "CREATE INDEX ix_pillar_edit_batch_survey_id ON pillar_edit_batch (survey_id)"
+    )
+    conn.exec_driver_sql(
+        "CREATE INDEX ix_pillar_edit_batch_user ON pillar_edit_batch (user_id, survey_id, state)"
+    )
+    conn.exec_driver_sql(
+        """CREATE TABLE pillar_edit (
+            id INTEGER NOT NULL,
+            batch_id INTEGER NOT NULL,
+            cell_id BIGINT NOT NULL,
+            before_label INTEGER,
+            after_label INTEGER,
+            PRIMARY KEY (id),
+            FOREIGN KEY(batch_id) REFERENCES pillar_edit_batch (id) ON DELETE CASCADE
+        )"""
+    )
+    conn.exec_driver_sql("CREATE INDEX ix_pillar_edit_batch_id ON pillar_edit (batch_id)")
+    conn.exec_driver_sql(
+        "CREATE INDEX ix_pillar_label_tile ON pillar_label "
+        "(survey_id, cell_id, source, label, version, confidence, user_id)"
+    )
+    conn.exec_driver_sql(
+        "CREATE INDEX ix_pillar_label_source_updated ON pillar_label (source, updated_at)"
+    )
+    add_column(conn, "job", "cancel_requested BOOLEAN NOT NULL DEFAULT 0")
+    add_column(conn, "job", "attempts INTEGER NOT NULL DEFAULT 0")
+    add_column(conn, "job", "result JSON NOT NULL DEFAULT '{}'")
+
 
 # target version -> function upgrading a database from version - 1 to it (runs in a transaction)
-MIGRATIONS: dict[int, Callable[[Connection], None]] = {}
+MIGRATIONS: dict[int, Callable[[Connection], None]] = {2: _to_v2}
 
 _VERSION_TABLE = sa.Table(
     "schema_version",

@@ -128,6 +128,14 @@ class ModelStatus(enum.StrEnum):
     rejected = "rejected"
 
 
+class EditState(enum.StrEnum):
+    """Where a batch of label edits stands on its user's undo / redo stack."""
+
+    done = "done"
+    undone = "undone"
+    discarded = "discarded"  # undone, then buried under a newer edit: no longer redoable
+
+
 class Pipeline(enum.StrEnum):
     phantom = "phantom"
     guardrail = "guardrail"
@@ -235,6 +243,9 @@ class Job(Timestamped, table=True):
     started_at: datetime | None = Field(default=None, sa_type=UTCDateTime)
     finished_at: datetime | None = Field(default=None, sa_type=UTCDateTime)
     worker_pid: int | None = None
+    cancel_requested: bool = Field(default=False)  # the worker stops at its next progress call
+    attempts: int = Field(default=0, ge=0)  # times a worker started it (resumes count)
+    result: dict[str, Any] = Field(default_factory=dict, sa_type=JSONDict, nullable=False)
 
 
 class ModelVersion(Versioned, table=True):
@@ -261,6 +272,18 @@ class PillarLabel(Versioned, table=True):
             "confidence IS NULL OR (confidence >= 0 AND confidence <= 1)",
             name="ck_pillar_label_confidence",
         ),
+        # covering index: tile reads never touch the table rows
+        sa.Index(
+            "ix_pillar_label_tile",
+            "survey_id",
+            "cell_id",
+            "source",
+            "label",
+            "version",
+            "confidence",
+            "user_id",
+        ),
+        sa.Index("ix_pillar_label_source_updated", "source", "updated_at"),
     )
 
     survey_id: int = _survey_fk()
@@ -272,6 +295,29 @@ class PillarLabel(Versioned, table=True):
     model_version_id: int | None = Field(
         default=None, foreign_key="model_version.id", ondelete="SET NULL"
     )
+
+
+class PillarEditBatch(Created, table=True):
+    """One labelling action of one user (a brush stroke, a rectangle): the unit of undo / redo."""
+
+    __tablename__ = "pillar_edit_batch"
+    __table_args__ = (sa.Index("ix_pillar_edit_batch_user", "user_id", "survey_id", "state"),)
+
+    survey_id: int = _survey_fk()
+    user_id: int | None = _user_fk()
+    state: EditState = Field(default=EditState.done, sa_type=_enum_type(EditState), nullable=False)
+    size: int = Field(default=0, ge=0)
+
+
+class PillarEdit(Record, table=True):
+    """One pillar's human label before and after a batch (None: no human label)."""
+
+    __tablename__ = "pillar_edit"
+
+    batch_id: int = Field(foreign_key="pillar_edit_batch.id", ondelete="CASCADE", index=True)
+    cell_id: int = Field(sa_type=sa.BigInteger, nullable=False)
+    before_label: int | None = None
+    after_label: int | None = None
 
 
 class ClutterInstance(Created, table=True):
@@ -395,6 +441,8 @@ TABLES: tuple[type[SQLModel], ...] = (
     Job,
     ModelVersion,
     PillarLabel,
+    PillarEditBatch,
+    PillarEdit,
     ClutterInstance,
     ClutterDecision,
     GuardrailSlice,

@@ -11,6 +11,7 @@ from sqlmodel import Session, select
 from app.core.errors import ConflictError
 from app.core.settings import get_settings
 from app.store.db import commit, get_engine, get_session, make_engine, session_scope
+from app.store.migrations import SCHEMA_VERSION
 from app.store.models import LabelSource, PillarLabel, Survey, User
 
 
@@ -39,7 +40,7 @@ def test_get_engine_defaults_to_the_data_dir_and_is_cached(isolated_data_dir: Pa
     assert engine is get_engine()
     assert engine is get_engine(get_settings().database_url)
     assert Path(engine.url.database) == (isolated_data_dir / "mmsclean.sqlite3").resolve()
-    assert _pragma(engine, "user_version") == 1  # migrated on first use
+    assert _pragma(engine, "user_version") == SCHEMA_VERSION  # migrated on first use
     with Session(engine) as session:
         assert session.exec(select(User)).all() == []
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import sqlalchemy as sa
 from sqlalchemy.engine import Connection, Engine
-from sqlmodel import Session, select
+from sqlmodel import Session, SQLModel, select
 
 from app.core.errors import MmscleanError
 from app.store import migrations
@@ -22,7 +22,7 @@ from app.store.migrations import (
     has_column,
     migrate,
 )
-from app.store.models import LabelSource, PillarLabel, Survey
+from app.store.models import Job, LabelSource, PillarEditBatch, PillarLabel, Survey
 
 
 def _user_version(engine: Engine) -> int:
@@ -46,7 +46,10 @@ def _fill(engine: Engine) -> None:
         session.commit()
 
 
-def _to_v2(conn: Connection) -> None:
+NEXT = SCHEMA_VERSION + 1  # a made-up next version for the upgrade tests
+
+
+def _to_next(conn: Connection) -> None:
     add_column(conn, "pillar_label", "note TEXT NOT NULL DEFAULT ''")
 
 
@@ -75,29 +78,29 @@ def test_old_database_is_migrated_keeping_its_rows(
 ) -> None:
     _fill(engine)
     engine.dispose()
-    assert _user_version(engine) == 1
-    monkeypatch.setattr(migrations, "SCHEMA_VERSION", 2)
-    monkeypatch.setitem(MIGRATIONS, 2, _to_v2)
+    assert _user_version(engine) == SCHEMA_VERSION
+    monkeypatch.setattr(migrations, "SCHEMA_VERSION", NEXT)
+    monkeypatch.setitem(MIGRATIONS, NEXT, _to_next)
 
     reopened = make_engine(f"sqlite:///{db_path}")
-    assert init_db(reopened) == 2
+    assert init_db(reopened) == NEXT
 
-    assert _user_version(reopened) == 2
+    assert _user_version(reopened) == NEXT
     with reopened.connect() as conn:
         assert has_column(conn, "pillar_label", "note")
         rows = conn.exec_driver_sql("SELECT cell_id, label, note FROM pillar_label ORDER BY 1")
         assert rows.all() == [(c, c % 4, "") for c in range(5)]
         assert conn.exec_driver_sql("PRAGMA foreign_key_check").all() == []
     # the version 1 file was copied aside first, complete
-    backup = db_path.with_name(db_path.name + ".schema-v1.bak")
+    backup = db_path.with_name(db_path.name + f".schema-v{SCHEMA_VERSION}.bak")
     copy = make_engine(f"sqlite:///{backup}")
-    assert _user_version(copy) == 1
+    assert _user_version(copy) == SCHEMA_VERSION
     with copy.connect() as conn:
         assert not has_column(conn, "pillar_label", "note")
         assert conn.exec_driver_sql("SELECT count(*) FROM pillar_label").scalar() == 5
     copy.dispose()
     # and a second start finds nothing to do
-    assert migrate(reopened) == 2
+    assert migrate(reopened) == NEXT
     assert len(list(db_path.parent.glob("*.bak"))) == 1
     reopened.dispose()
 
@@ -106,12 +109,13 @@ def test_migrations_run_in_order_from_the_stored_version(
     engine: Engine, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     ran: list[int] = []
-    monkeypatch.setattr(migrations, "SCHEMA_VERSION", 4)
-    for version in (4, 2, 3):
+    top = SCHEMA_VERSION + 3
+    monkeypatch.setattr(migrations, "SCHEMA_VERSION", top)
+    for version in (top, SCHEMA_VERSION + 1, SCHEMA_VERSION + 2):
         monkeypatch.setitem(MIGRATIONS, version, lambda conn, v=version: ran.append(v))
-    assert migrate(engine) == 4
-    assert ran == [2, 3, 4]
-    assert _user_version(engine) == 4
+    assert migrate(engine) == top
+    assert ran == [SCHEMA_VERSION + 1, SCHEMA_VERSION + 2, top]
+    assert _user_version(engine) == top
 
 
 def test_failing_migration_leaves_the_database_as_it_was(
@@ -120,24 +124,24 @@ def test_failing_migration_leaves_the_database_as_it_was(
     _fill(engine)
 
     def broken(conn: Connection) -> None:
-        _to_v2(conn)
+        _to_next(conn)
         conn.exec_driver_sql("UPDATE pillar_label SET note = 'half-done'")
         raise RuntimeError("migration bug")
 
-    monkeypatch.setattr(migrations, "SCHEMA_VERSION", 2)
-    monkeypatch.setitem(MIGRATIONS, 2, broken)
+    monkeypatch.setattr(migrations, "SCHEMA_VERSION", NEXT)
+    monkeypatch.setitem(MIGRATIONS, NEXT, broken)
     with pytest.raises(RuntimeError, match="migration bug"):
         migrate(engine)
-    assert _user_version(engine) == 1
+    assert _user_version(engine) == SCHEMA_VERSION
     with engine.connect() as conn:
         assert not has_column(conn, "pillar_label", "note")
         assert conn.exec_driver_sql("SELECT count(*) FROM pillar_label").scalar() == 5
 
 
 def test_missing_migration_is_a_programming_error(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(migrations, "SCHEMA_VERSION", 3)
-    monkeypatch.setitem(MIGRATIONS, 2, _to_v2)
-    with pytest.raises(RuntimeError, match=r"no migration to schema version\(s\) \[3\]"):
+    monkeypatch.setattr(migrations, "SCHEMA_VERSION", NEXT + 1)
+    monkeypatch.setitem(MIGRATIONS, NEXT, _to_next)
+    with pytest.raises(RuntimeError, match=rf"no migration to schema version\(s\) \[{NEXT + 1}\]"):
         migrate(make_engine("sqlite://"))
 
 
@@ -163,8 +167,8 @@ def test_database_from_a_newer_mmsclean_is_refused(engine: Engine, db_path: Path
 def test_newer_empty_database_is_refused_before_creating_tables(db_path: Path) -> None:
     engine = make_engine(f"sqlite:///{db_path}")
     with engine.begin() as conn:
-        conn.exec_driver_sql("PRAGMA user_version = 2")
-    with pytest.raises(SchemaVersionError, match="schema version 2"):
+        conn.exec_driver_sql(f"PRAGMA user_version = {NEXT}")
+    with pytest.raises(SchemaVersionError, match=f"schema version {NEXT}"):
         get_engine(f"sqlite:///{db_path}")
     assert _tables(engine) == set()
     engine.dispose()
@@ -186,20 +190,22 @@ def test_version_table_is_used_where_there_is_no_user_version(
     assert migrate(engine) == SCHEMA_VERSION
     assert migrate(engine) == SCHEMA_VERSION
     with engine.connect() as conn:
-        assert conn.exec_driver_sql("SELECT version FROM schema_version").all() == [(1,)]
+        rows = conn.exec_driver_sql("SELECT version FROM schema_version").all()
+        assert rows == [(SCHEMA_VERSION,)]
         assert conn.exec_driver_sql("PRAGMA user_version").scalar() == 0
     assert "pillar_label" in _tables(engine)
 
-    monkeypatch.setattr(migrations, "SCHEMA_VERSION", 2)
-    monkeypatch.setitem(MIGRATIONS, 2, _to_v2)
-    assert migrate(engine) == 2
+    monkeypatch.setattr(migrations, "SCHEMA_VERSION", NEXT)
+    monkeypatch.setitem(MIGRATIONS, NEXT, _to_next)
+    assert migrate(engine) == NEXT
     with engine.connect() as conn:
-        assert conn.exec_driver_sql("SELECT version FROM schema_version").all() == [(2,)]
+        assert conn.exec_driver_sql("SELECT version FROM schema_version").all() == [(NEXT,)]
         assert has_column(conn, "pillar_label", "note")
 
-    monkeypatch.setattr(migrations, "SCHEMA_VERSION", 1)
+    monkeypatch.setattr(migrations, "SCHEMA_VERSION", SCHEMA_VERSION)
     with pytest.raises(
-        SchemaVersionError, match="has schema version 2, this mmsclean knows up to 1"
+        SchemaVersionError,
+        match=f"has schema version {NEXT}, this mmsclean knows up to {SCHEMA_VERSION}",
     ):
         migrate(engine)
     engine.dispose()
@@ -226,3 +232,46 @@ def test_concurrent_first_starts_create_the_database_once(db_path: Path) -> None
     assert _user_version(engines[0]) == SCHEMA_VERSION
     for engine in engines:
         engine.dispose()
+
+
+def test_version_1_database_is_upgraded_to_2_keeping_labels(
+    db_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The real version 2 migration on a database that version 1 of mmsclean wrote."""
+    monkeypatch.setattr(migrations, "SCHEMA_VERSION", 1)
+    monkeypatch.setattr(migrations, "MIGRATIONS", {})
+    old = make_engine(f"sqlite:///{db_path}")
+    with old.begin() as conn:  # the version 1 tables: today's minus what version 2 added
+        for table in SQLModel.metadata.sorted_tables:
+            if table.name not in ("pillar_edit_batch", "pillar_edit"):
+                table.create(conn)
+        conn.exec_driver_sql("DROP INDEX ix_pillar_label_tile")
+        conn.exec_driver_sql("DROP INDEX ix_pillar_label_source_updated")
+        for column in ("cancel_requested", "attempts", "result"):
+            conn.exec_driver_sql(f"ALTER TABLE job DROP COLUMN {column}")
+        conn.exec_driver_sql("PRAGMA user_version = 1")
+        conn.exec_driver_sql(
+            "INSERT INTO survey (id, created_at, updated_at, version, name, format, source_path,"
+            " frame_count, point_count, has_reference_labels, poses_estimated, origin_x,"
+            " origin_y, origin_z) VALUES (1, '2026-01-01', '2026-01-01', 1, 's', 'sim', '/s',"
+            " 0, 0, 0, 0, 0, 0, 0)"
+        )
+        conn.exec_driver_sql(
+            "INSERT INTO job (id, created_at, updated_at, kind, config, status, progress,"
+            " message) VALUES (1, '2026-01-01', '2026-01-01', 'run:phantom', '{}', 'queued',"
+            " 0, '')"
+        )
+    old.dispose()
+    monkeypatch.undo()
+    engine = make_engine(f"sqlite:///{db_path}")
+    assert init_db(engine) == 2
+    with Session(engine) as session:
+        job = session.get(Job, 1)
+        assert (job.cancel_requested, job.attempts, job.result) == (False, 0, {})
+        session.add(PillarEditBatch(survey_id=1, size=0))
+        session.commit()
+    with engine.connect() as conn:
+        indexes = {r[1] for r in conn.exec_driver_sql("PRAGMA index_list(pillar_label)")}
+        assert {"ix_pillar_label_tile", "ix_pillar_label_source_updated"} <= indexes
+        assert conn.exec_driver_sql("PRAGMA foreign_key_check").all() == []
+    engine.dispose()

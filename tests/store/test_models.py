@@ -25,6 +25,8 @@ from app.store.models import (
     ModelStatus,
     ModelVersion,
     PillarClass,
+    PillarEdit,
+    PillarEditBatch,
     PillarLabel,
     Pipeline,
     Role,
@@ -139,7 +141,10 @@ def _populate(session: Session) -> dict[str, int]:
         entity_id="1",
         payload={"before": None, "after": 3},
     )
-    session.add_all([human, predicted, instance, slice_, rail, event])
+    batch = PillarEditBatch(survey_id=survey.id, user_id=user.id, size=1)
+    session.add_all([human, predicted, instance, slice_, rail, event, batch])
+    session.flush()
+    session.add(PillarEdit(batch_id=batch.id, cell_id=42, before_label=None, after_label=3))
     session.commit()
     return {
         "user": user.id,
