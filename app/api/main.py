@@ -1,18 +1,24 @@
-"""Application factory: settings -> database (migrated) -> routers -> error handlers."""
+"""Application factory: settings -> database (migrated) -> first admin -> sample survey ->
+routers -> error handlers."""
 
 from __future__ import annotations
 
+import logging
 from contextlib import asynccontextmanager
 
-from fastapi import FastAPI, Request
-from fastapi.responses import JSONResponse
+from fastapi import FastAPI
+from sqlmodel import Session
 
 from app import __version__
-from app.api.routes import health
+from app.api.errors import install_error_handlers
+from app.api.routes import auth, health, users
 from app.api.sample import load_sample_on_first_start
-from app.core.errors import MmscleanError
+from app.core.security import TokenSigner
 from app.core.settings import Settings, get_settings
 from app.store.db import init_db, make_engine
+from app.store.users import ensure_first_admin
+
+log = logging.getLogger(__name__)
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -23,17 +29,23 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         settings.data_dir.mkdir(parents=True, exist_ok=True)
         engine = make_engine(settings.database_url)
         init_db(engine)
+        with Session(engine) as session:
+            if ensure_first_admin(session, settings.admin_password) is not None:
+                log.info("created the user 'admin' from MMSCLEAN_ADMIN_PASSWORD")
         load_sample_on_first_start(engine, settings.sample_dir)
         app.state.engine = engine
+        app.state.token_signer = TokenSigner.for_data_dir(settings.data_dir)
         yield
         engine.dispose()
 
-    app = FastAPI(title="mmsclean", version=__version__, lifespan=lifespan)
+    app = FastAPI(
+        title="mmsclean",
+        version=__version__,
+        lifespan=lifespan,
+        description="Cleaning mobile-mapping point clouds: jobs, labels, review and export.",
+    )
     app.state.settings = settings
-
-    @app.exception_handler(MmscleanError)
-    async def user_error(_: Request, exc: MmscleanError) -> JSONResponse:
-        return JSONResponse({"detail": exc.message}, status_code=exc.http_status)
-
-    app.include_router(health.router)
+    install_error_handlers(app)
+    for router in (health.router, auth.router, users.router):
+        app.include_router(router)
     return app

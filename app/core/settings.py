@@ -22,6 +22,14 @@ class Settings(BaseSettings):
     port: int = Field(8000, ge=0, le=65535, description="web app (API, dashboard, viewer)")
     viewer_port: int = Field(0, ge=0, le=65535, description="loopback viser port; 0 = free port")
     admin_password: str | None = None
+    import_root: Path | None = Field(
+        None, description="surveys may be imported from paths inside it; empty = data_dir"
+    )
+    max_upload_mb: float = Field(4096, gt=0, description="largest survey upload accepted")
+    workers: int = Field(2, ge=1, le=64, description="job worker processes")
+    retrain_every: int = Field(
+        2000, ge=0, description="newly reviewed pillar labels that queue retraining; 0 = off"
+    )
     sample_dir: Path | None = Field(
         Path(__file__).resolve().parents[2] / "data_samples" / "urban-60m",
         description="survey loaded into an empty database on first start; empty = none",
@@ -41,6 +49,20 @@ class Settings(BaseSettings):
     @property
     def cache_dir(self) -> Path:
         return self.data_dir / "cache"
+
+    @property
+    def jobs_dir(self) -> Path:
+        """One folder per job: its log and its outputs."""
+        return self.data_dir / "jobs"
+
+    @property
+    def surveys_dir(self) -> Path:
+        """Uploaded surveys, one folder each."""
+        return self.data_dir / "surveys"
+
+    @property
+    def allowed_import_root(self) -> Path:
+        return (self.import_root or self.data_dir).resolve()
 
 
 @lru_cache

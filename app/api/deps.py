@@ -1,0 +1,97 @@
+"""Request dependencies (the `api/deps.py` of full-stack-fastapi-template).
+
+- `SessionDep`: one database session per request on the app's engine; routes commit.
+- `CurrentUser`: the user of a valid bearer token (`Authorization: Bearer ...`). The login
+  cookie is accepted too, but only for reads (GET/HEAD) and websockets, so a page on another
+  site can never make a logged-in browser write.
+- `Annotator`, `Reviewer`, `Admin`: `CurrentUser` with at least that role (roles nest).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Annotated
+
+from fastapi import Depends, HTTPException, Request, status
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm.exc import StaleDataError
+from sqlmodel import Session
+
+from app.core.errors import PermissionDeniedError
+from app.core.security import TokenSigner
+from app.core.settings import Settings
+from app.store.db import as_conflict
+from app.store.models import Role, User
+from app.store.users import has_role
+
+TOKEN_COOKIE = "mmsclean_token"
+SAFE_METHODS = {"GET", "HEAD"}
+
+
+def get_settings_dep(request: Request) -> Settings:
+    return request.app.state.settings
+
+
+def get_db(request: Request) -> Iterator[Session]:
+    with Session(request.app.state.engine, expire_on_commit=False) as session:
+        try:
+            yield session
+        except (StaleDataError, IntegrityError) as exc:
+            session.rollback()
+            conflict = as_conflict(exc)
+            raise conflict or exc from exc
+
+
+SessionDep = Annotated[Session, Depends(get_db)]
+SettingsDep = Annotated[Settings, Depends(get_settings_dep)]
+
+
+def token_of(request: Request) -> str | None:
+    header = request.headers.get("authorization", "")
+    scheme, _, value = header.partition(" ")
+    if scheme.lower() == "bearer" and value:
+        return value.strip()
+    if request.method in SAFE_METHODS or request.scope.get("type") == "websocket":
+        return request.cookies.get(TOKEN_COOKIE)
+    return None
+
+
+def user_from_token(session: Session, signer: TokenSigner, token: str | None) -> User | None:
+    """The active user a token names, if it is valid and the user unchanged since login."""
+    claims = signer.check(token) if token else None
+    if claims is None:
+        return None
+    user = session.get(User, claims.user_id)
+    if user is None or not user.is_active or user.version != claims.user_version:
+        return None
+    return user
+
+
+def get_current_user(request: Request, session: SessionDep) -> User:
+    user = user_from_token(session, request.app.state.token_signer, token_of(request))
+    if user is None:
+        raise HTTPException(
+            status.HTTP_401_UNAUTHORIZED,
+            detail="not logged in: send Authorization: Bearer <token> from POST /auth/login",
+            headers={"WWW-Authenticate": "Bearer"},
+        )
+    return user
+
+
+CurrentUser = Annotated[User, Depends(get_current_user)]
+
+
+def require(role: Role):
+    def dependency(user: CurrentUser) -> User:
+        if not has_role(user, role):
+            raise PermissionDeniedError(
+                f"user {user.username!r} is {user.role.value}; this needs the {role.value} role"
+            )
+        return user
+
+    return dependency
+
+
+Annotator = Annotated[User, Depends(require(Role.annotator))]
+Reviewer = Annotated[User, Depends(require(Role.reviewer))]
+Admin = Annotated[User, Depends(require(Role.admin))]

@@ -1,0 +1,1 @@
+"""Persistent jobs: a queue in SQLite, worker processes, and the tasks they run."""
