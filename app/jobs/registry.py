@@ -30,7 +30,7 @@ TASK_MODULES = (
 )
 
 
-class JobCancelled(Exception):
+class JobCancelled(Exception):  # noqa: N818  (a signal, not an error)
     """Raised inside a task when its job was cancelled; the worker marks it cancelled."""
 
 
