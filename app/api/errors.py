@@ -14,7 +14,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel
 
-from app.core.errors import ConflictError, MmscleanError
+from app.core.errors import MmscleanError, StaleWriteError
 
 
 class ErrorBody(BaseModel):
@@ -38,14 +38,6 @@ WHAT = {
 def errors(*codes: int) -> dict[int | str, dict[str, Any]]:
     """`responses=` for a route or router: the listed error codes with the ErrorBody schema."""
     return {code: {"model": ErrorBody, "description": WHAT[code]} for code in codes}
-
-
-class StaleWriteError(ConflictError):
-    """A write based on an old version; carries the current state for the 409 answer."""
-
-    def __init__(self, message: str, current: Any):
-        super().__init__(message)
-        self.current = current
 
 
 def field_name(loc: tuple | list) -> str:

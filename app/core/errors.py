@@ -67,6 +67,14 @@ class ConflictError(MmscleanError):
     http_status = 409
 
 
+class StaleWriteError(ConflictError):
+    """A write based on an old version; `current` is the state now, for the 409 answer."""
+
+    def __init__(self, message: str, current: object):
+        super().__init__(message)
+        self.current = current
+
+
 class PermissionDeniedError(MmscleanError):
     """The user is known but their role does not allow the action."""
 
