@@ -11,7 +11,7 @@ from sqlmodel import Session
 
 from app import __version__
 from app.api.errors import install_error_handlers
-from app.api.routes import auth, health, users
+from app.api.routes import auth, health, pillars, users
 from app.api.sample import load_sample_on_first_start
 from app.core.security import TokenSigner
 from app.core.settings import Settings, get_settings
@@ -48,4 +48,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_error_handlers(app)
     for router in (health.router, auth.router, users.router):
         app.include_router(router)
+    app.include_router(pillars.router)
     return app

@@ -1,0 +1,209 @@
+"""`/surveys/{survey_id}/pillars`: pillar labels for the labelling mode.
+
+Reads are columnar (one array per field) because a 100 m x 100 m tile holds up to 250,000
+pillars; writes are batches (one brush stroke or rectangle = one undoable action).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import numpy as np
+from fastapi import APIRouter, Query, Request
+from pydantic import BaseModel, Field, model_validator
+
+from app.api.deps import Annotator, CurrentUser, SessionDep
+from app.api.errors import errors
+from app.core.errors import NotFoundError
+from app.store.models import LabelSource, PillarClass, Survey
+from app.store.pillar_labels import (
+    NO_LABEL,
+    STORE_GRID,
+    LabelWrite,
+    label_counts,
+    labels_in_box,
+    redo,
+    uncertain_areas,
+    undo,
+    write_labels,
+)
+
+router = APIRouter(
+    prefix="/surveys/{survey_id}/pillars", tags=["pillars"], responses=errors(401, 404)
+)
+
+MAX_BATCH = 100_000
+CLASS_NAMES = [c.name for c in PillarClass]
+
+
+def survey_or_404(session, survey_id: int) -> Survey:
+    survey = session.get(Survey, survey_id)
+    if survey is None:
+        raise NotFoundError(f"survey {survey_id} not found")
+    return survey
+
+
+class PillarLabelIn(BaseModel):
+    """One pillar by `cell_id`, or by a world position `x`, `y` inside it."""
+
+    cell_id: int | None = None
+    x: float | None = None
+    y: float | None = None
+    label: Annotated[int, Field(ge=0, le=3)] | None = Field(
+        ..., description="0 ground, 1 high object, 2 short object, 3 phantom; null erases"
+    )
+    version: int | None = Field(
+        None, ge=0, description="version the client saw (0: unlabelled); mismatch -> 409"
+    )
+
+    @model_validator(mode="after")
+    def _one_address(self) -> PillarLabelIn:
+        if self.cell_id is None and (self.x is None or self.y is None):
+            raise ValueError("give cell_id, or both x and y")
+        return self
+
+
+class LabelBatch(BaseModel):
+    labels: list[PillarLabelIn] = Field(..., max_length=MAX_BATCH)
+
+
+class LabelWriteOut(BaseModel):
+    batch_id: int | None
+    written: int
+    cell_id: list[int]
+    version: list[int]  # per pillar after the write; 0: no human label
+
+
+class TileOut(BaseModel):
+    """Columnar: entry i of every list is one (pillar, source) label."""
+
+    cell_size: float
+    cell_id: list[int]
+    x: list[float]  # pillar centre, world coordinates
+    y: list[float]
+    label: list[int]
+    source: list[str]
+    confidence: list[float | None]
+    version: list[int]
+    user_id: list[int | None]
+
+
+class UncertainAreaOut(BaseModel):
+    x: float
+    y: float
+    pillars: int
+    mean_confidence: float
+    cell_ids: list[int]
+
+
+class LabelStats(BaseModel):
+    classes: list[str]
+    human: list[int]
+    model: list[int]
+
+
+def _write_out(result: LabelWrite) -> LabelWriteOut:
+    return LabelWriteOut(
+        batch_id=result.batch_id,
+        written=len(result.cell_ids),
+        cell_id=result.cell_ids.tolist(),
+        version=result.versions.tolist(),
+    )
+
+
+def _after_write(request: Request, session, user_id: int) -> None:
+    """Reviewed labels count towards the retraining trigger."""
+    trigger = getattr(request.app.state, "retraining_trigger", None)
+    if trigger is not None:
+        trigger(session, user_id)
+
+
+@router.put("/labels", response_model=LabelWriteOut, responses=errors(403, 409, 422))
+def put_labels(
+    survey_id: int, batch: LabelBatch, user: Annotator, session: SessionDep, request: Request
+) -> LabelWriteOut:
+    """Write a batch of human labels in one transaction (one undoable action). Pillars may be
+    addressed by cell id or by a world position; a stale `version` rejects the whole batch with
+    409 and the current state of the stale pillars."""
+    survey_or_404(session, survey_id)
+    items = batch.labels
+    cell_ids = np.array([-1 if i.cell_id is None else i.cell_id for i in items], dtype=np.int64)
+    by_xy = np.array([i.cell_id is None for i in items], dtype=bool)
+    if by_xy.any():
+        xy = np.array([(i.x, i.y) for i, m in zip(items, by_xy, strict=True) if m])
+        ix, iy = STORE_GRID.cell_index(xy).T
+        cell_ids[by_xy] = STORE_GRID.cell_id(ix, iy)
+    labels = np.array([NO_LABEL if i.label is None else i.label for i in items], dtype=np.int64)
+    versions = [i.version for i in items]
+    checked = versions if any(v is not None for v in versions) else None
+    result = write_labels(session, survey_id, user.id, cell_ids, labels, checked)
+    _after_write(request, session, user.id)
+    return _write_out(result)
+
+
+@router.get("/labels", response_model=TileOut, responses=errors(422))
+def get_labels(
+    survey_id: int,
+    user: CurrentUser,
+    session: SessionDep,
+    x0: Annotated[float, Query(description="box in world coordinates (metres)")],
+    y0: float,
+    x1: float,
+    y1: float,
+    source: LabelSource | None = None,
+) -> TileOut:
+    """Labels of the pillars in a world box (at most 1 km x 1 km), human and model."""
+    survey_or_404(session, survey_id)
+    tile = labels_in_box(session, survey_id, (x0, y0, x1, y1), source)
+    ix, iy = STORE_GRID.decode(tile.cell_id)
+    centres = STORE_GRID.cell_center(ix, iy) if len(ix) else np.zeros((0, 2))
+    return TileOut(
+        cell_size=STORE_GRID.cell_size,
+        cell_id=tile.cell_id.tolist(),
+        x=centres[:, 0].tolist(),
+        y=centres[:, 1].tolist(),
+        label=tile.label.tolist(),
+        source=tile.source.tolist(),
+        confidence=[None if np.isnan(c) else c for c in tile.confidence.tolist()],
+        version=tile.version.tolist(),
+        user_id=[None if u < 0 else u for u in tile.user_id.tolist()],
+    )
+
+
+@router.post("/undo", response_model=LabelWriteOut, responses=errors(403, 409))
+def undo_labels(survey_id: int, user: Annotator, session: SessionDep) -> LabelWriteOut:
+    """Revert this user's newest labelling action on the survey (409 when there is none, or
+    when someone changed those pillars since)."""
+    survey_or_404(session, survey_id)
+    return _write_out(undo(session, survey_id, user.id))
+
+
+@router.post("/redo", response_model=LabelWriteOut, responses=errors(403, 409))
+def redo_labels(survey_id: int, user: Annotator, session: SessionDep) -> LabelWriteOut:
+    """Re-apply this user's most recently undone action (gone once they label anew)."""
+    survey_or_404(session, survey_id)
+    return _write_out(redo(session, survey_id, user.id))
+
+
+@router.get("/uncertain", response_model=list[UncertainAreaOut], responses=errors(422))
+def uncertain(
+    survey_id: int,
+    user: CurrentUser,
+    session: SessionDep,
+    threshold: Annotated[float, Query(gt=0, le=1)] = 0.9,
+    area: Annotated[float, Query(gt=0, le=1000)] = 10.0,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 20,
+) -> list[UncertainAreaOut]:
+    """The "uncertain first" queue: areas whose model pre-labels are least confident and not
+    yet reviewed, most doubtful first; the viewer's "next uncertain area" jumps to the first."""
+    survey_or_404(session, survey_id)
+    areas = uncertain_areas(session, survey_id, threshold, area, limit)
+    return [UncertainAreaOut(**a.__dict__) for a in areas]
+
+
+@router.get("/stats", response_model=LabelStats)
+def stats(survey_id: int, user: CurrentUser, session: SessionDep) -> LabelStats:
+    """Pillars per class, human labels and model pre-labels."""
+    survey_or_404(session, survey_id)
+    counts = label_counts(session, survey_id)
+    return LabelStats(classes=CLASS_NAMES, human=counts["human"], model=counts["model"])
