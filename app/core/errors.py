@@ -87,3 +87,25 @@ class DependencyMissingError(MmscleanError):
 
     exit_code = 6
     http_status = 503
+
+
+class PathOutsideRootError(MmscleanError):
+    """A path that resolves (symlinks followed) outside the folder the server may read from."""
+
+    exit_code = 2
+    http_status = 400
+
+    def __init__(self, path: str | Path, root: str | Path):
+        self.path = Path(path)
+        super().__init__(f"{path}: outside the allowed import root {root}")
+
+
+class UploadTooLargeError(MmscleanError):
+    """An upload (or the files a zip would unpack to) larger than `max_upload_mb`."""
+
+    exit_code = 2
+    http_status = 413
+
+    def __init__(self, name: str, limit_mb: float):
+        self.limit_mb = limit_mb
+        super().__init__(f"{name}: larger than the upload limit of {limit_mb:g} MB")
