@@ -290,13 +290,16 @@ def pillar_samples(
     )
 
 
-def balanced(samples: Samples, per_class: int, rng: np.random.Generator) -> Samples:
+def balanced(
+    samples: Samples, per_class: int, rng: np.random.Generator, allow_missing: bool = False
+) -> Samples:
     """`per_class` samples of every class (the paper trained on 10,000 per class), shuffled.
 
     A class with at least `per_class` samples gives a random subset without replacement; a class
     with fewer gives each of its samples once and draws the rest with replacement (the copies keep
     their `group`, so k-fold splits never put a copy on both sides). A class with no samples at
-    all is an error: the network could not learn it.
+    all is an error: the network could not learn it; with `allow_missing` (fine-tuning a trained
+    network on the classes people labelled) it is left out.
     """
     if per_class < 1:
         raise ValueError(f"per_class must be at least 1, got {per_class}")
@@ -304,6 +307,8 @@ def balanced(samples: Samples, per_class: int, rng: np.random.Generator) -> Samp
     for cls, name in enumerate(CLASS_NAMES):
         index = np.flatnonzero(samples.y == cls)
         if not len(index):
+            if allow_missing:
+                continue
             raise ValueError(f"no training samples of class {name!r}")
         if len(index) >= per_class:
             picks.append(rng.choice(index, size=per_class, replace=False))

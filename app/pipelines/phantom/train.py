@@ -139,7 +139,7 @@ def stratified_folds(
 
 
 @torch.no_grad()
-def _evaluate(
+def evaluate_net(
     net: PillarCNN, samples: Samples, index: np.ndarray, batch: int
 ) -> tuple[float, np.ndarray]:
     """(mean cross-entropy, predicted classes) of the given samples, network in eval mode."""
@@ -153,7 +153,7 @@ def _evaluate(
     return loss / max(len(index), 1), predicted
 
 
-def _scores(reference_y: np.ndarray, predicted: np.ndarray):
+def pillar_scores(reference_y: np.ndarray, predicted: np.ndarray):
     confusion = confusion_matrix(reference_y, predicted, N_CLASSES)
     return scores_from_confusion(confusion, CLASS_NAMES)
 
@@ -164,11 +164,15 @@ def _train_fold(
     fold: int,
     config: TrainConfig,
     report: Callable[[float], None],
+    initial_state: dict | None = None,
 ) -> tuple[PillarCNN, dict, list[dict]]:
-    """One network trained on every fold but `fold`; returns it at its best validation epoch."""
+    """One network trained on every fold but `fold`; returns it at its best validation epoch.
+    With `initial_state` it starts from those weights (fine-tuning) instead of at random."""
     torch.manual_seed(config.seed + fold)
     rng = np.random.default_rng([config.seed, fold])
     net = PillarCNN(channels=tuple(config.channels), hidden=config.hidden, context=config.context)
+    if initial_state is not None:
+        net.load_state_dict(initial_state)
     optimiser = torch.optim.SGD(
         net.parameters(), lr=config.lr, momentum=config.momentum, weight_decay=config.weight_decay
     )
@@ -209,8 +213,8 @@ def _train_fold(
             report((epoch + (step + 1) / steps) / config.epochs)
         if not math.isfinite(total_loss):
             raise FloatingPointError(f"training diverged in epoch {epoch} (lr {lr}): lower lr")
-        val_loss, predicted = _evaluate(net, samples, val_index, eval_batch)
-        scores = _scores(samples.y[val_index], predicted)
+        val_loss, predicted = evaluate_net(net, samples, val_index, eval_batch)
+        scores = pillar_scores(samples.y[val_index], predicted)
         entry = {
             "fold": fold,
             "epoch": epoch,
@@ -242,9 +246,13 @@ def _train_fold(
 
 
 def train(
-    samples: Samples, config: TrainConfig | None = None, progress: Progress | None = None
+    samples: Samples,
+    config: TrainConfig | None = None,
+    progress: Progress | None = None,
+    initial_state: dict | None = None,
 ) -> TrainResult:
-    """k-fold cross-validated training (module doc); returns the best network and its card."""
+    """k-fold cross-validated training (module doc); returns the best network and its card.
+    `initial_state` (weights of a network of the same shape) fine-tunes instead."""
     config = config or TrainConfig()
     if config.folds_to_run > config.folds:
         raise ValueError(f"folds_to_run {config.folds_to_run} > folds {config.folds}")
@@ -261,7 +269,9 @@ def train(
             if progress is not None:
                 progress(f"train fold {fold}", (fold + f) / config.folds_to_run)
 
-        net, summary, fold_history = _train_fold(samples, fold_of, fold, config, report)
+        net, summary, fold_history = _train_fold(
+            samples, fold_of, fold, config, report, initial_state
+        )
         history += fold_history
         results.append((net, summary))
     net, best = max(results, key=lambda r: r[1]["best_val_macro_f1"])

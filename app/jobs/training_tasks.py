@@ -1,0 +1,188 @@
+"""Retraining from reviewed labels: `train:phantom` fine-tunes the promoted phantom CNN on the
+human pillar labels in the store, scores the new and the current network on labels held out of
+training, and promotes the new version only when it is not worse (an admin may promote any
+version by hand)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel, Field, ValidationError
+from sqlalchemy import text
+from sqlmodel import Session
+
+from app.core.errors import ConfigError, NotFoundError
+from app.io import open_survey
+from app.jobs.registry import JobContext, task
+from app.pipelines.phantom.config import PhantomConfig
+from app.pipelines.phantom.dataset import concatenate
+from app.pipelines.phantom.finetune import (
+    LabelledPillars,
+    finetune,
+    held_out_blocks,
+    labelled_samples,
+    score,
+)
+from app.pipelines.phantom.model import DEFAULT_MODEL, load_model, save_model
+from app.pipelines.phantom.pipeline import accumulate
+from app.pipelines.phantom.train import TrainConfig
+from app.store.model_versions import ensure_shipped_version, promoted_version, register_version
+from app.store.models import Pipeline, Survey
+from app.store.pillar_labels import STORE_GRID
+
+
+class PhantomRetrainConfig(BaseModel):
+    survey_ids: list[int] | None = Field(None, description="surveys whose labels to use; all")
+    holdout: float = Field(0.2, gt=0, lt=1, description="share of map blocks held out")
+    block_size: float = Field(10.0, gt=0, description="metres: blocks kept whole by the split")
+    rotations: int = Field(4, ge=1, le=16, description="copies of the map, first unrotated")
+    epochs: int = Field(4, ge=1, le=100)
+    per_class: int = Field(5000, ge=1, description="balanced samples per labelled class")
+    lr: float = Field(0.005, gt=0, description="fine-tuning SGD rate (below training's 0.05)")
+    seed: int = Field(0, ge=0)
+    time_limit: float | None = Field(None, gt=0, description="seconds of training at most")
+    min_labels: int = Field(50, ge=1, description="fewer human labels: refuse to train")
+
+
+def parse_config(model: type[BaseModel], config: dict[str, Any]) -> BaseModel:
+    try:
+        return model.model_validate(config)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        field = ".".join(str(p) for p in first["loc"]) or "config"
+        raise ConfigError(f"config.{field}", first["msg"]) from None
+
+
+def human_pillar_labels(
+    session: Session, survey_ids: list[int] | None
+) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """survey id -> (cell ids, labels) of its human pillar labels."""
+    rows = (
+        session.connection()
+        .execute(text("SELECT survey_id, cell_id, label FROM pillar_label WHERE source = 'human'"))
+        .all()
+    )
+    if not rows:
+        return {}
+    data = np.array(rows, dtype=np.int64)
+    out = {}
+    for survey in np.unique(data[:, 0]).tolist():
+        if survey_ids is not None and survey not in survey_ids:
+            continue
+        mine = data[data[:, 0] == survey]
+        out[survey] = (mine[:, 1], mine[:, 2])
+    return out
+
+
+def _base_model(session: Session) -> tuple[Path, int | None]:
+    version = promoted_version(session, Pipeline.phantom)
+    if version is None:
+        _, card = load_model(DEFAULT_MODEL)
+        version = ensure_shipped_version(session, Pipeline.phantom, DEFAULT_MODEL, card)
+    return Path(version.checkpoint_path), version.id
+
+
+@task("train:phantom")
+def train_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
+    cfg = parse_config(PhantomRetrainConfig, config)
+    phantom = PhantomConfig()
+    with Session(context.engine) as session:
+        labels = human_pillar_labels(session, cfg.survey_ids)
+        total = sum(len(c) for c, _ in labels.values())
+        if total < cfg.min_labels:
+            raise ConfigError(
+                "labels", f"{total} human pillar labels; retraining needs at least {cfg.min_labels}"
+            )
+        surveys = {}
+        for survey_id in labels:
+            record = session.get(Survey, survey_id)
+            if record is None:
+                raise NotFoundError(f"survey {survey_id} not found")
+            surveys[survey_id] = (record.name, record.source_path, record.format)
+        base_path, base_id = _base_model(session)
+    base_net, base_card = load_model(base_path)
+    context.log.info(
+        "fine-tuning %s on %d human labels of %d surveys", base_path, total, len(labels)
+    )
+
+    rng = np.random.default_rng(cfg.seed)
+    train_parts, val_parts = [], []
+    for k, (survey_id, (cells, classes)) in enumerate(labels.items()):
+        context.progress(0.3 * k / len(labels), f"samples of survey {survey_id}")
+        name, source, fmt = surveys[survey_id]
+        xyz = accumulate(open_survey(source, fmt), with_reference=False).xyz
+        pillars = np.stack(STORE_GRID.decode(cells), axis=1)
+        held = held_out_blocks(pillars, phantom.cell_size, cfg.block_size, cfg.holdout, cfg.seed)
+        context_branch = base_net.context > 0
+        for part, mask, rotations in ((train_parts, ~held, cfg.rotations), (val_parts, held, 1)):
+            if mask.any():
+                lmap = LabelledPillars(name, xyz, pillars[mask], classes[mask])
+                part.append(labelled_samples(lmap, phantom, rotations, rng, context_branch))
+    if not train_parts or not val_parts:
+        raise ConfigError("labels", "labels cover too few map blocks to hold some out")
+    train_samples, val_samples = concatenate(train_parts), concatenate(val_parts)
+    context.log.info(
+        "samples: train %s, validation %s",
+        train_samples.class_counts(),
+        val_samples.class_counts(),
+    )
+
+    started = time.perf_counter()
+    train_config = TrainConfig(
+        epochs=cfg.epochs,
+        lr=cfg.lr,
+        seed=cfg.seed,
+        time_limit=cfg.time_limit,
+        block_size=cfg.block_size,
+        per_class=cfg.per_class,
+    )
+    result = finetune(
+        train_samples,
+        base_net,
+        train_config,
+        cfg.per_class,
+        lambda stage, f: context.progress(0.3 + 0.6 * f, stage),
+    )
+    context.progress(0.92, "validation on held-out labels")
+    new_scores, base_scores = score(result.net, val_samples), score(base_net, val_samples)
+    promote = new_scores.macro.f1 >= base_scores.macro.f1
+    name = f"phantom-job{context.job_id}-{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}"
+    checkpoint = context.settings.data_dir / "models" / "phantom" / f"{name}.pt"
+    card = {
+        **result.card,
+        "class_priors": base_card.get("class_priors"),
+        "fine_tuned_from": str(base_path),
+        "held_out_validation": new_scores.as_dict(),
+        "base_on_held_out": base_scores.as_dict(),
+    }
+    save_model(checkpoint, result.net, card)
+    metrics = {
+        "validation": new_scores.as_dict(),
+        "baseline": base_scores.as_dict(),
+        "base_version_id": base_id,
+        "validation_labels": int(len(val_samples)),
+        "training_seconds": round(time.perf_counter() - started, 1),
+    }
+    trained_on = {
+        "surveys": sorted(labels),
+        "human_labels": total,
+        "train_samples": train_samples.class_counts(),
+        "validation_samples": val_samples.class_counts(),
+        "config": cfg.model_dump(),
+    }
+    with Session(context.engine) as session:
+        version = register_version(
+            session, Pipeline.phantom, name, checkpoint, metrics, trained_on,
+            context.job_id, promote,
+        )  # fmt: skip
+    context.progress(1.0, "promoted" if promote else "kept the current version (new one worse)")
+    return {
+        "files": {"checkpoint": str(checkpoint), "card": str(checkpoint.with_suffix(".card.json"))},
+        "model_version_id": version.id,
+        "promoted": promote,
+        "validation_macro_f1": new_scores.macro.f1,
+        "baseline_macro_f1": base_scores.macro.f1,
+    }

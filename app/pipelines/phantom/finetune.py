@@ -1,0 +1,148 @@
+"""Fine-tuning the phantom CNN on pillars people labelled (the paper's own training data were
+hand-labelled pillars): the labels come as pillar indices on the world grid of `build_pillar_map`
+(floor(x / s_c), floor(y / s_c)), the map as world points.
+
+- Samples: the map is rotated about the vertical axis through its centroid (the paper's
+  augmentation), the labelled pillar centres with it, and each centre is looked up in the
+  rotated pillar map; pillars with no points in the 3 m layer give no sample. The first copy is
+  unrotated.
+- Validation on labels the network did not train on: map blocks (`block_size` metres, whole
+  blocks only, so neighbouring pillars that share most of their window never straddle the
+  split) are held out at random; both the new and the base network are scored on them, so a
+  new version is promoted only when it is not worse than the one it would replace.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from app.geometry.ground import estimate_ground
+from app.metrics.classification import Scores
+from app.pipelines.phantom.classify import band_tensor
+from app.pipelines.phantom.config import PhantomConfig
+from app.pipelines.phantom.dataset import (
+    Samples,
+    balanced,
+    concatenate,
+    rotate_about_z,
+    window_counts,
+)
+from app.pipelines.phantom.network import PillarCNN
+from app.pipelines.phantom.pillars import build_pillar_map
+from app.pipelines.phantom.train import (
+    TrainConfig,
+    TrainResult,
+    evaluate_net,
+    pillar_scores,
+    train,
+)
+
+Progress = Callable[[str, float], None]
+
+
+@dataclass
+class LabelledPillars:
+    """Human pillar labels of one map: world-grid pillar indices and classes."""
+
+    name: str
+    xyz: np.ndarray  # (N, 3) float64 world points of the map
+    pillars: np.ndarray  # (L, 2) int64 (ix, iy) on the s_c grid
+    labels: np.ndarray  # (L,) int64 class 0..3
+
+
+def _lookup(found: np.ndarray, wanted: np.ndarray) -> np.ndarray:
+    """Index of each wanted (ix, iy) row in `found` (sorted lexicographically by the map), -1
+    where absent."""
+    key_found = found[:, 0] * (1 << 32) + found[:, 1]
+    key_wanted = wanted[:, 0] * (1 << 32) + wanted[:, 1]
+    order = np.argsort(key_found, kind="stable")
+    pos = np.searchsorted(key_found[order], key_wanted)
+    pos = np.clip(pos, 0, max(len(order) - 1, 0))
+    hit = len(order) > 0
+    index = np.where(hit & (key_found[order][pos] == key_wanted), order[pos], -1)
+    return index.astype(np.int64)
+
+
+def labelled_samples(
+    lmap: LabelledPillars,
+    config: PhantomConfig,
+    rotations: int,
+    rng: np.random.Generator,
+    context: bool,
+) -> Samples:
+    """Samples of the labelled pillars of one map: an unrotated copy, then `rotations - 1`
+    random rotations."""
+    cs = config.cell_size
+    centres = np.zeros((len(lmap.pillars), 3))
+    centres[:, :2] = (lmap.pillars + 0.5) * cs
+    pivot = lmap.xyz.mean(axis=0) if len(lmap.xyz) else np.zeros(3)
+    parts = []
+    for r in range(rotations):
+        angle = 0.0 if r == 0 else float(rng.uniform(0.0, 2.0 * np.pi))
+        xyz = rotate_about_z(lmap.xyz, angle, pivot) if angle else lmap.xyz
+        turned = rotate_about_z(centres, angle, pivot) if angle else centres
+        ground = estimate_ground(xyz, config.ground_cell, config.ground_opening)
+        pm = build_pillar_map(xyz, ground, config)
+        index = _lookup(pm.pillars, np.floor(turned[:, :2] / cs).astype(np.int64))
+        keep = index >= 0
+        chosen = pm.pillars[index[keep]]
+        parts.append(
+            Samples(
+                x=window_counts(pm, chosen),
+                bands=window_counts(pm, chosen, cut=band_tensor) if context else None,
+                y=lmap.labels[keep],
+                source=np.full(int(keep.sum()), lmap.name),
+                xy=centres[keep, :2],
+                group=np.flatnonzero(keep),
+                sources=[{"name": lmap.name, "labels": int(len(keep)), "kept": int(keep.sum())}],
+            )
+        )
+    samples = concatenate(parts)
+    samples.sources = parts[0].sources
+    return samples
+
+
+def held_out_blocks(
+    pillars: np.ndarray, cell_size: float, block_size: float, fraction: float, seed: int
+) -> np.ndarray:
+    """(L,) True for labels in the map blocks held out for validation (about `fraction` of the
+    blocks, at random but reproducibly; at least one block, never all when there are two)."""
+    block = np.floor((pillars + 0.5) * cell_size / block_size).astype(np.int64)
+    keys, inverse = np.unique(block, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    rng = np.random.default_rng(seed)
+    count = int(round(fraction * len(keys)))
+    count = min(max(count, 1), max(len(keys) - 1, 1))
+    chosen = np.zeros(len(keys), dtype=bool)
+    chosen[rng.choice(len(keys), size=count, replace=False)] = True
+    return chosen[inverse]
+
+
+@torch.no_grad()
+def score(net: PillarCNN, samples: Samples) -> Scores:
+    """Pillar classification scores of a network on samples (raw argmax, no priors)."""
+    _, predicted = evaluate_net(net, samples, np.arange(len(samples)), 256)
+    return pillar_scores(samples.y, predicted)
+
+
+def finetune(
+    train_samples: Samples,
+    base: PillarCNN,
+    config: TrainConfig,
+    per_class: int,
+    progress: Progress | None = None,
+) -> TrainResult:
+    """Train from the base network's weights on class-balanced copies of the labelled samples
+    (classes nobody labelled are left out: the base network keeps what it knew of them)."""
+    rng = np.random.default_rng(config.seed)
+    present = np.bincount(train_samples.y, minlength=4)
+    want = int(min(max(present.max(), 1), per_class))
+    pool = balanced(train_samples, want, rng, allow_missing=True)
+    shaped = config.model_copy(
+        update={"channels": tuple(base.channels), "hidden": base.hidden, "context": base.context}
+    )
+    return train(pool, shaped, progress, initial_state=base.state_dict())

@@ -1,0 +1,110 @@
+"""Model versions: the shipped checkpoints and the ones retraining produced, with their
+validation metrics; one promoted version per pipeline is what the pipeline runs with."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from sqlmodel import Session, select
+
+from app.core.errors import NotFoundError
+from app.store.audit import audit
+from app.store.db import commit
+from app.store.models import ModelVersion, Pipeline, utcnow
+
+
+def promoted_version(session: Session, pipeline: Pipeline) -> ModelVersion | None:
+    query = select(ModelVersion).where(ModelVersion.pipeline == pipeline, ModelVersion.is_promoted)
+    return session.exec(query.order_by(ModelVersion.id.desc())).first()
+
+
+def ensure_shipped_version(
+    session: Session, pipeline: Pipeline, checkpoint: Path, card: dict[str, Any]
+) -> ModelVersion:
+    """The row of a checkpoint shipped in models/ (created on first use, promoted when the
+    pipeline has no promoted version yet); commits."""
+    checkpoint = Path(checkpoint).resolve()
+    name = f"shipped:{checkpoint.name}"
+    existing = session.exec(
+        select(ModelVersion).where(ModelVersion.pipeline == pipeline, ModelVersion.name == name)
+    ).first()
+    if existing is not None:
+        return existing
+    version = ModelVersion(
+        pipeline=pipeline,
+        name=name,
+        checkpoint_path=str(checkpoint),
+        metrics={"validation": card.get("validation", {})},
+        trained_on={"shipped": True, "created": card.get("created")},
+        is_promoted=promoted_version(session, pipeline) is None,
+    )
+    session.add(version)
+    commit(session)
+    session.refresh(version)
+    return version
+
+
+def register_version(
+    session: Session,
+    pipeline: Pipeline,
+    name: str,
+    checkpoint: Path,
+    metrics: dict[str, Any],
+    trained_on: dict[str, Any],
+    job_id: int | None,
+    promote: bool,
+) -> ModelVersion:
+    """Record a newly trained checkpoint; with `promote` it replaces the promoted one."""
+    version = ModelVersion(
+        pipeline=pipeline,
+        name=name,
+        checkpoint_path=str(Path(checkpoint).resolve()),
+        metrics=metrics,
+        trained_on=trained_on,
+        job_id=job_id,
+    )
+    session.add(version)
+    session.flush()
+    if promote:
+        _promote(session, version)
+    audit(
+        session,
+        None,
+        "model.register",
+        "model_version",
+        version.id,
+        pipeline=pipeline.value,
+        promoted=promote,
+        job_id=job_id,
+    )
+    commit(session)
+    session.refresh(version)
+    return version
+
+
+def _promote(session: Session, version: ModelVersion) -> None:
+    for other in session.exec(
+        select(ModelVersion).where(
+            ModelVersion.pipeline == version.pipeline,
+            ModelVersion.is_promoted,
+            ModelVersion.id != version.id,
+        )
+    ).all():
+        other.is_promoted = False
+        session.add(other)
+    version.is_promoted = True
+    version.metrics = {**version.metrics, "promoted_at": utcnow().isoformat()}
+    session.add(version)
+
+
+def promote_version(session: Session, version_id: int, user_id: int | None) -> ModelVersion:
+    """An admin's promotion, whatever the metrics say; commits."""
+    version = session.get(ModelVersion, version_id)
+    if version is None:
+        raise NotFoundError(f"model version {version_id} not found")
+    _promote(session, version)
+    audit(session, user_id, "model.promote", "model_version", version.id, by="admin")
+    commit(session)
+    session.refresh(version)
+    return version
