@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, Field, ValidationError
@@ -45,6 +45,9 @@ class PhantomRetrainConfig(BaseModel):
     seed: int = Field(0, ge=0)
     time_limit: float | None = Field(None, gt=0, description="seconds of training at most")
     min_labels: int = Field(50, ge=1, description="fewer human labels: refuse to train")
+    trigger: Literal["on demand", "labels"] = Field(
+        "on demand", description="who asked: a user, or the new-labels trigger"
+    )
 
 
 def parse_config(model: type[BaseModel], config: dict[str, Any]) -> BaseModel:

@@ -65,14 +65,18 @@ def _ids_json(cell_ids: np.ndarray) -> str:
 
 def current_human(session: Session, survey_id: int, cell_ids: np.ndarray) -> dict[int, tuple]:
     """cell_id -> (label, version, user_id, updated_at) of the pillars' current human labels."""
-    rows = session.connection().execute(
-        text(
-            "SELECT cell_id, label, version, user_id, updated_at FROM pillar_label "
-            "WHERE survey_id = :s AND source = 'human' "
-            "AND cell_id IN (SELECT value FROM json_each(:ids))"
-        ),
-        {"s": survey_id, "ids": _ids_json(cell_ids)},
-    ).all()
+    rows = (
+        session.connection()
+        .execute(
+            text(
+                "SELECT cell_id, label, version, user_id, updated_at FROM pillar_label "
+                "WHERE survey_id = :s AND source = 'human' "
+                "AND cell_id IN (SELECT value FROM json_each(:ids))"
+            ),
+            {"s": survey_id, "ids": _ids_json(cell_ids)},
+        )
+        .all()
+    )
     return {int(r[0]): (int(r[1]), int(r[2]), r[3], r[4]) for r in rows}
 
 
@@ -227,13 +231,17 @@ def _commit(session: Session) -> None:
 
 
 def _batch_edits(session: Session, batch_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    rows = session.connection().execute(
-        text(
-            "SELECT cell_id, before_label, after_label FROM pillar_edit WHERE batch_id = :b "
-            "ORDER BY id"
-        ),
-        {"b": batch_id},
-    ).all()
+    rows = (
+        session.connection()
+        .execute(
+            text(
+                "SELECT cell_id, before_label, after_label FROM pillar_edit WHERE batch_id = :b "
+                "ORDER BY id"
+            ),
+            {"b": batch_id},
+        )
+        .all()
+    )
     cells = np.array([r[0] for r in rows], dtype=np.int64)
     before = np.array([NO_LABEL if r[1] is None else r[1] for r in rows], dtype=np.int64)
     after = np.array([NO_LABEL if r[2] is None else r[2] for r in rows], dtype=np.int64)
@@ -243,13 +251,17 @@ def _batch_edits(session: Session, batch_id: int) -> tuple[np.ndarray, np.ndarra
 def _step(session: Session, survey_id: int, user_id: int | None, undo: bool) -> LabelWrite:
     """Undo the newest done batch, or redo the most recently undone one."""
     state, order = (EditState.done, "DESC") if undo else (EditState.undone, "ASC")
-    row = session.connection().execute(
-        text(
-            f"SELECT id FROM pillar_edit_batch WHERE survey_id = :s AND user_id IS :u "
-            f"AND state = :state ORDER BY id {order} LIMIT 1"
-        ),
-        {"s": survey_id, "u": user_id, "state": state.value},
-    ).first()
+    row = (
+        session.connection()
+        .execute(
+            text(
+                f"SELECT id FROM pillar_edit_batch WHERE survey_id = :s AND user_id IS :u "
+                f"AND state = :state ORDER BY id {order} LIMIT 1"
+            ),
+            {"s": survey_id, "u": user_id, "state": state.value},
+        )
+        .first()
+    )
     what = "undo" if undo else "redo"
     if row is None:
         raise ConflictError(f"nothing to {what} for this user on survey {survey_id}")
@@ -317,16 +329,20 @@ def labels_in_box(
     covering index."""
     ranges = box_cell_ranges(*box)
     where = "" if source is None else f"AND p.source = '{LabelSource(source).value}'"
-    rows = session.connection().execute(
-        text(
-            "WITH r(lo, hi) AS (SELECT json_extract(value, '$[0]'), json_extract(value, '$[1]') "
-            "FROM json_each(:ranges)) "
-            "SELECT p.cell_id, p.source, p.label, p.version, p.confidence, p.user_id "
-            "FROM r JOIN pillar_label AS p INDEXED BY ix_pillar_label_tile "
-            f"ON p.survey_id = :s AND p.cell_id BETWEEN r.lo AND r.hi {where}"
-        ),
-        {"ranges": json.dumps(ranges), "s": survey_id},
-    ).all()
+    rows = (
+        session.connection()
+        .execute(
+            text(
+                "WITH r(lo, hi) AS (SELECT json_extract(value, '$[0]'), json_extract(value, '$[1]') "
+                "FROM json_each(:ranges)) "
+                "SELECT p.cell_id, p.source, p.label, p.version, p.confidence, p.user_id "
+                "FROM r JOIN pillar_label AS p INDEXED BY ix_pillar_label_tile "
+                f"ON p.survey_id = :s AND p.cell_id BETWEEN r.lo AND r.hi {where}"
+            ),
+            {"ranges": json.dumps(ranges), "s": survey_id},
+        )
+        .all()
+    )
     if not rows:
         empty = np.zeros(0, dtype=np.int64)
         return TileLabels(empty, np.zeros(0, dtype="<U5"), empty, empty, np.zeros(0), empty)
@@ -361,15 +377,19 @@ def uncertain_areas(
     """The "uncertain first" queue: areas of `area_size` metres ranked by how much unreviewed
     model doubt they hold (sum of 1 - confidence over pre-labels below `threshold` that no human
     has labelled yet)."""
-    rows = session.connection().execute(
-        text(
-            "SELECT m.cell_id, m.confidence FROM pillar_label AS m "
-            "WHERE m.survey_id = :s AND m.source = 'model' AND m.confidence < :t "
-            "AND NOT EXISTS (SELECT 1 FROM pillar_label AS h WHERE h.survey_id = m.survey_id "
-            "AND h.cell_id = m.cell_id AND h.source = 'human')"
-        ),
-        {"s": survey_id, "t": threshold},
-    ).all()
+    rows = (
+        session.connection()
+        .execute(
+            text(
+                "SELECT m.cell_id, m.confidence FROM pillar_label AS m "
+                "WHERE m.survey_id = :s AND m.source = 'model' AND m.confidence < :t "
+                "AND NOT EXISTS (SELECT 1 FROM pillar_label AS h WHERE h.survey_id = m.survey_id "
+                "AND h.cell_id = m.cell_id AND h.source = 'human')"
+            ),
+            {"s": survey_id, "t": threshold},
+        )
+        .all()
+    )
     if not rows:
         return []
     cells = np.array([r[0] for r in rows], dtype=np.int64)
@@ -402,13 +422,17 @@ def uncertain_areas(
 
 def label_counts(session: Session, survey_id: int) -> dict[str, list[int]]:
     """Pillars per class for each source."""
-    rows = session.connection().execute(
-        text(
-            "SELECT source, label, count(*) FROM pillar_label WHERE survey_id = :s "
-            "GROUP BY source, label"
-        ),
-        {"s": survey_id},
-    ).all()
+    rows = (
+        session.connection()
+        .execute(
+            text(
+                "SELECT source, label, count(*) FROM pillar_label WHERE survey_id = :s "
+                "GROUP BY source, label"
+            ),
+            {"s": survey_id},
+        )
+        .all()
+    )
     counts = {s.value: [0, 0, 0, 0] for s in LabelSource}
     for source, label, n in rows:
         counts[source][int(label)] = int(n)

@@ -1,0 +1,97 @@
+"""`/models`: trained model versions with their validation metrics, promotion, retraining."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any
+
+from fastapi import APIRouter
+from pydantic import BaseModel, Field
+from sqlmodel import select
+
+from app.api.deps import Admin, CurrentUser, SessionDep, SettingsDep
+from app.api.errors import errors
+from app.core.errors import ConfigError, NotFoundError
+from app.jobs.queue import enqueue
+from app.jobs.retraining import retraining_state
+from app.store.model_versions import promote_version
+from app.store.models import ModelVersion, Pipeline
+
+router = APIRouter(prefix="/models", tags=["models"], responses=errors(401))
+
+TRAINABLE = {Pipeline.phantom: "train:phantom", Pipeline.guardrail: "train:guardrail"}
+
+
+class ModelVersionPublic(BaseModel):
+    id: int
+    pipeline: Pipeline
+    name: str
+    checkpoint_path: str
+    metrics: dict[str, Any]
+    trained_on: dict[str, Any]
+    is_promoted: bool
+    job_id: int | None
+    created_at: datetime
+    version: int
+
+    @classmethod
+    def of(cls, m: ModelVersion) -> ModelVersionPublic:
+        return cls.model_validate(m, from_attributes=True)
+
+
+class RetrainRequest(BaseModel):
+    pipeline: Pipeline
+    config: dict[str, Any] = Field(default_factory=dict)
+
+
+class JobRef(BaseModel):
+    job_id: int
+    kind: str
+    status: str
+
+
+class RetrainingStatus(BaseModel):
+    threshold: int = Field(description="new human labels that queue retraining; 0 = off")
+    new_labels: int
+    pending_job_id: int | None
+
+
+@router.get("", response_model=list[ModelVersionPublic])
+def list_models(
+    _: CurrentUser, session: SessionDep, pipeline: Pipeline | None = None
+) -> list[ModelVersionPublic]:
+    """Model versions, newest first, with validation metrics on held-out labels."""
+    query = select(ModelVersion).order_by(ModelVersion.id.desc())
+    if pipeline is not None:
+        query = query.where(ModelVersion.pipeline == pipeline)
+    return [ModelVersionPublic.of(m) for m in session.exec(query).all()]
+
+
+@router.get("/retraining", response_model=RetrainingStatus)
+def retraining(_: CurrentUser, session: SessionDep, settings: SettingsDep) -> RetrainingStatus:
+    """How many reviewed labels came in since the last training job, and the trigger."""
+    return RetrainingStatus(**retraining_state(session, settings).__dict__)
+
+
+@router.get("/{model_id}", response_model=ModelVersionPublic, responses=errors(404))
+def get_model(model_id: int, _: CurrentUser, session: SessionDep) -> ModelVersionPublic:
+    model = session.get(ModelVersion, model_id)
+    if model is None:
+        raise NotFoundError(f"model version {model_id} not found")
+    return ModelVersionPublic.of(model)
+
+
+@router.post("/{model_id}/promote", response_model=ModelVersionPublic, responses=errors(403, 404))
+def promote(model_id: int, admin: Admin, session: SessionDep) -> ModelVersionPublic:
+    """Make this version the one its pipeline runs with (admin; metrics are not checked)."""
+    return ModelVersionPublic.of(promote_version(session, model_id, admin.id))
+
+
+@router.post("/retrain", response_model=JobRef, status_code=202, responses=errors(403, 422))
+def retrain(body: RetrainRequest, admin: Admin, session: SessionDep) -> JobRef:
+    """Queue a training job on the reviewed labels now (admin)."""
+    kind = TRAINABLE.get(body.pipeline)
+    if kind is None:
+        raise ConfigError("pipeline", f"{body.pipeline.value} has no trainable model")
+    job = enqueue(session, kind, body.config, None, admin.id)
+    return JobRef(job_id=job.id, kind=job.kind, status=job.status.value)
