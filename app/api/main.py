@@ -11,7 +11,7 @@ from sqlmodel import Session
 
 from app import __version__
 from app.api.errors import install_error_handlers
-from app.api.routes import auth, health, pillars, users
+from app.api.routes import auth, exports, health, pillars, surveys, users
 from app.api.sample import load_sample_on_first_start
 from app.core.security import TokenSigner
 from app.core.settings import Settings, get_settings
@@ -49,4 +49,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     for router in (health.router, auth.router, users.router):
         app.include_router(router)
     app.include_router(pillars.router)
+    app.include_router(surveys.router)
+    app.include_router(exports.router)
     return app

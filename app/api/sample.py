@@ -8,25 +8,12 @@ from pathlib import Path
 from sqlalchemy.engine import Engine
 from sqlmodel import Session
 
-from app.io import Survey, open_survey
-from app.store.surveys import FrameRecord, register_survey, survey_count
+from app.io import open_survey
+from app.store.surveys import register_opened_survey, survey_count
 
 log = logging.getLogger(__name__)
 
 SAMPLE_FORMAT = "sim"
-
-
-def survey_frames(survey: Survey) -> list[FrameRecord]:
-    return [
-        FrameRecord(
-            frame_index=f.index,
-            frame_id=f.frame_id,
-            timestamp=f.timestamp,
-            point_count=int(f.point_count or 0),
-            pose=[float(v) for v in f.pose.ravel()],
-        )
-        for f in survey.frames
-    ]
 
 
 def load_sample_on_first_start(engine: Engine, sample: Path | None) -> int | None:
@@ -37,16 +24,12 @@ def load_sample_on_first_start(engine: Engine, sample: Path | None) -> int | Non
         if survey_count(session):
             return None
         survey = open_survey(sample, SAMPLE_FORMAT)
-        first = survey.frames[0].pose[:3, 3] if len(survey) else (0.0, 0.0, 0.0)
-        record = register_survey(
+        record = register_opened_survey(
             session,
-            name=survey.name,
+            survey,
             format=SAMPLE_FORMAT,
-            source_path=str(sample.resolve()),
-            frames=survey_frames(survey),
-            has_reference_labels=bool(survey.reference_label_kinds),
-            poses_estimated=survey.poses_estimated,
-            origin=tuple(float(v) for v in first),
+            source_path=sample.resolve(),
+            action="survey.sample",
         )
         log.info("loaded the sample survey %s (%d frames)", record.name, record.frame_count)
         return record.id

@@ -1,14 +1,26 @@
-"""Survey records: registering an opened survey (with its frames) and listing what is there."""
+"""Survey records: registering an opened survey (with its frames), reading, deleting.
+
+Points stay in the source files; the store keeps one row per frame (pose, counts, time) so
+lists and summaries never open a point file.
+"""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
-from sqlmodel import Session, func, select
+import numpy as np
+from sqlmodel import Session, col, func, select
 
+from app.core.errors import ConflictError, NotFoundError
+from app.store.audit import audit
 from app.store.db import commit
-from app.store.models import Frame, Survey
+from app.store.models import Frame, Job, JobStatus, Survey
+
+if TYPE_CHECKING:
+    from app.io.survey import Survey as OpenedSurvey
 
 
 @dataclass(frozen=True)
@@ -20,6 +32,41 @@ class FrameRecord:
     timestamp: float | None
     point_count: int
     pose: list[float]  # 4x4 row-major
+
+
+def frame_records(survey: OpenedSurvey) -> list[FrameRecord]:
+    """The store's view of an opened survey's frames (no point file is read)."""
+    return [
+        FrameRecord(
+            frame_index=f.index,
+            frame_id=f.frame_id,
+            timestamp=f.timestamp,
+            point_count=int(f.point_count or 0),
+            pose=[float(v) for v in np.asarray(f.pose, dtype=np.float64).ravel()],
+        )
+        for f in survey.frames
+    ]
+
+
+def survey_origin(survey: OpenedSurvey) -> tuple[float, float, float]:
+    """The float64 local origin: the first sensor position of a drive; for a map its first
+    trajectory pose, else its minimum corner in whole metres (LAS: from the header; PLY/PCD:
+    from the points, read once at import)."""
+    if not len(survey):
+        return (0.0, 0.0, 0.0)
+    if not survey.is_map:
+        first = np.asarray(survey.frames[0].pose)[:3, 3]
+    elif survey.trajectory is not None and len(survey.trajectory):
+        first = np.asarray(survey.trajectory[0])[:3, 3]
+    elif survey.format == "las":
+        import laspy
+
+        with laspy.open(survey.source) as reader:
+            first = np.floor(np.asarray(reader.header.mins, dtype=np.float64))
+    else:
+        xyz = survey.frames[0].points().xyz
+        first = np.floor(xyz.min(axis=0)) if len(xyz) else np.zeros(3)
+    return (float(first[0]), float(first[1]), float(first[2]))
 
 
 def survey_count(session: Session) -> int:
@@ -37,8 +84,10 @@ def register_survey(
     poses_estimated: bool,
     origin: tuple[float, float, float],
     created_by: int | None = None,
+    action: str = "survey.register",
+    **audit_payload: Any,
 ) -> Survey:
-    """Insert a survey and all its frames in one transaction."""
+    """Insert a survey, all its frames and the audit event `action` in one transaction."""
     survey = Survey(
         name=name,
         format=format,
@@ -65,6 +114,157 @@ def register_survey(
         )
         for f in frames
     )
+    audit(
+        session,
+        created_by,
+        action,
+        "survey",
+        survey.id,
+        name=name,
+        format=format,
+        source_path=source_path,
+        frames=len(frames),
+        **audit_payload,
+    )
     commit(session)
     session.refresh(survey)
+    return survey
+
+
+def register_opened_survey(
+    session: Session,
+    opened: OpenedSurvey,
+    *,
+    format: str,
+    source_path: Path,
+    name: str | None = None,
+    created_by: int | None = None,
+    action: str = "survey.register",
+    **audit_payload: Any,
+) -> Survey:
+    """Register a survey a reader opened, with its frames and local origin."""
+    return register_survey(
+        session,
+        name=(name or opened.name or source_path.stem)[:255],
+        format=format,
+        source_path=str(source_path),
+        frames=frame_records(opened),
+        has_reference_labels=bool(opened.reference_label_kinds),
+        poses_estimated=opened.poses_estimated,
+        origin=survey_origin(opened),
+        created_by=created_by,
+        action=action,
+        **audit_payload,
+    )
+
+
+def list_surveys(session: Session) -> list[Survey]:
+    return list(session.exec(select(Survey).order_by(col(Survey.id))).all())
+
+
+def get_survey(session: Session, survey_id: int) -> Survey:
+    survey = session.get(Survey, survey_id)
+    if survey is None:
+        raise NotFoundError(f"survey {survey_id} not found")
+    return survey
+
+
+def frames_summary(session: Session, survey_id: int) -> dict[str, Any]:
+    """Counts, point statistics, time span and driven length of a survey's frames."""
+    rows = session.exec(
+        select(Frame.frame_id, Frame.point_count, Frame.timestamp, Frame.pose)
+        .where(Frame.survey_id == survey_id)
+        .order_by(col(Frame.frame_index))
+    ).all()
+    if not rows:
+        return {"count": 0, "points": 0}
+    ids, counts, times, poses = zip(*rows, strict=True)
+    counts_arr = np.asarray(counts, dtype=np.int64)
+    stamps = np.asarray([np.nan if t is None else t for t in times], dtype=np.float64)
+    positions = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)[:, :3, 3]
+    finite = stamps[np.isfinite(stamps)]
+    return {
+        "count": len(ids),
+        "points": int(counts_arr.sum()),
+        "points_per_frame": {
+            "min": int(counts_arr.min()),
+            "mean": float(counts_arr.mean()),
+            "max": int(counts_arr.max()),
+        },
+        "first_frame_id": ids[0],
+        "last_frame_id": ids[-1],
+        "start_time": float(finite.min()) if finite.size else None,
+        "duration_s": float(finite.max() - finite.min()) if finite.size else None,
+        "trajectory_length_m": float(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum()),
+    }
+
+
+def latest_jobs(session: Session, survey_id: int) -> dict[str, Job]:
+    """The newest job of each kind run on the survey."""
+    newest = (
+        select(func.max(Job.id))
+        .where(Job.survey_id == survey_id)
+        .group_by(Job.kind)
+        .scalar_subquery()
+    )
+    jobs = session.exec(select(Job).where(col(Job.id).in_(newest)).order_by(Job.kind)).all()
+    return {job.kind: job for job in jobs}
+
+
+def latest_succeeded_job(session: Session, survey_id: int, kinds: Iterable[str]) -> Job | None:
+    """The newest succeeded job of one of `kinds` on the survey (by finish time, then id)."""
+    return session.exec(
+        select(Job)
+        .where(
+            Job.survey_id == survey_id,
+            col(Job.kind).in_(list(kinds)),
+            Job.status == JobStatus.succeeded,
+        )
+        .order_by(col(Job.finished_at).desc().nulls_last(), col(Job.id).desc())
+        .limit(1)
+    ).first()
+
+
+def surveys_using(session: Session, folder: Path, exclude: int | None = None) -> list[int]:
+    """Ids of surveys whose source lies in `folder` (an upload folder two surveys may share)."""
+    prefix = str(folder).rstrip("/") + "/"
+    query = select(Survey.id).where(
+        (Survey.source_path == str(folder))
+        | col(Survey.source_path).startswith(prefix, autoescape=True)
+    )
+    if exclude is not None:
+        query = query.where(Survey.id != exclude)
+    return list(session.exec(query).all())
+
+
+def delete_survey(
+    session: Session, survey_id: int, user_id: int | None, **audit_payload: Any
+) -> Survey:
+    """Delete a survey and (by cascade) its frames, labels, decisions and models; refused while
+    one of its jobs is queued or running. Files are the caller's business."""
+    survey = get_survey(session, survey_id)
+    active = session.exec(
+        select(Job.id).where(
+            Job.survey_id == survey_id,
+            col(Job.status).in_([JobStatus.queued, JobStatus.running]),
+        )
+    ).first()
+    if active is not None:
+        raise ConflictError(
+            f"survey {survey_id} has job {active} queued or running; cancel it first"
+        )
+    audit(
+        session,
+        user_id,
+        "survey.delete",
+        "survey",
+        survey_id,
+        name=survey.name,
+        format=survey.format,
+        source_path=survey.source_path,
+        frames=survey.frame_count,
+        **audit_payload,
+    )
+    session.delete(survey)
+    commit(session)
     return survey

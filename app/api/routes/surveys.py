@@ -1,0 +1,269 @@
+"""`/surveys`: list and inspect surveys, import one from a server path, upload one, delete one.
+
+Imports read only inside `allowed_import_root` (symlinks resolved); uploads are streamed under
+`surveys_dir/<uuid>/` and registered like imports. A survey is opened with its reader before it
+is registered, so bad data answers 422 with the reader's one-line message and leaves nothing
+behind.
+"""
+
+from __future__ import annotations
+
+import re
+import uuid
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+from fastapi import APIRouter, Query, Request, Response
+from pydantic import BaseModel, Field
+from sqlmodel import Session
+from starlette.concurrency import run_in_threadpool
+
+from app.api.deps import Annotator, CurrentUser, Reviewer, SessionDep, SettingsDep
+from app.api.errors import errors
+from app.api.uploads import (
+    check_upload_name,
+    extract_zip,
+    receive_upload,
+    remove_tree,
+    resolve_import_path,
+)
+from app.core.errors import InputError, MmscleanError
+from app.io import open_survey
+from app.io.detect import detect_format
+from app.io.point_files import one_line
+from app.store.models import Job, JobStatus, Survey
+from app.store.pillar_labels import label_counts
+from app.store.surveys import (
+    delete_survey,
+    frames_summary,
+    get_survey,
+    latest_jobs,
+    list_surveys,
+    register_opened_survey,
+    surveys_using,
+)
+
+router = APIRouter(prefix="/surveys", tags=["surveys"], responses=errors(401))
+
+UPLOAD_FOLDER = re.compile(r"^[0-9a-f]{32}$")  # uuid4().hex: only folders uploads made
+
+
+class SurveyPublic(BaseModel):
+    id: int
+    name: str
+    format: str
+    source_path: str
+    frame_count: int
+    point_count: int
+    has_reference_labels: bool
+    poses_estimated: bool
+    origin: tuple[float, float, float]
+    created_by: int | None
+    created_at: datetime
+    updated_at: datetime
+    version: int
+
+    @classmethod
+    def of(cls, s: Survey) -> SurveyPublic:
+        return cls(
+            id=s.id,
+            name=s.name,
+            format=s.format,
+            source_path=s.source_path,
+            frame_count=s.frame_count,
+            point_count=s.point_count,
+            has_reference_labels=s.has_reference_labels,
+            poses_estimated=s.poses_estimated,
+            origin=(s.origin_x, s.origin_y, s.origin_z),
+            created_by=s.created_by,
+            created_at=s.created_at,
+            updated_at=s.updated_at,
+            version=s.version,
+        )
+
+
+class JobBrief(BaseModel):
+    id: int
+    kind: str
+    status: JobStatus
+    progress: float
+    message: str
+    created_at: datetime
+    finished_at: datetime | None
+
+    @classmethod
+    def of(cls, job: Job) -> JobBrief:
+        return cls(
+            id=job.id,
+            kind=job.kind,
+            status=job.status,
+            progress=job.progress,
+            message=job.message,
+            created_at=job.created_at,
+            finished_at=job.finished_at,
+        )
+
+
+class SurveyDetail(SurveyPublic):
+    frames: dict[str, Any]
+    latest_jobs: dict[str, JobBrief]
+    pillar_labels: dict[str, list[int]]  # source -> pillars per class
+
+
+class SurveyImport(BaseModel):
+    path: str = Field(min_length=1, max_length=4096, description="inside the import root")
+    format: str | None = Field(None, description="reader name; detected when absent")
+    name: str | None = Field(None, min_length=1, max_length=255)
+
+
+def import_source(
+    session: Session,
+    source: Path,
+    fmt: str | None,
+    name: str | None,
+    user_id: int | None,
+    action: str,
+    **payload: Any,
+) -> Survey:
+    """Open SOURCE with its reader (format detected when not given) and register it."""
+    fmt = fmt or detect_format(source)
+    try:
+        opened = open_survey(source, fmt)
+        if not len(opened):
+            raise InputError(source, "holds no frames")
+        return register_opened_survey(
+            session,
+            opened,
+            format=fmt,
+            source_path=source,
+            name=name,
+            created_by=user_id,
+            action=action,
+            **payload,
+        )
+    except MmscleanError:
+        raise
+    except (OSError, ValueError) as exc:
+        raise InputError(source, one_line(exc)) from exc
+
+
+@router.get("", response_model=list[SurveyPublic])
+def surveys(_: CurrentUser, session: SessionDep) -> list[SurveyPublic]:
+    """Every survey with its frame and point counts."""
+    return [SurveyPublic.of(s) for s in list_surveys(session)]
+
+
+@router.get("/{survey_id}", response_model=SurveyDetail, responses=errors(404))
+def survey_detail(survey_id: int, _: CurrentUser, session: SessionDep) -> SurveyDetail:
+    """One survey: its frames summarised, the newest job of each kind, pillar label counts."""
+    survey = get_survey(session, survey_id)
+    return SurveyDetail(
+        **SurveyPublic.of(survey).model_dump(),
+        frames=frames_summary(session, survey_id),
+        latest_jobs={k: JobBrief.of(j) for k, j in latest_jobs(session, survey_id).items()},
+        pillar_labels=label_counts(session, survey_id),
+    )
+
+
+@router.post(
+    "/import", response_model=SurveyPublic, status_code=201, responses=errors(400, 403, 422)
+)
+def import_survey(
+    body: SurveyImport, user: Annotator, session: SessionDep, settings: SettingsDep
+) -> SurveyPublic:
+    """Register a survey from a path inside the import root (annotator role)."""
+    source = resolve_import_path(body.path, settings.allowed_import_root)
+    survey = import_source(
+        session, source, body.format, body.name, user.id, "survey.import", requested=body.path
+    )
+    return SurveyPublic.of(survey)
+
+
+@router.post(
+    "/upload",
+    response_model=SurveyPublic,
+    status_code=201,
+    responses=errors(403, 413, 422),
+    openapi_extra={
+        "requestBody": {
+            "required": True,
+            "content": {"application/octet-stream": {"schema": {"type": "string"}}},
+        }
+    },
+)
+async def upload_survey(
+    request: Request,
+    user: Annotator,
+    session: SessionDep,
+    settings: SettingsDep,
+    filename: str = Query(..., max_length=255, description="survey.laz, or drive.zip"),
+    format: str | None = Query(None, description="reader name; detected when absent"),
+    name: str | None = Query(None, min_length=1, max_length=255),
+) -> SurveyPublic:
+    """Upload a .las/.laz map or a .zip of a KITTI-raw / SemanticKITTI / simulator folder as the
+    raw request body (annotator role); stored under the surveys folder and registered."""
+    suffix = check_upload_name(filename)
+    limit_mb = settings.max_upload_mb
+    folder = settings.surveys_dir.resolve() / uuid.uuid4().hex
+    folder.mkdir(parents=True)
+    try:
+        if suffix == ".zip":
+            archive = folder / ".upload.zip"
+            size = await receive_upload(request, archive, filename, limit_mb)
+            source = await run_in_threadpool(
+                extract_zip, archive, folder / "data", filename, limit_mb
+            )
+        else:
+            source = folder / filename
+            size = await receive_upload(request, source, filename, limit_mb)
+        survey = await run_in_threadpool(
+            import_source,
+            session,
+            source,
+            format,
+            name or Path(filename).stem,
+            user.id,
+            "survey.upload",
+            filename=filename,
+            bytes=size,
+        )
+    except InputError as exc:
+        remove_tree(folder)
+        # name the file as the user knows it, not by the server's folder
+        raise InputError(None, exc.message.replace(str(folder), filename)) from exc
+    except BaseException:
+        remove_tree(folder)
+        raise
+    return SurveyPublic.of(survey)
+
+
+def upload_folder(surveys_dir: Path, source_path: str) -> Path | None:
+    """The `surveys_dir/<uuid>` folder an upload made that holds SOURCE_PATH, or None: files
+    anywhere else are never deleted."""
+    root = surveys_dir.resolve()
+    source = Path(source_path)
+    if not source.is_absolute() or not source.is_relative_to(root) or source == root:
+        return None
+    folder = root / source.relative_to(root).parts[0]
+    if not UPLOAD_FOLDER.match(folder.name) or folder.is_symlink() or not folder.is_dir():
+        return None
+    return folder
+
+
+@router.delete("/{survey_id}", status_code=204, responses=errors(403, 404, 409))
+def remove_survey(
+    survey_id: int, user: Reviewer, session: SessionDep, settings: SettingsDep
+) -> Response:
+    """Delete a survey with its frames, labels, decisions and models (reviewer role); an
+    uploaded survey's files go too, files imported from elsewhere stay."""
+    survey = get_survey(session, survey_id)
+    folder = upload_folder(settings.surveys_dir, survey.source_path)
+    if folder is not None and surveys_using(session, folder, exclude=survey_id):
+        folder = None  # another survey was imported from the same upload
+    delete_survey(
+        session, survey_id, user.id, files_deleted=None if folder is None else str(folder)
+    )
+    if folder is not None:
+        remove_tree(folder)
+    return Response(status_code=204)

@@ -1,0 +1,165 @@
+"""Getting survey files onto the server safely: import paths confined to the import root,
+uploads streamed to disk under a size limit, zip archives unpacked without escaping their folder.
+
+Every refusal is one line naming the path, upload or zip member: a path outside the root (400),
+an upload or unpacked archive over `max_upload_mb` (413), a malformed archive (422).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import stat
+import zipfile
+import zlib
+from pathlib import Path, PurePosixPath
+
+from fastapi import Request
+
+from app.core.errors import ConfigError, InputError, PathOutsideRootError, UploadTooLargeError
+from app.io.detect import FILE_SUFFIXES
+
+UPLOAD_SUFFIXES = (*sorted(FILE_SUFFIXES), ".zip")
+MAX_ZIP_MEMBERS = 500_000  # a 5,000-frame KITTI drive with images has ~30,000
+COPY_CHUNK = 1 << 20
+SKIPPED_ZIP_FOLDERS = ("__MACOSX/",)  # resource forks macOS adds to archives
+
+
+def resolve_import_path(raw: str, root: Path) -> Path:
+    """RAW (absolute, or relative to ROOT) with symlinks resolved; it and every link inside it
+    must stay within ROOT (PathOutsideRootError), and it must exist (InputError)."""
+    if not raw.strip():
+        raise ConfigError("path", "must not be empty")
+    root = root.resolve()
+    try:
+        given = Path(raw)
+        resolved = (given if given.is_absolute() else root / given).resolve()
+    except (ValueError, OSError) as exc:
+        raise ConfigError("path", f"{raw!r} is not a usable path ({exc})") from None
+    if not resolved.is_relative_to(root):
+        raise PathOutsideRootError(raw, root)
+    if not resolved.exists():
+        raise InputError(raw, "does not exist")
+    if resolved.is_dir():
+        check_links_inside(resolved, root)
+    return resolved
+
+
+def check_links_inside(folder: Path, root: Path) -> None:
+    """A reader follows links, so a folder inside ROOT holding a link to /etc is refused."""
+    for dirpath, dirnames, filenames in os.walk(folder, followlinks=False):
+        for name in (*dirnames, *filenames):
+            entry = Path(dirpath) / name
+            if entry.is_symlink() and not entry.resolve().is_relative_to(root):
+                raise PathOutsideRootError(entry, root)
+
+
+def check_upload_name(filename: str) -> str:
+    """The upload's suffix (lower case) after checking FILENAME is a plain, known file name."""
+    name = filename.strip()
+    if not name or name != Path(name).name or "\\" in name or name.startswith("."):
+        raise ConfigError("filename", f"{filename!r} must be a plain file name like survey.laz")
+    suffix = Path(name).suffix.lower()
+    if suffix not in UPLOAD_SUFFIXES:
+        raise ConfigError("filename", f"{filename!r}: expected one of {', '.join(UPLOAD_SUFFIXES)}")
+    return suffix
+
+
+def limit_bytes(limit_mb: float) -> int:
+    return int(limit_mb * 1024 * 1024)
+
+
+async def receive_upload(request: Request, dest: Path, name: str, limit_mb: float) -> int:
+    """Stream the request body to DEST; stops reading and deletes DEST as soon as the body
+    passes the limit. Returns the byte count."""
+    limit = limit_bytes(limit_mb)
+    declared = request.headers.get("content-length", "")
+    if declared.isdigit() and int(declared) > limit:
+        raise UploadTooLargeError(name, limit_mb)
+    size = 0
+    try:
+        with dest.open("wb") as out:
+            async for chunk in request.stream():
+                size += len(chunk)
+                if size > limit:
+                    raise UploadTooLargeError(name, limit_mb)
+                out.write(chunk)
+    except BaseException:
+        dest.unlink(missing_ok=True)
+        raise
+    if size == 0:
+        dest.unlink(missing_ok=True)
+        raise InputError(name, "the upload is empty (send the file as the request body)")
+    return size
+
+
+def _member_path(archive: str, info: zipfile.ZipInfo) -> PurePosixPath:
+    """The member's relative path; refuses absolute paths, `..`, drive letters, backslashes,
+    symbolic links and encrypted members."""
+    raw = info.filename
+    path = PurePosixPath(raw)
+    escapes = (
+        "\\" in raw
+        or path.is_absolute()
+        or ".." in path.parts
+        or (path.parts and ":" in path.parts[0])
+    )
+    if escapes:
+        raise InputError(archive, f"zip member {raw!r} points outside the archive's folder")
+    if stat.S_ISLNK(info.external_attr >> 16):
+        raise InputError(archive, f"zip member {raw!r} is a symbolic link; links are refused")
+    if info.flag_bits & 0x1:
+        raise InputError(archive, f"zip member {raw!r} is encrypted")
+    return path
+
+
+def extract_zip(archive: Path, dest: Path, name: str, limit_mb: float) -> Path:
+    """Unpack ARCHIVE into DEST (checked member by member before anything is written), delete
+    the archive and return the survey folder: DEST, or the one folder DEST holds."""
+    limit = limit_bytes(limit_mb)
+    try:
+        zf = zipfile.ZipFile(archive)
+    except (zipfile.BadZipFile, OSError) as exc:
+        raise InputError(name, f"is not a readable zip archive ({exc})") from None
+    with zf:
+        infos = [i for i in zf.infolist() if not i.filename.startswith(SKIPPED_ZIP_FOLDERS)]
+        if len(infos) > MAX_ZIP_MEMBERS:
+            raise InputError(name, f"has {len(infos)} members, more than {MAX_ZIP_MEMBERS}")
+        members = [(_member_path(name, info), info) for info in infos]
+        if sum(info.file_size for _, info in members) > limit:
+            raise UploadTooLargeError(f"{name} (unpacked)", limit_mb)
+        if not any(not info.is_dir() for _, info in members):
+            raise InputError(name, "the archive holds no files")
+        dest.mkdir(parents=True, exist_ok=True)
+        written = 0
+        for path, info in members:
+            target = dest.joinpath(*path.parts)
+            if info.is_dir():
+                target.mkdir(parents=True, exist_ok=True)
+                continue
+            target.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                with zf.open(info) as src, target.open("wb") as out:
+                    while chunk := src.read(COPY_CHUNK):
+                        written += len(chunk)
+                        if written > limit:  # sizes in the directory can lie
+                            raise UploadTooLargeError(f"{name} (unpacked)", limit_mb)
+                        out.write(chunk)
+            except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError) as exc:
+                raise InputError(name, f"zip member {info.filename!r}: {exc}") from None
+    archive.unlink(missing_ok=True)
+    return single_folder(dest)
+
+
+def single_folder(folder: Path) -> Path:
+    """Archives usually wrap everything in one top folder: descend through such wrappers."""
+    while True:
+        entries = [e for e in folder.iterdir() if not e.name.startswith(".")]
+        if len(entries) != 1 or not entries[0].is_dir() or entries[0].is_symlink():
+            return folder
+        folder = entries[0]
+
+
+def remove_tree(folder: Path) -> None:
+    """Delete a folder the server made (links inside are removed, never followed)."""
+    shutil.rmtree(folder, ignore_errors=True)

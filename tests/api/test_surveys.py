@@ -1,0 +1,321 @@
+"""Surveys over a real server: import confined to the import root, streamed uploads (LAZ, zip of
+a simulated drive) under a size limit, safe unzipping, delete with the uploaded files."""
+
+from __future__ import annotations
+
+import io
+import os
+import shutil
+import stat
+import zipfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from sqlmodel import Session, select
+
+from app.io.las import write_laz
+from app.simulate.survey import SimulationConfig, simulate
+from app.store.db import make_engine
+from app.store.models import AuditEvent, Frame
+from tests.api.server import Server
+
+
+@pytest.fixture(scope="module")
+def sim_dir(server: Server) -> Path:
+    """A five-frame simulated drive inside the server's data dir (= its import root)."""
+    out = server.data_dir / "incoming" / "sim-street"
+    simulate(SimulationConfig(length=6, camera=False, compressed=True), out, True, None)
+    return out
+
+
+@pytest.fixture(scope="module")
+def admin(server: Server) -> Iterator[httpx.Client]:
+    with server.client() as client:
+        yield client
+
+
+@pytest.fixture(scope="module")
+def annotator(server: Server) -> Iterator[httpx.Client]:
+    with server.add_user("ann", "annotator") as client:
+        yield client
+
+
+@pytest.fixture(scope="module")
+def reviewer(server: Server) -> Iterator[httpx.Client]:
+    with server.add_user("rev", "reviewer") as client:
+        yield client
+
+
+def audit_actions(server: Server, entity_id: int) -> list[str]:
+    engine = make_engine(f"sqlite:///{server.data_dir / 'mmsclean.sqlite3'}")
+    with Session(engine) as session:
+        rows = session.exec(
+            select(AuditEvent.action).where(
+                AuditEvent.entity == "survey", AuditEvent.entity_id == str(entity_id)
+            )
+        ).all()
+    engine.dispose()
+    return list(rows)
+
+
+def laz_bytes(tmp_path: Path, n: int = 500) -> tuple[bytes, np.ndarray]:
+    rng = np.random.default_rng(1)
+    xyz = rng.uniform(0, 20, (n, 3)) + [500_000.5, 5_400_000.25, 100.0]
+    path = write_laz(tmp_path / "map.laz", xyz)
+    return path.read_bytes(), xyz
+
+
+def zip_of(folder: Path, top: str) -> bytes:
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_STORED) as zf:
+        for path in sorted(folder.rglob("*")):
+            if path.is_file():
+                zf.write(path, f"{top}/{path.relative_to(folder)}")
+    return buffer.getvalue()
+
+
+def uploads(server: Server) -> list[Path]:
+    folder = server.data_dir / "surveys"
+    return sorted(folder.iterdir()) if folder.is_dir() else []
+
+
+def test_import_detects_and_registers(
+    server: Server, sim_dir: Path, annotator: httpx.Client
+) -> None:
+    response = annotator.post("/surveys/import", json={"path": "incoming/sim-street"})
+    assert response.status_code == 201, response.text
+    survey = response.json()
+    assert survey["format"] == "sim" and survey["frame_count"] == 5
+    assert survey["source_path"] == str(sim_dir.resolve())
+    assert survey["has_reference_labels"] and survey["point_count"] > 100_000
+
+    listed = annotator.get("/surveys").json()
+    assert [s["id"] for s in listed] == [survey["id"]]
+    detail = annotator.get(f"/surveys/{survey['id']}").json()
+    assert detail["frames"]["count"] == 5
+    assert detail["frames"]["points"] == survey["point_count"]
+    assert 3.0 < detail["frames"]["trajectory_length_m"] < 8.0  # 6 m street, 5 frames
+    assert detail["latest_jobs"] == {}
+    assert detail["pillar_labels"]["human"] == [0, 0, 0, 0]
+    assert audit_actions(server, survey["id"]) == ["survey.import"]
+
+    named = annotator.post(
+        "/surveys/import",
+        json={"path": str(sim_dir), "format": "kitti-raw", "name": "as kitti"},
+    )
+    assert named.status_code == 201, named.text
+    assert named.json()["format"] == "kitti-raw" and named.json()["name"] == "as kitti"
+    assert not named.json()["has_reference_labels"]
+
+
+def test_import_refuses_paths_outside_the_root(
+    server: Server, sim_dir: Path, annotator: httpx.Client, tmp_path: Path
+) -> None:
+    outside = tmp_path / "elsewhere"
+    shutil.copytree(sim_dir, outside)
+    link = server.data_dir / "incoming" / "link-out"
+    link.symlink_to(outside, target_is_directory=True)
+    sneaky = server.data_dir / "incoming" / "sneaky"
+    shutil.copytree(sim_dir, sneaky, ignore=shutil.ignore_patterns("0000000003.laz"))
+    (sneaky / "velodyne_points" / "data" / "0000000003.laz").symlink_to(
+        outside / "velodyne_points" / "data" / "0000000003.laz"
+    )
+    for path in ("../..", "../../elsewhere", str(outside), "/etc", "incoming/link-out"):
+        response = annotator.post("/surveys/import", json={"path": path})
+        assert response.status_code == 400, (path, response.text)
+        assert response.json()["detail"].startswith(f"{path}: outside the allowed import root")
+    response = annotator.post("/surveys/import", json={"path": "incoming/sneaky"})
+    assert response.status_code == 400
+    assert "0000000003.laz: outside the allowed import root" in response.json()["detail"]
+
+
+def test_import_missing_or_bad_data_is_422(
+    server: Server, annotator: httpx.Client, admin: httpx.Client
+) -> None:
+    before = len(admin.get("/surveys").json())
+    response = annotator.post("/surveys/import", json={"path": "incoming/nothing-here"})
+    assert response.status_code == 422
+    assert response.json()["detail"] == "incoming/nothing-here: does not exist"
+
+    junk = server.data_dir / "incoming" / "junk"
+    junk.mkdir()
+    (junk / "readme.txt").write_text("not a survey")
+    response = annotator.post("/surveys/import", json={"path": "incoming/junk"})
+    assert response.status_code == 422
+    assert "junk: cannot tell the format" in response.json()["detail"]
+
+    (junk / "broken.laz").write_bytes(b"LASF" + b"\0" * 50)
+    response = annotator.post("/surveys/import", json={"path": "incoming/junk/broken.laz"})
+    assert response.status_code == 422
+    assert "broken.laz" in response.json()["detail"]
+
+    response = annotator.post(
+        "/surveys/import", json={"path": "incoming/junk", "format": "nonsense"}
+    )
+    assert response.status_code == 422 and "nonsense" in response.json()["detail"]
+    assert len(admin.get("/surveys").json()) == before
+
+
+def test_upload_laz(server: Server, annotator: httpx.Client, tmp_path: Path) -> None:
+    data, xyz = laz_bytes(tmp_path)
+    response = annotator.post("/surveys/upload", params={"filename": "street.laz"}, content=data)
+    assert response.status_code == 201, response.text
+    survey = response.json()
+    assert survey["format"] == "las" and survey["name"] == "street"
+    assert survey["frame_count"] == 1 and survey["point_count"] == len(xyz)
+    assert survey["origin"] == [500_000.0, 5_400_000.0, 100.0]
+    stored = Path(survey["source_path"])
+    assert stored.parent.parent == (server.data_dir / "surveys").resolve()
+    assert stored.read_bytes() == data
+    assert audit_actions(server, survey["id"]) == ["survey.upload"]
+
+
+def test_upload_zip_of_a_simulated_drive(
+    server: Server, sim_dir: Path, annotator: httpx.Client
+) -> None:
+    response = annotator.post(
+        "/surveys/upload",
+        params={"filename": "drive.zip", "name": "zipped drive"},
+        content=zip_of(sim_dir, "sim-street"),
+    )
+    assert response.status_code == 201, response.text
+    survey = response.json()
+    assert survey["format"] == "sim" and survey["frame_count"] == 5
+    source = Path(survey["source_path"])
+    assert source.name == "sim-street" and (source / "ground_truth" / "simulation.json").is_file()
+    assert not (source.parent.parent / ".upload.zip").exists()  # the archive is unpacked, gone
+
+
+def evil_zip(member: str, symlink: bool = False) -> bytes:
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as zf:
+        zf.writestr("drive/readme.txt", "fine")
+        info = zipfile.ZipInfo(member)
+        if symlink:
+            info.external_attr = (stat.S_IFLNK | 0o777) << 16
+        zf.writestr(info, "/etc/passwd" if symlink else "gotcha")
+    return buffer.getvalue()
+
+
+@pytest.mark.parametrize(
+    ("member", "symlink", "problem"),
+    [
+        ("../escape.txt", False, "points outside the archive's folder"),
+        ("drive/../../escape.txt", False, "points outside the archive's folder"),
+        ("/abs/escape.txt", False, "points outside the archive's folder"),
+        ("drive/link", True, "is a symbolic link; links are refused"),
+    ],
+)
+def test_upload_zip_refuses_escaping_members(
+    server: Server, annotator: httpx.Client, member: str, symlink: bool, problem: str
+) -> None:
+    before = uploads(server)
+    response = annotator.post(
+        "/surveys/upload", params={"filename": "evil.zip"}, content=evil_zip(member, symlink)
+    )
+    assert response.status_code == 422, response.text
+    assert response.json()["detail"] == f"evil.zip: zip member {member!r} {problem}"
+    assert uploads(server) == before
+    assert not (server.data_dir / "escape.txt").exists()
+    assert not (server.data_dir / "surveys" / "escape.txt").exists()
+
+
+def test_upload_bad_files_are_422_and_leave_nothing(
+    server: Server, annotator: httpx.Client
+) -> None:
+    before = uploads(server)
+    response = annotator.post(
+        "/surveys/upload", params={"filename": "bad.laz"}, content=b"LASF" + b"x" * 300
+    )
+    assert response.status_code == 422
+    detail = response.json()["detail"]
+    assert detail.startswith("bad.laz") and str(server.data_dir) not in detail
+    response = annotator.post(
+        "/surveys/upload", params={"filename": "notzip.zip"}, content=b"plain text"
+    )
+    assert response.status_code == 422
+    assert response.json()["detail"].startswith("notzip.zip: is not a readable zip archive")
+    for name in ("../x.laz", "x.exe", ".hidden.laz"):
+        response = annotator.post("/surveys/upload", params={"filename": name}, content=b"x")
+        assert response.status_code == 422
+        assert response.json()["detail"].startswith("filename:")
+    response = annotator.post("/surveys/upload", params={"filename": "empty.laz"}, content=b"")
+    assert response.status_code == 422 and "empty" in response.json()["detail"]
+    assert uploads(server) == before
+
+
+def test_uploads_over_the_limit_are_413(tmp_path: Path) -> None:
+    small = Server(
+        tmp_path / "var",
+        env={"MMSCLEAN_SAMPLE_DIR": "", "MMSCLEAN_MAX_UPLOAD_MB": "0.05"},  # 52,428 bytes
+    ).start()
+    try:
+        with small.client() as client:
+            body = os.urandom(200_000)
+
+            def chunks() -> Iterator[bytes]:  # no Content-Length: the limit hits mid-stream
+                for start in range(0, len(body), 8192):
+                    yield body[start : start + 8192]
+
+            response = client.post(
+                "/surveys/upload", params={"filename": "big.laz"}, content=chunks()
+            )
+            assert response.status_code == 413, response.text
+            assert response.json()["detail"] == "big.laz: larger than the upload limit of 0.05 MB"
+            response = client.post("/surveys/upload", params={"filename": "big.laz"}, content=body)
+            assert response.status_code == 413  # refused on Content-Length alone
+
+            bomb = io.BytesIO()
+            with zipfile.ZipFile(bomb, "w", zipfile.ZIP_DEFLATED) as zf:
+                zf.writestr("drive/zeros.bin", bytes(5_000_000))
+            assert len(bomb.getvalue()) < 20_000
+            response = client.post(
+                "/surveys/upload", params={"filename": "bomb.zip"}, content=bomb.getvalue()
+            )
+            assert response.status_code == 413
+            assert response.json()["detail"].startswith("bomb.zip (unpacked): larger than")
+            assert client.get("/surveys").json() == []
+        surveys = small.data_dir / "surveys"
+        assert not surveys.exists() or list(surveys.iterdir()) == []  # partial files deleted
+    finally:
+        small.stop()
+
+
+def test_delete(
+    server: Server,
+    sim_dir: Path,
+    annotator: httpx.Client,
+    reviewer: httpx.Client,
+    tmp_path: Path,
+) -> None:
+    data, _ = laz_bytes(tmp_path)
+    uploaded = annotator.post("/surveys/upload", params={"filename": "gone.laz"}, content=data)
+    assert uploaded.status_code == 201
+    survey_id = uploaded.json()["id"]
+    folder = Path(uploaded.json()["source_path"]).parent
+    imported = annotator.post("/surveys/import", json={"path": str(sim_dir)}).json()
+
+    response = annotator.delete(f"/surveys/{survey_id}")
+    assert response.status_code == 403
+    assert reviewer.delete(f"/surveys/{survey_id}").status_code == 204
+    assert not folder.exists()
+    assert reviewer.get(f"/surveys/{survey_id}").status_code == 404
+    assert reviewer.delete(f"/surveys/{survey_id}").status_code == 404
+    assert audit_actions(server, survey_id) == ["survey.upload", "survey.delete"]
+
+    assert reviewer.delete(f"/surveys/{imported['id']}").status_code == 204
+    assert (sim_dir / "ground_truth" / "simulation.json").is_file()  # imported files stay
+    engine = make_engine(f"sqlite:///{server.data_dir / 'mmsclean.sqlite3'}")
+    with Session(engine) as session:
+        frames = session.exec(select(Frame).where(Frame.survey_id == imported["id"])).all()
+    engine.dispose()
+    assert frames == []  # cascaded
+
+
+def test_needs_login(server: Server) -> None:
+    assert httpx.get(f"{server.url}/surveys").status_code == 401
+    response = httpx.post(f"{server.url}/surveys/import", json={"path": "x"})
+    assert response.status_code == 401
