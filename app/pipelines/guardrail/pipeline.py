@@ -17,6 +17,7 @@ from app.io.survey import Survey
 from app.pipelines.guardrail.classifier import CropEncoder, predict
 from app.pipelines.guardrail.correction import correct_labels
 from app.pipelines.guardrail.slice_stage import SliceStage, prepare_slices
+from app.pipelines.guardrail.slices import SliceSet
 from app.pipelines.guardrail.train import load_heads
 
 Progress = Callable[[str, float], None]
@@ -145,39 +146,144 @@ class GuardrailPipeline:
         return probability
 
     def instances(self, stage: SliceStage, labels: np.ndarray) -> list[GuardrailInstance]:
-        """Guardrails: guardrail slices grouped by (component, side), then groups on one side
-        joined when they follow each other along the road (gap <= `join_gap`) at the same
-        lateral offset (within `join_lateral`): a rail broken into several components by a
-        gap in the scan is still one guardrail. Runs shorter than `min_guardrail_length` are
-        not modelled. Points at ground level (the ground under the rail) are left out."""
-        cfg = self.config
-        s = stage.slices
-        keep = np.flatnonzero(labels)
-        if len(keep) == 0:
-            return []
-        keys = np.stack([s.component[keep], s.side[keep]], axis=1)
-        groups = [keep[(keys == key).all(axis=1)] for key in np.unique(keys, axis=0)]
-        groups = _join_groups(groups, s.station, s.lateral, s.side, cfg.join_gap, cfg.join_lateral)
-        min_slices = int(np.ceil(cfg.min_guardrail_length / cfg.spacing))
-        out = []
-        above = stage.road.above_ground
-        for members in sorted(groups, key=lambda m: float(s.station[m].min())):
-            if len(members) < min_slices:
-                continue
-            points = np.concatenate([s.points(int(k)) for k in members])
-            points = points[above[points] > cfg.ground_clearance]
-            out.append(GuardrailInstance(f"guardrail_{len(out):03d}", members, points))
-        return out
+        """Guardrails from the slice labels (see `group_guardrails`)."""
+        return group_guardrails(stage.slices, stage.road.above_ground, labels, self.config)
 
     def reconstruct(self, stage: SliceStage, guardrail: GuardrailInstance) -> None:
-        from app.pipelines.guardrail.assemble import reconstruct_guardrail
+        reconstruct_instance(stage.points.xyz, stage.trajectory, guardrail)
 
-        try:
-            guardrail.model = reconstruct_guardrail(
-                stage.points.xyz[guardrail.points], stage.trajectory
-            )
-        except (ValueError, RuntimeError) as exc:  # too few poles, degenerate unit ...
-            guardrail.error = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+
+def group_guardrails(
+    s: SliceSet, above_ground: np.ndarray, labels: np.ndarray, cfg: GuardrailConfig
+) -> list[GuardrailInstance]:
+    """Guardrails: guardrail slices grouped by (component, side), then groups on one side
+    joined when they follow each other along the road (gap <= `join_gap`) at the same
+    lateral offset (within `join_lateral`): a rail broken into several components by a
+    gap in the scan is still one guardrail. Runs shorter than `min_guardrail_length` are
+    not modelled. Points at ground level (the ground under the rail) are left out.
+    `above_ground` is the height above ground of every point `s` indexes."""
+    keep = np.flatnonzero(labels)
+    if len(keep) == 0:
+        return []
+    keys = np.stack([s.component[keep], s.side[keep]], axis=1)
+    groups = [keep[(keys == key).all(axis=1)] for key in np.unique(keys, axis=0)]
+    groups = _join_groups(groups, s.station, s.lateral, s.side, cfg.join_gap, cfg.join_lateral)
+    min_slices = int(np.ceil(cfg.min_guardrail_length / s.spacing))
+    out = []
+    for members in sorted(groups, key=lambda m: float(s.station[m].min())):
+        if len(members) < min_slices:
+            continue
+        points = np.concatenate([s.points(int(k)) for k in members])
+        points = points[above_ground[points] > cfg.ground_clearance]
+        out.append(GuardrailInstance(f"guardrail_{len(out):03d}", members, points))
+    return out
+
+
+def reconstruct_instance(xyz: np.ndarray, trajectory: np.ndarray, g: GuardrailInstance) -> None:
+    """Fill `g.model` from its points, or `g.error` with why it could not be reconstructed."""
+    from app.pipelines.guardrail.assemble import reconstruct_guardrail
+
+    try:
+        g.model = reconstruct_guardrail(xyz[g.points], trajectory)
+    except (ValueError, RuntimeError) as exc:  # too few poles, degenerate unit ...
+        g.error = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+
+
+@dataclass
+class ReconstructionInput:
+    """What grouping and reconstruction need, without the survey or the classifier: the slices
+    compacted to their own points, so that corrected slice labels can be rebuilt into
+    guardrails later (the web app saves one per run; see `save` / `load`)."""
+
+    slices: SliceSet  # indices are into `xyz`
+    xyz: np.ndarray  # (M, 3) float64 world: the points of all slices
+    above_ground: np.ndarray  # (M,) float64
+    trajectory: np.ndarray  # (T, 3) sensor positions in drive order
+    config: GuardrailConfig
+
+    @classmethod
+    def of(cls, stage: SliceStage, config: GuardrailConfig) -> ReconstructionInput:
+        s = stage.slices
+        m = len(s.indices)
+        counts = np.diff(s.offsets)
+        compact = SliceSet(
+            spacing=s.spacing,
+            point_slice=np.repeat(np.arange(len(s), dtype=np.int64), counts),
+            indices=np.arange(m, dtype=np.int64),
+            offsets=s.offsets.copy(),
+            component=s.component, station_index=s.station_index, station=s.station,
+            centre=s.centre, lateral=s.lateral, side=s.side, direction=s.direction,
+            point_station=s.point_station[s.indices], point_lateral=s.point_lateral[s.indices],
+        )  # fmt: skip
+        return cls(
+            compact,
+            stage.points.xyz[s.indices].astype(np.float64),
+            stage.road.above_ground[s.indices].astype(np.float64),
+            np.asarray(stage.trajectory, dtype=np.float64)[:, :3],
+            config,
+        )
+
+    def save(self, path: Path) -> Path:
+        """One .npz (written atomically: a half-written file never has the final name)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        arrays = {f"slices.{k}": getattr(self.slices, k) for k in _SLICE_ARRAYS}
+        tmp = path.with_name(path.name + ".part")
+        with tmp.open("wb") as f:
+            np.savez(
+                f, xyz=self.xyz, above_ground=self.above_ground, trajectory=self.trajectory,
+                spacing=np.float64(self.slices.spacing),
+                config=np.array(self.config.model_dump_json()), **arrays,
+            )  # fmt: skip
+        tmp.replace(path)
+        return path
+
+    @classmethod
+    def load(cls, path: Path, slices_only: bool = False) -> ReconstructionInput:
+        """`slices_only`: the per-slice arrays without the points (cheap: for label previews)."""
+        with np.load(Path(path), allow_pickle=False) as z:
+            empty = {"slices.point_slice": np.int64, "slices.indices": np.int64,
+                     "slices.point_station": np.float64, "slices.point_lateral": np.float64,
+                     "above_ground": np.float64}  # fmt: skip
+
+            def part(key: str) -> np.ndarray:
+                if slices_only and key == "xyz":
+                    return np.zeros((0, 3))
+                if slices_only and key in empty:
+                    return np.zeros(0, dtype=empty[key])
+                return z[key]
+
+            arrays = {k: part(f"slices.{k}") for k in _SLICE_ARRAYS}
+            slices = SliceSet(spacing=float(z["spacing"]), **arrays)
+            config = GuardrailConfig.model_validate_json(str(z["config"]))
+            return cls(slices, part("xyz"), part("above_ground"), z["trajectory"], config)
+
+
+_SLICE_ARRAYS = (
+    "point_slice", "indices", "offsets", "component", "station_index", "station", "centre",
+    "lateral", "side", "direction", "point_station", "point_lateral",
+)  # fmt: skip
+
+
+def rebuild_guardrails(
+    saved: ReconstructionInput,
+    labels: np.ndarray,
+    config: GuardrailConfig | None = None,
+    progress: Progress | None = None,
+) -> list[GuardrailInstance]:
+    """Guardrails (grouped, joined and reconstructed as in a run) from given slice labels, e.g.
+    the labels a human corrected; `config` defaults to the run's."""
+    cfg = config or saved.config
+    report = progress or (lambda stage, fraction: None)
+    labels = np.asarray(labels).astype(bool)
+    if len(labels) != len(saved.slices):
+        raise ValueError(f"{len(labels)} labels for {len(saved.slices)} slices")
+    guardrails = group_guardrails(saved.slices, saved.above_ground, labels, cfg)
+    for i, g in enumerate(guardrails):
+        report("reconstruction", i / max(len(guardrails), 1))
+        reconstruct_instance(saved.xyz, saved.trajectory, g)
+    report("done", 1.0)
+    return guardrails
 
 
 def _join_groups(

@@ -61,6 +61,14 @@ def run_guardrail_to_folder(
     started = time.perf_counter()
     pipeline = GuardrailPipeline(config, model_path)
     result = pipeline.run(survey, progress)
+    return write_guardrail_folder(survey, pipeline, result, out, started)
+
+
+def write_guardrail_folder(
+    survey: Survey, pipeline: GuardrailPipeline, result: GuardrailResult, out: Path, started: float
+) -> dict:
+    """The run's outputs from its result (callers that keep the result, e.g. the web app's job,
+    run the pipeline themselves); `started` is the perf_counter at the start of the run."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_frame_labels(out, result.frame_labels())

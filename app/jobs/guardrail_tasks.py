@@ -1,0 +1,388 @@
+"""Guardrail jobs and the guardrail review helpers the API needs (the API reaches pipelines only
+through `app.jobs`).
+
+- `run:guardrail`: the guardrail pipeline on the job's survey into the job's folder (the CLI's
+  outputs plus `guardrail_slices.npz`, what a rebuild needs), then the slices and the
+  reconstructed guardrails into the store in one transaction.
+- `guardrail:rebuild`: grouping, joining and reconstruction again from the slice labels as
+  people corrected them, without re-reading the survey or re-running the classifier.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import ValidationError
+from sqlmodel import Session
+
+from app.core.errors import ConfigError, ConflictError, NotFoundError
+from app.core.settings import Settings
+from app.io import open_survey
+from app.jobs.registry import JobContext, task
+from app.pipelines.guardrail.correction import correct_labels
+from app.pipelines.guardrail.pipeline import (
+    GuardrailConfig,
+    GuardrailInstance,
+    GuardrailPipeline,
+    ReconstructionInput,
+    rebuild_guardrails,
+)
+from app.pipelines.guardrail.run import write_guardrail_folder
+from app.pipelines.outputs import write_report
+from app.store.guardrail_review import (
+    GuardrailRun,
+    ModelRecord,
+    SliceRows,
+    latest_run,
+    match_slices,
+    replace_guardrail_models,
+    replace_guardrail_run,
+    slice_table,
+    survey_or_404,
+    trajectory_position,
+)
+from app.store.models import GuardrailKind, GuardrailSlice
+
+STAGE_FILE = "guardrail_slices.npz"
+MODELS_DIR = Path(__file__).resolve().parents[2] / "models"
+REBUILD_FIELDS = ("min_guardrail_length", "join_gap", "join_lateral", "ground_clearance")
+
+
+# --- configuration ------------------------------------------------------------------------
+
+
+def _validated(values: dict[str, Any], known: tuple[str, ...]) -> GuardrailConfig:
+    unknown = sorted(set(values) - set(known))
+    if unknown:
+        raise ConfigError(f"config.{unknown[0]}", f"unknown field; known: {', '.join(known)}")
+    try:
+        return GuardrailConfig.model_validate(values)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        name = ".".join(str(p) for p in first["loc"]) or "config"
+        raise ConfigError(f"config.{name}", first["msg"]) from None
+
+
+def guardrail_options(
+    config: dict[str, Any], settings: Settings
+) -> tuple[GuardrailConfig, Path | None]:
+    """`run:guardrail`'s config: GuardrailConfig fields plus an optional `model_path`."""
+    values = dict(config or {})
+    model_path = values.pop("model_path", None)
+    cfg = _validated(values, (*GuardrailConfig.model_fields, "model_path"))
+    return cfg, allowed_model_path(model_path, settings)
+
+
+def allowed_model_path(value: object, settings: Settings) -> Path | None:
+    """A classifier checkpoint inside the repository's models/ or the data directory (a job
+    must not load arbitrary files of the server); relative paths are taken from models/."""
+    if value is None:
+        return None
+    if not isinstance(value, str) or not value.strip():
+        raise ConfigError("config.model_path", "must be a non-empty path")
+    path = Path(value)
+    path = (path if path.is_absolute() else MODELS_DIR.parent / path).resolve()
+    roots = (MODELS_DIR.resolve(), settings.data_dir.resolve())
+    if not any(path.is_relative_to(root) for root in roots):
+        where = " or ".join(str(r) for r in roots)
+        raise ConfigError("config.model_path", f"{value} is outside {where}")
+    if not path.is_file():
+        raise ConfigError("config.model_path", f"{path} does not exist")
+    return path
+
+
+def _survey_id(context: JobContext) -> int:
+    if context.survey_id is None:
+        raise ConfigError("survey_id", "guardrail jobs need a survey")
+    return context.survey_id
+
+
+# --- run ----------------------------------------------------------------------------------
+
+
+def _json_safe(value: Any) -> Any:
+    """JSON columns and API answers refuse NaN / inf and numpy types: None / plain values."""
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _json_safe(value.tolist())
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def model_records(
+    saved: ReconstructionInput,
+    guardrails: list[GuardrailInstance],
+    files: list[dict[str, str] | None],
+    config: GuardrailConfig,
+) -> list[ModelRecord]:
+    """Store records of the guardrails that were reconstructed as a pipe or a beam (others,
+    with fewer than two poles or a failed reconstruction, stay in the report only)."""
+    s = saved.slices
+    out = []
+    for g, written in zip(guardrails, files, strict=True):
+        if g.model is None or written is None or g.model.kind not in ("pipe", "beam"):
+            continue
+        model = g.model.model
+        station = s.station[g.slices]
+        keys = np.stack([s.component[g.slices], s.station_index[g.slices]], axis=1)
+        params = _json_safe(
+            {
+                **model,
+                "files": {k: str(Path(v).resolve()) for k, v in written.items()},
+                "guardrail_id": g.id,
+                "points": int(len(g.points)),
+                "station_m": [float(station.min()), float(station.max())],
+                "ground_clearance": config.ground_clearance,
+            }
+        )
+        out.append(
+            ModelRecord(
+                kind=GuardrailKind(g.model.kind),
+                mesh_path=params["files"]["glb"],
+                params=params,
+                unit_count=int(model.get("units") or 0),
+                icp_residual=params.get("icp_residual"),
+                slices=list(zip(keys[:, 0].tolist(), keys[:, 1].tolist(), strict=True)),
+            )
+        )
+    return out
+
+
+@task("run:guardrail")
+def run_guardrail(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
+    cfg, model_path = guardrail_options(config, context.settings)
+    survey_id = _survey_id(context)
+    with Session(context.engine) as session:
+        record = survey_or_404(session, survey_id)
+        source, fmt = record.source_path, record.format
+    started = time.perf_counter()
+    survey = open_survey(source, fmt)
+    context.progress(0.0, "loading the slice classifier")
+    pipeline = GuardrailPipeline(cfg, model_path)
+    result = pipeline.run(survey, lambda stage, f: context.progress(0.9 * f, stage))
+    context.progress(0.9, "writing outputs")
+    out = context.workdir
+    report = write_guardrail_folder(survey, pipeline, result, out, started)
+    saved = ReconstructionInput.of(result.stage, pipeline.config)
+    stage_path = saved.save(out / STAGE_FILE)
+    entries = {e["id"]: e for e in report["guardrails"]}
+    files = [
+        {k: str(out / v) for k, v in entries[g.id]["files"].items()}
+        if "files" in entries[g.id]
+        else None
+        for g in result.guardrails
+    ]
+    models = model_records(saved, result.guardrails, files, pipeline.config)
+    s = result.stage.slices
+    rows = SliceRows(
+        component=s.component,
+        slice_index=s.station_index,
+        station=s.station,
+        predicted=result.raw_labels.astype(np.int64),
+        probability=result.probability,
+        corrected=result.slice_labels.astype(np.int64),
+    )
+    context.progress(0.95, "storing slices and models")
+    with Session(context.engine) as session:
+        stored = replace_guardrail_run(
+            session, survey_id, rows, models, stage_path=str(stage_path),
+            config=pipeline.config.model_dump(), job_id=context.job_id, user_id=context.user_id,
+        )  # fmt: skip
+    context.progress(1.0, f"{stored['slices']} slices, {stored['models']} guardrail models")
+    output = {
+        "guardrail_points": str(out / report["files"]["guardrail_points"]),
+        "slice_stage": str(stage_path),
+        "report": str(out / "report.json"),
+    }
+    for g, written in zip(result.guardrails, files, strict=True):
+        for fmt_name, path in (written or {}).items():
+            output[f"{g.id}.{fmt_name}"] = path
+    return {
+        "files": output,
+        "report": output["report"],
+        "counts": {**report["counts"], **stored},
+        "metrics": report.get("metrics"),
+    }
+
+
+# --- rebuild ------------------------------------------------------------------------------
+
+
+def load_stage(run: GuardrailRun, slices_only: bool = False) -> ReconstructionInput:
+    path = Path(run.stage_path)
+    if not path.is_file():
+        raise ConflictError(
+            f"{path}: the slice stage of the last guardrail run is missing; run it again"
+        )
+    return ReconstructionInput.load(path, slices_only=slices_only)
+
+
+def _current_run(session: Session, survey_id: int) -> GuardrailRun:
+    survey_or_404(session, survey_id)
+    run = latest_run(session, survey_id)
+    if run is None:
+        raise ConflictError(f"survey {survey_id} has no guardrail run yet; run run:guardrail")
+    return run
+
+
+def _stage_rows(saved: ReconstructionInput, component: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """For each store slice, its slice in the saved stage (the two must be the same set)."""
+    s = saved.slices
+    at = match_slices(component, index, s.component, s.station_index)
+    if len(component) != len(s) or (at < 0).any():
+        raise ConflictError(
+            "the survey's slices no longer match the last guardrail run's stage; run it again"
+        )
+    return at
+
+
+@task("guardrail:rebuild")
+def rebuild_guardrail_models(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
+    survey_id = _survey_id(context)
+    _validated(dict(config or {}), REBUILD_FIELDS)
+    with Session(context.engine) as session:
+        run = _current_run(session, survey_id)
+        table = slice_table(session, survey_id)
+    context.progress(0.02, "loading the slice stage")
+    saved = load_stage(run)
+    at = _stage_rows(saved, table.component, table.slice_index)
+    labels = np.zeros(len(saved.slices), dtype=bool)
+    labels[at] = table.label.astype(bool)
+    cfg = _validated(
+        {**saved.config.model_dump(), **(config or {})}, tuple(GuardrailConfig.model_fields)
+    )
+    guardrails = rebuild_guardrails(
+        saved, labels, cfg, lambda stage, f: context.progress(0.05 + 0.85 * f, stage)
+    )
+    from app.pipelines.guardrail.assemble import export_guardrail
+
+    out = context.workdir
+    files = [
+        export_guardrail(g.model, out / "guardrails", g.id) if g.model is not None else None
+        for g in guardrails
+    ]
+    models = model_records(saved, guardrails, files, cfg)
+    context.progress(0.95, "storing models")
+    with Session(context.engine) as session:
+        stored = replace_guardrail_models(
+            session, survey_id, run, models, job_id=context.job_id, user_id=context.user_id
+        )
+    counts = {
+        "slices": int(len(labels)),
+        "guardrail_slices": int(labels.sum()),
+        "guardrails": len(guardrails),
+        **stored,
+    }
+    report = {
+        "pipeline": "guardrail",
+        "step": "rebuild",
+        "run_job_id": run.job_id,
+        "config": cfg.model_dump(),
+        "counts": counts,
+        "guardrails": [
+            {
+                "id": g.id,
+                "slices": int(len(g.slices)),
+                "points": int(len(g.points)),
+                **({"error": g.error} if g.error else {}),
+            }
+            for g in guardrails
+        ],  # fmt: skip
+    }
+    report_path = write_report(out, report)
+    output = {"report": str(report_path)}
+    for g, written in zip(guardrails, files, strict=True):
+        for fmt_name, path in (written or {}).items():
+            output[f"{g.id}.{fmt_name}"] = str(path)
+    context.progress(1.0, f"{stored['models']} guardrail models ({stored['kept']} kept)")
+    return {"files": output, "report": str(report_path), "counts": counts}
+
+
+# --- review helpers for the API -----------------------------------------------------------
+
+
+def preview_correction(
+    session: Session,
+    survey_id: int,
+    labels: dict[int, int],
+    max_gap: int | None = None,
+    max_isolated: int | None = None,
+) -> dict[str, Any]:
+    """The adjacency correction of the last run applied to the survey's labels with `labels`
+    (slice id -> 0/1) put in, nothing saved. Input per slice: the given label, else the human
+    label, else the classifier's raw label. Answers every slice whose corrected label differs
+    from its current label, plus the given ones."""
+    run = _current_run(session, survey_id)
+    table = slice_table(session, survey_id)
+    by_id = np.argsort(table.id)
+    ids = np.fromiter(labels.keys(), dtype=np.int64, count=len(labels))
+    given = np.fromiter(labels.values(), dtype=np.int64, count=len(labels))
+    pos = np.clip(np.searchsorted(table.id[by_id], ids), 0, max(len(table.id) - 1, 0))
+    found = len(table.id) > 0 and table.id[by_id][pos] == ids
+    if not np.all(found):
+        missing = ids[~np.asarray(found, dtype=bool)][0] if len(ids) else None
+        raise NotFoundError(f"guardrail slice {missing} not found in survey {survey_id}")
+    if len(given) and not np.isin(given, (0, 1)).all():
+        raise ConfigError("labels", "every label must be 0 or 1")
+    rows = by_id[pos]
+    proposed = np.where(table.human, table.label, table.predicted)
+    proposed[rows] = given
+    saved = load_stage(run, slices_only=True)
+    at = _stage_rows(saved, table.component, table.slice_index)
+    stage_labels = np.zeros(len(saved.slices), dtype=np.int64)
+    stage_labels[at] = proposed
+    gap = saved.config.max_gap if max_gap is None else max_gap
+    isolated = saved.config.max_isolated if max_isolated is None else max_isolated
+    corrected = correct_labels(saved.slices, stage_labels, max_gap=gap, max_isolated=isolated)[at]
+    show = corrected != table.label
+    show[rows] = True
+    pick = np.flatnonzero(show)
+    return {
+        "max_gap": gap,
+        "max_isolated": isolated,
+        "guardrail_slices": int(corrected.sum()),
+        "changed": int((corrected != table.label).sum()),
+        "slices": [
+            {
+                "id": int(i),
+                "component_id": int(c),
+                "slice_index": int(k),
+                "label": int(lab),
+                "proposed": int(p),
+                "corrected_label": int(q),
+            }
+            for i, c, k, lab, p, q in zip(
+                table.id[pick],
+                table.component[pick],
+                table.slice_index[pick],
+                table.label[pick],
+                proposed[pick],
+                corrected[pick],
+                strict=True,
+            )
+        ],  # fmt: skip
+    }
+
+
+def slice_position(session: Session, survey_id: int, row: GuardrailSlice) -> list[float] | None:
+    """World position of a slice: the centre of its points from the last run's stage, else the
+    sensor position at its station."""
+    run = latest_run(session, survey_id)
+    if run is not None and Path(run.stage_path).is_file():
+        s = ReconstructionInput.load(Path(run.stage_path), slices_only=True).slices
+        at = match_slices(
+            np.array([row.component_id]), np.array([row.slice_index]), s.component, s.station_index
+        )
+        if at[0] >= 0:
+            return [float(v) for v in s.centre[at[0]]]
+    return trajectory_position(session, survey_id, row.station_m)

@@ -1,0 +1,574 @@
+"""Guardrail review in the store: slices and their labels, reconstructed models and decisions.
+
+A guardrail run (the `run:guardrail` job) replaces a survey's slices and models in one
+transaction and names the file it saved for rebuilding (`ReconstructionInput`) in its audit
+event `guardrail.ingest`, so the stage that produced the current slices is always found with
+them. Human slice labels survive a rerun when the same slice (component, slice index, about the
+same station) still exists. Label writes and decisions carry the version the client saw; a
+mismatch raises `StaleWriteError` with the records as they are now. Every user write adds an
+audit event in its transaction.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from datetime import datetime
+from typing import Any
+
+import numpy as np
+import sqlalchemy as sa
+from pydantic import BaseModel
+from sqlmodel import Session, col, func, select
+
+from app.core.errors import (
+    ConfigError,
+    ConflictError,
+    NotFoundError,
+    PermissionDeniedError,
+    StaleWriteError,
+)
+from app.geometry.trajectory import arc_length
+from app.store.audit import audit
+from app.store.db import commit
+from app.store.models import (
+    AuditEvent,
+    Frame,
+    GuardrailKind,
+    GuardrailModel,
+    GuardrailSlice,
+    ModelStatus,
+    Role,
+    Survey,
+    User,
+    utcnow,
+)
+from app.store.users import has_role
+
+INGEST_ACTION = "guardrail.ingest"
+MAX_LABELS_PER_WRITE = 5000
+
+
+# --- public shapes ------------------------------------------------------------------------
+
+
+class GuardrailSlicePublic(BaseModel):
+    id: int
+    survey_id: int
+    component_id: int
+    slice_index: int
+    station_m: float
+    predicted_label: int
+    probability: float | None
+    corrected_label: int | None
+    label: int
+    labelled_by: int | None
+    version: int
+    updated_at: datetime
+
+    @classmethod
+    def of(cls, row: GuardrailSlice) -> GuardrailSlicePublic:
+        return cls.model_validate(row, from_attributes=True)
+
+
+class GuardrailModelPublic(BaseModel):
+    id: int
+    survey_id: int
+    guardrail_index: int
+    kind: GuardrailKind
+    status: ModelStatus
+    unit_count: int
+    icp_residual: float | None
+    unit_length: float | None  # metres between poles
+    pole_count: int
+    slice_count: int
+    station_m: tuple[float, float] | None  # first and last slice station, when known
+    formats: list[str]  # mesh downloads available
+    decided_by: int | None
+    decided_at: datetime | None
+    version: int
+    params: dict[str, Any] | None = None  # the full model, on request
+
+    @classmethod
+    def of(cls, row: GuardrailModel, with_params: bool = False) -> GuardrailModelPublic:
+        p = row.params or {}
+        span = p.get("station_m")
+        return cls(
+            id=row.id,
+            survey_id=row.survey_id,
+            guardrail_index=row.guardrail_index,
+            kind=row.kind,
+            status=row.status,
+            unit_count=row.unit_count,
+            icp_residual=row.icp_residual,
+            unit_length=p.get("unit_length"),
+            pole_count=len(p.get("poles") or []),
+            slice_count=len(p.get("slices") or []),
+            station_m=tuple(span) if span else None,
+            formats=sorted((p.get("files") or {}).keys()),
+            decided_by=row.decided_by,
+            decided_at=row.decided_at,
+            version=row.version,
+            params=dict(p) if with_params else None,
+        )
+
+
+def _current(rows: Sequence[GuardrailSlice]) -> list[dict[str, Any]]:
+    return [GuardrailSlicePublic.of(r).model_dump(mode="json") for r in rows]
+
+
+# --- lookups ------------------------------------------------------------------------------
+
+
+def survey_or_404(session: Session, survey_id: int) -> Survey:
+    survey = session.get(Survey, survey_id)
+    if survey is None:
+        raise NotFoundError(f"survey {survey_id} not found")
+    return survey
+
+
+def get_slice(session: Session, survey_id: int, slice_id: int) -> GuardrailSlice:
+    row = session.get(GuardrailSlice, slice_id)
+    if row is None or row.survey_id != survey_id:
+        raise NotFoundError(f"guardrail slice {slice_id} not found in survey {survey_id}")
+    return row
+
+
+def get_model(session: Session, survey_id: int, model_id: int) -> GuardrailModel:
+    row = session.get(GuardrailModel, model_id)
+    if row is None or row.survey_id != survey_id:
+        raise NotFoundError(f"guardrail model {model_id} not found in survey {survey_id}")
+    return row
+
+
+def _uncertainty():
+    """Sort key: most uncertain first (probability nearest 0.5), slices without one last."""
+    return (col(GuardrailSlice.probability).is_(None), func.abs(GuardrailSlice.probability - 0.5))
+
+
+def list_slices(
+    session: Session,
+    survey_id: int,
+    *,
+    component: int | None = None,
+    label: int | None = None,
+    labelled: bool | None = None,
+    uncertain_first: bool = False,
+    offset: int = 0,
+    limit: int = 100,
+) -> tuple[int, list[GuardrailSlice]]:
+    """(total matching, one page): along the road by default, or most uncertain first."""
+    survey_or_404(session, survey_id)
+    where = [GuardrailSlice.survey_id == survey_id]
+    if component is not None:
+        where.append(GuardrailSlice.component_id == component)
+    if label is not None:
+        where.append(GuardrailSlice.label == label)
+    if labelled is not None:
+        human = col(GuardrailSlice.labelled_by)
+        where.append(human.is_not(None) if labelled else human.is_(None))
+    total = session.exec(select(func.count()).select_from(GuardrailSlice).where(*where)).one()
+    order = (GuardrailSlice.component_id, GuardrailSlice.slice_index)
+    if uncertain_first:
+        order = (*_uncertainty(), GuardrailSlice.id)
+    query = select(GuardrailSlice).where(*where).order_by(*order).offset(offset).limit(limit)
+    return int(total), list(session.exec(query).all())
+
+
+def next_uncertain(session: Session, survey_id: int) -> tuple[GuardrailSlice | None, int]:
+    """The most uncertain slice no human labelled yet, and how many such slices are left."""
+    total, rows = list_slices(session, survey_id, labelled=False, uncertain_first=True, limit=1)
+    return (rows[0] if rows else None), total
+
+
+def trajectory_position(session: Session, survey_id: int, station_m: float) -> list[float] | None:
+    """World position of the sensor at `station_m` metres along the survey's frame poses."""
+    poses = session.exec(
+        select(Frame.pose).where(Frame.survey_id == survey_id).order_by(Frame.frame_index)
+    ).all()
+    if not poses:
+        return None
+    xyz = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)[:, :3, 3]
+    s = arc_length(xyz)
+    return [float(np.interp(station_m, s, xyz[:, a])) for a in range(3)]
+
+
+@dataclass(frozen=True)
+class SliceTable:
+    """All of a survey's slices as arrays (row order: component, slice index)."""
+
+    id: np.ndarray
+    component: np.ndarray
+    slice_index: np.ndarray
+    predicted: np.ndarray
+    label: np.ndarray
+    human: np.ndarray  # bool: labelled by a person
+
+
+def slice_table(session: Session, survey_id: int) -> SliceTable:
+    cols = (
+        GuardrailSlice.id,
+        GuardrailSlice.component_id,
+        GuardrailSlice.slice_index,
+        GuardrailSlice.predicted_label,
+        GuardrailSlice.label,
+        col(GuardrailSlice.labelled_by).is_not(None),
+    )
+    rows = session.exec(
+        select(*cols)
+        .where(GuardrailSlice.survey_id == survey_id)
+        .order_by(GuardrailSlice.component_id, GuardrailSlice.slice_index)
+    ).all()
+    a = np.asarray(rows, dtype=np.int64).reshape(-1, 6)
+    return SliceTable(a[:, 0], a[:, 1], a[:, 2], a[:, 3], a[:, 4], a[:, 5].astype(bool))
+
+
+# --- human writes -------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SliceLabelEdit:
+    id: int
+    version: int  # the version the client saw
+    label: int  # 0 other, 1 guardrail
+
+
+def put_slice_labels(
+    session: Session, survey_id: int, edits: Sequence[SliceLabelEdit], user: User
+) -> list[GuardrailSlice]:
+    """Set human labels on many slices in one transaction, all or nothing.
+
+    A slice whose version differs from the one sent raises `StaleWriteError` carrying every
+    such slice as it is now; nothing is written then.
+    """
+    survey_or_404(session, survey_id)
+    if not has_role(user, Role.annotator):
+        raise PermissionDeniedError(f"user {user.username!r} may not label slices")
+    if not edits:
+        raise ConfigError("slices", "give at least one slice")
+    if len(edits) > MAX_LABELS_PER_WRITE:
+        raise ConfigError("slices", f"at most {MAX_LABELS_PER_WRITE} slices per write")
+    ids = [e.id for e in edits]
+    twice = next((i for i, n in Counter(ids).items() if n > 1), None)
+    if twice is not None:
+        raise ConfigError("slices", f"slice {twice} is listed more than once")
+    bad = next((e for e in edits if e.label not in (0, 1)), None)
+    if bad is not None:
+        raise ConfigError("label", f"slice {bad.id}: label must be 0 or 1, not {bad.label}")
+    rows = {r.id: r for r in _slices_by_id(session, ids) if r.survey_id == survey_id}
+    missing = next((i for i in ids if i not in rows), None)
+    if missing is not None:
+        raise NotFoundError(f"guardrail slice {missing} not found in survey {survey_id}")
+    stale = [rows[e.id] for e in edits if rows[e.id].version != e.version]
+    if stale:
+        raise StaleWriteError(_stale_message(stale, edits), _current(stale))
+    for e in edits:
+        row = rows[e.id]
+        before = {"label": row.label, "labelled_by": row.labelled_by}
+        row.label = e.label
+        row.labelled_by = user.id
+        session.add(row)
+        audit(
+            session, user.id, "guardrail_slice.label", "guardrail_slice", row.id,
+            survey_id=survey_id, before=before, after={"label": e.label},
+        )  # fmt: skip
+    try:
+        commit(session)
+    except ConflictError as exc:  # lost a race after the check: report what won
+        raise StaleWriteError(str(exc), _current(_slices_by_id(session, ids, True))) from exc
+    return _slices_by_id(session, ids, fresh=True)
+
+
+def _slices_by_id(session: Session, ids: Sequence[int], fresh: bool = False) -> list:
+    query = select(GuardrailSlice).where(col(GuardrailSlice.id).in_(list(ids)))
+    if fresh:
+        query = query.execution_options(populate_existing=True)
+    by_id = {r.id: r for r in session.exec(query).all()}
+    return [by_id[i] for i in ids if i in by_id]
+
+
+def _stale_message(stale: Sequence[GuardrailSlice], edits: Sequence[SliceLabelEdit]) -> str:
+    sent = {e.id: e.version for e in edits}
+    first = stale[0]
+    more = f" (and {len(stale) - 1} more)" if len(stale) > 1 else ""
+    return (
+        f"slices: slice {first.id} is at version {first.version}, not {sent[first.id]}{more}; "
+        "`current` holds them as they are now"
+    )
+
+
+def list_models(session: Session, survey_id: int) -> list[GuardrailModel]:
+    survey_or_404(session, survey_id)
+    query = select(GuardrailModel).where(GuardrailModel.survey_id == survey_id)
+    return list(session.exec(query.order_by(GuardrailModel.guardrail_index)).all())
+
+
+def decide_model(
+    session: Session,
+    survey_id: int,
+    model_id: int,
+    version: int,
+    status: ModelStatus,
+    user: User,
+) -> GuardrailModel:
+    """A reviewer approves or rejects a reconstructed guardrail seen at `version`."""
+    survey_or_404(session, survey_id)
+    if not has_role(user, Role.reviewer):
+        raise PermissionDeniedError(
+            f"user {user.username!r} is {user.role.value}; deciding on models needs a reviewer"
+        )
+    status = ModelStatus(status)
+    if status == ModelStatus.pending:
+        raise ConfigError("status", "must be approved or rejected")
+    row = get_model(session, survey_id, model_id)
+    if row.version != version:
+        raise StaleWriteError(
+            f"version: guardrail model {model_id} is at version {row.version}, not {version}",
+            GuardrailModelPublic.of(row).model_dump(mode="json"),
+        )
+    before = row.status.value
+    row.status = status
+    row.decided_by = user.id
+    row.decided_at = utcnow()
+    session.add(row)
+    audit(
+        session, user.id, f"guardrail_model.{'approve' if status == 'approved' else 'reject'}",
+        "guardrail_model", row.id, survey_id=survey_id, before=before, after=status.value,
+    )  # fmt: skip
+    try:
+        commit(session)
+    except ConflictError as exc:
+        now = get_model(session, survey_id, model_id)
+        session.refresh(now)
+        current = GuardrailModelPublic.of(now).model_dump(mode="json")
+        raise StaleWriteError(str(exc), current) from exc
+    session.refresh(row)
+    return row
+
+
+# --- what the jobs write ------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SliceRows:
+    """One run's slices as arrays (one entry per slice)."""
+
+    component: np.ndarray
+    slice_index: np.ndarray
+    station: np.ndarray
+    predicted: np.ndarray  # raw classifier label
+    probability: np.ndarray
+    corrected: np.ndarray  # after adjacency correction
+
+    def __len__(self) -> int:
+        return len(self.component)
+
+
+@dataclass
+class ModelRecord:
+    """One reconstructed guardrail to store; `slices` are its (component, slice index) keys."""
+
+    kind: GuardrailKind
+    mesh_path: str
+    params: dict[str, Any]
+    unit_count: int
+    icp_residual: float | None
+    slices: list[tuple[int, int]] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class GuardrailRun:
+    """The ingest that produced a survey's current slices."""
+
+    event_id: int
+    job_id: int | None
+    stage_path: str
+    config: dict[str, Any]
+
+
+def latest_run(session: Session, survey_id: int) -> GuardrailRun | None:
+    event = session.exec(
+        select(AuditEvent)
+        .where(AuditEvent.action == INGEST_ACTION, AuditEvent.entity == "survey")
+        .where(AuditEvent.entity_id == str(survey_id))
+        .order_by(col(AuditEvent.id).desc())
+        .limit(1)
+    ).first()
+    if event is None:
+        return None
+    p = event.payload
+    return GuardrailRun(event.id, p.get("job_id"), p["stage"], dict(p.get("config") or {}))
+
+
+def _pair_key(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """One int64 per (component, slice index) pair (both well inside +-2**31)."""
+    return np.asarray(a, dtype=np.int64) * (1 << 32) + np.asarray(b, dtype=np.int64)
+
+
+def match_slices(
+    component: np.ndarray, slice_index: np.ndarray, in_component: np.ndarray, in_index: np.ndarray
+) -> np.ndarray:
+    """Position of each (component, slice_index) pair among the `in_*` pairs, -1 if absent."""
+    keys = _pair_key(in_component, in_index)
+    want = _pair_key(component, slice_index)
+    if not len(keys):
+        return np.full(len(want), -1, dtype=np.int64)
+    order = np.argsort(keys, kind="stable")
+    pos = np.clip(np.searchsorted(keys[order], want), 0, len(keys) - 1)
+    return np.where(keys[order][pos] == want, order[pos], -1)
+
+
+def replace_guardrail_run(
+    session: Session,
+    survey_id: int,
+    slices: SliceRows,
+    models: Sequence[ModelRecord],
+    *,
+    stage_path: str,
+    config: dict[str, Any],
+    job_id: int | None,
+    user_id: int | None,
+) -> dict[str, int]:
+    """Replace the survey's slices and models with a run's, keeping human labels of slices
+    that still exist (same component and slice index, station within one slice length)."""
+    survey_or_404(session, survey_id)
+    old = session.exec(
+        select(
+            GuardrailSlice.component_id,
+            GuardrailSlice.slice_index,
+            GuardrailSlice.station_m,
+            GuardrailSlice.label,
+            GuardrailSlice.labelled_by,
+        ).where(GuardrailSlice.survey_id == survey_id, col(GuardrailSlice.labelled_by).is_not(None))
+    ).all()
+    label = np.asarray(slices.corrected, dtype=np.int64).copy()
+    by = np.full(len(slices), -1, dtype=np.int64)
+    kept = 0
+    if old:
+        o = np.asarray(old, dtype=np.float64)
+        at = match_slices(o[:, 0], o[:, 1], slices.component, slices.slice_index)
+        spacing = float(config.get("spacing", 0.5))
+        ok = at >= 0
+        ok[ok] = np.abs(slices.station[at[ok]] - o[ok, 2]) < spacing
+        label[at[ok]] = o[ok, 3].astype(np.int64)
+        by[at[ok]] = o[ok, 4].astype(np.int64)
+        kept = int(ok.sum())
+    connection = session.connection()
+    connection.execute(sa.delete(GuardrailSlice).where(GuardrailSlice.survey_id == survey_id))
+    connection.execute(sa.delete(GuardrailModel).where(GuardrailModel.survey_id == survey_id))
+    now = utcnow()
+    probability = np.clip(np.asarray(slices.probability, dtype=np.float64), 0.0, 1.0)
+    rows = [
+        {
+            "survey_id": survey_id,
+            "slice_index": int(i),
+            "component_id": int(c),
+            "station_m": float(s),
+            "predicted_label": int(p),
+            "probability": float(q),
+            "corrected_label": int(k),
+            "label": int(lab),
+            "labelled_by": None if u < 0 else int(u),
+            "version": 1,
+            "created_at": now,
+            "updated_at": now,
+        }  # fmt: skip
+        for c, i, s, p, q, k, lab, u in zip(
+            slices.component,
+            slices.slice_index,
+            slices.station,
+            slices.predicted,
+            probability,
+            slices.corrected,
+            label,
+            by,
+            strict=True,
+        )  # fmt: skip
+    ]
+    if rows:
+        connection.execute(sa.insert(GuardrailSlice.__table__), rows)
+    for index, record in enumerate(models):
+        session.add(_model_row(survey_id, index, record))
+    audit(
+        session, user_id, INGEST_ACTION, "survey", survey_id, job_id=job_id, stage=stage_path,
+        config=config, slices=len(slices), human_labels_kept=kept,
+        human_labels_dropped=len(old) - kept, models=len(models),
+    )  # fmt: skip
+    commit(session)
+    return {
+        "slices": len(slices),
+        "human_labels_kept": kept,
+        "human_labels_dropped": len(old) - kept,
+        "models": len(models),
+    }
+
+
+def _model_row(survey_id: int, index: int, record: ModelRecord) -> GuardrailModel:
+    params = dict(record.params)
+    params["slices"] = [[int(c), int(i)] for c, i in record.slices]
+    return GuardrailModel(
+        survey_id=survey_id,
+        guardrail_index=index,
+        kind=GuardrailKind(record.kind),
+        mesh_path=record.mesh_path,
+        params=params,
+        unit_count=int(record.unit_count),
+        icp_residual=record.icp_residual,
+    )
+
+
+def _same_build(row: GuardrailModel, record: ModelRecord) -> bool:
+    """The stored model was built from the same slices with the same point filter."""
+    p = row.params or {}
+    same_slices = sorted(map(tuple, p.get("slices") or [])) == sorted(record.slices)
+    return same_slices and p.get("ground_clearance") == record.params.get("ground_clearance")
+
+
+def replace_guardrail_models(
+    session: Session,
+    survey_id: int,
+    run: GuardrailRun,
+    models: Sequence[ModelRecord],
+    *,
+    job_id: int | None,
+    user_id: int | None,
+) -> dict[str, int]:
+    """After a rebuild: models a reviewer already decided on whose slices did not change stay
+    (with their decision); every other model is replaced by the rebuilt ones (pending)."""
+    now_run = latest_run(session, survey_id)
+    if now_run is None or now_run.event_id != run.event_id:
+        raise ConflictError(
+            f"survey {survey_id}: a newer guardrail run replaced the slices during the rebuild; "
+            "rebuild again"
+        )
+    existing = list_models(session, survey_id)
+    decided = [r for r in existing if r.status != ModelStatus.pending]
+    keep: dict[int, GuardrailModel] = {}
+    new: list[ModelRecord] = []
+    for record in models:
+        same = next((r for r in decided if r.id not in keep and _same_build(r, record)), None)
+        if same is None:
+            new.append(record)
+        else:
+            keep[same.id] = same
+    gone = [r for r in existing if r.id not in keep]
+    for r in gone:
+        session.delete(r)
+    session.flush()  # free the guardrail indices before reusing them
+    taken = {r.guardrail_index for r in keep.values()}
+    free = (i for i in range(len(existing) + len(models) + 1) if i not in taken)
+    for record in new:
+        session.add(_model_row(survey_id, next(free), record))
+    audit(
+        session, user_id, "guardrail.rebuild", "survey", survey_id, job_id=job_id,
+        run_event=run.event_id, kept=sorted(keep), removed=[r.id for r in gone],
+        new=len(new),
+    )  # fmt: skip
+    commit(session)
+    return {
+        "models": len(keep) + len(new),
+        "kept": len(keep),
+        "new": len(new),
+        "removed": len(gone),
+    }

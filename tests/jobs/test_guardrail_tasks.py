@@ -1,0 +1,260 @@
+"""`run:guardrail` and `guardrail:rebuild` on a short simulated street with a pipe and a beam
+guardrail (synthetic), called directly with a hand-built JobContext."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from sqlmodel import Session, select
+
+from app.core.errors import ConfigError, ConflictError
+from app.core.settings import Settings
+from app.jobs.guardrail_tasks import (
+    STAGE_FILE,
+    preview_correction,
+    rebuild_guardrail_models,
+    run_guardrail,
+)
+from app.jobs.registry import JobContext, task_for
+from app.simulate.survey import SimulationConfig, simulate
+from app.store.db import init_db, make_engine
+from app.store.guardrail_review import (
+    SliceLabelEdit,
+    decide_model,
+    list_models,
+    put_slice_labels,
+    slice_table,
+)
+from app.store.models import (
+    AuditEvent,
+    GuardrailSlice,
+    Job,
+    ModelStatus,
+    Role,
+    Survey,
+    User,
+)
+
+# the geometry head without camera images keeps a run at a few seconds
+CONFIG = {"head": "geometry"}
+
+
+@pytest.fixture(scope="module")
+def sim_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("guardrail-jobs") / "sim"
+    simulate(
+        SimulationConfig(scene="urban", length=30.0, seed=7, scanner="profile", camera=False), out
+    )
+    return out
+
+
+class Jobs:
+    """A database with one survey and two users; `context()` makes the next job's context."""
+
+    def __init__(self, root: Path, sim_dir: Path):
+        self.settings = Settings(data_dir=root / "var", sample_dir=None)
+        self.engine = make_engine(self.settings.database_url)
+        init_db(self.engine)
+        with Session(self.engine, expire_on_commit=False) as session:
+            survey = Survey(name="street", format="sim", source_path=str(sim_dir))
+            annotator = User(username="ann", hashed_password="-", role=Role.annotator)
+            reviewer = User(username="rev", hashed_password="-", role=Role.reviewer)
+            session.add_all([survey, annotator, reviewer])
+            session.commit()
+            self.survey_id, self.annotator, self.reviewer = survey.id, annotator, reviewer
+        self.progress: list[tuple[int, float, str]] = []
+
+    def context(self, kind: str) -> JobContext:
+        with Session(self.engine) as session:
+            job = Job(kind=kind, survey_id=self.survey_id, created_by=self.reviewer.id)
+            session.add(job)
+            session.commit()
+            job_id = job.id
+        workdir = self.settings.jobs_dir / str(job_id)
+        workdir.mkdir(parents=True)
+        return JobContext(
+            job_id=job_id,
+            survey_id=self.survey_id,
+            user_id=self.reviewer.id,
+            engine=self.engine,
+            settings=self.settings,
+            workdir=workdir,
+            log=logging.getLogger("test-guardrail-job"),
+            report_progress=lambda f, m: self.progress.append((job_id, f, m)) and False,
+        )
+
+    def run(self, config: dict | None = None) -> dict:
+        context = self.context("run:guardrail")
+        return task_for("run:guardrail")(context, {**CONFIG, **(config or {})})
+
+    def rebuild(self, config: dict | None = None) -> dict:
+        return task_for("guardrail:rebuild")(self.context("guardrail:rebuild"), config or {})
+
+    def session(self) -> Session:
+        return Session(self.engine, expire_on_commit=False)
+
+
+@pytest.fixture
+def jobs(tmp_path: Path, sim_dir: Path) -> Iterator[Jobs]:
+    jobs = Jobs(tmp_path, sim_dir)
+    yield jobs
+    jobs.engine.dispose()
+
+
+def test_run_ingests_slices_and_models(jobs: Jobs) -> None:
+    result = jobs.run()
+    counts = result["counts"]
+    with jobs.session() as session:
+        rows = session.exec(
+            select(GuardrailSlice).where(GuardrailSlice.survey_id == jobs.survey_id)
+        ).all()
+        models = list_models(session, jobs.survey_id)
+        ingest = session.exec(
+            select(AuditEvent).where(AuditEvent.action == "guardrail.ingest")
+        ).one()
+    assert len(rows) == counts["slices"] > 100
+    predicted = np.array([r.predicted_label for r in rows])
+    corrected = np.array([r.corrected_label for r in rows])
+    probability = np.array([r.probability for r in rows])
+    assert ((probability >= 0) & (probability <= 1)).all()
+    assert (predicted == (probability >= 0.5)).all()  # raw label = thresholded classifier
+    assert (np.array([r.label for r in rows]) == corrected).all()  # nobody labelled yet
+    assert corrected.sum() == counts["guardrail_slices"]
+    assert (predicted != corrected).any()  # the adjacency correction changed something
+    # the street's pipe and beam guardrails, each with its three meshes
+    assert sorted(m.kind.value for m in models) == ["beam", "pipe"]
+    for m in models:
+        assert m.status == ModelStatus.pending and m.unit_count >= 1
+        assert m.mesh_path.endswith(".glb") and Path(m.mesh_path).is_file()
+        assert set(m.params["files"]) == {"glb", "obj", "ply"}
+        assert len(trimesh.load(m.params["files"]["ply"], force="mesh").faces) > 0
+        assert len(m.params["slices"]) >= 6 and len(m.params["poles"]) >= 2
+    for path in result["files"].values():
+        assert Path(path).is_file(), path
+    assert Path(ingest.payload["stage"]).name == STAGE_FILE
+    assert ingest.payload["job_id"] is not None and ingest.user_id == jobs.reviewer.id
+    fractions = [f for _, f, _ in jobs.progress]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0
+
+
+def test_human_labels_survive_a_rerun(jobs: Jobs) -> None:
+    jobs.run()
+    with jobs.session() as session:
+        rows = session.exec(
+            select(GuardrailSlice)
+            .where(GuardrailSlice.survey_id == jobs.survey_id)
+            .order_by(GuardrailSlice.id)
+        ).all()
+        picked = rows[::40]
+        human = {(r.component_id, r.slice_index): 1 - r.label for r in picked}
+        edits = [SliceLabelEdit(r.id, r.version, 1 - r.label) for r in picked]
+        put_slice_labels(session, jobs.survey_id, edits, jobs.annotator)
+    result = jobs.run()
+    assert result["counts"]["human_labels_kept"] == len(human)
+    with jobs.session() as session:
+        after = session.exec(
+            select(GuardrailSlice).where(GuardrailSlice.survey_id == jobs.survey_id)
+        ).all()
+    assert len(after) == len(rows)  # the same survey gives the same slices
+    for r in after:
+        key = (r.component_id, r.slice_index)
+        if key in human:
+            assert (r.label, r.labelled_by) == (human[key], jobs.annotator.id)
+        else:
+            assert (r.label, r.labelled_by) == (r.corrected_label, None)
+
+
+def test_rebuild_after_correcting_slices_changes_the_models(jobs: Jobs) -> None:
+    jobs.run()
+    with jobs.session() as session:
+        pipe, beam = sorted(list_models(session, jobs.survey_id), key=lambda m: m.kind.value)[::-1]
+        decide_model(
+            session, jobs.survey_id, beam.id, beam.version, ModelStatus.approved, jobs.reviewer
+        )
+        decide_model(
+            session, jobs.survey_id, pipe.id, pipe.version, ModelStatus.approved, jobs.reviewer
+        )
+        # a person says the last two metres of the pipe guardrail are something else
+        keys = {tuple(k) for k in pipe.params["slices"]}
+        tail = sorted(keys, key=lambda k: k[1])[-4:]
+        rows = [
+            session.exec(
+                select(GuardrailSlice).where(
+                    GuardrailSlice.survey_id == jobs.survey_id,
+                    GuardrailSlice.component_id == c,
+                    GuardrailSlice.slice_index == i,
+                )
+            ).one()
+            for c, i in tail
+        ]
+        put_slice_labels(
+            session,
+            jobs.survey_id,
+            [SliceLabelEdit(r.id, r.version, 0) for r in rows],
+            jobs.annotator,
+        )
+    result = jobs.rebuild()
+    assert result["counts"]["kept"] == 1 and result["counts"]["new"] == 1
+    with jobs.session() as session:
+        models = {m.kind.value: m for m in list_models(session, jobs.survey_id)}
+    # the beam's slices did not change: the approved model stays as it was
+    assert models["beam"].id == beam.id and models["beam"].status == ModelStatus.approved
+    # the pipe guardrail was rebuilt without the relabelled slices, pending review again
+    new_pipe = models["pipe"]
+    assert new_pipe.status == ModelStatus.pending
+    new_keys = {tuple(k) for k in new_pipe.params["slices"]}
+    assert new_keys == keys - set(tail)
+    assert new_pipe.params["station_m"][1] < pipe.params["station_m"][1] - 1.5
+    assert Path(new_pipe.mesh_path).is_file() and new_pipe.mesh_path != pipe.mesh_path
+    assert Path(result["report"]).is_file()
+
+
+def test_rebuild_with_unchanged_labels_reproduces_the_run(jobs: Jobs) -> None:
+    jobs.run()
+    with jobs.session() as session:
+        before = {m.kind.value: m for m in list_models(session, jobs.survey_id)}
+    jobs.rebuild()
+    with jobs.session() as session:
+        after = {m.kind.value: m for m in list_models(session, jobs.survey_id)}
+    assert set(after) == set(before)
+    for kind, m in after.items():  # pending ones are replaced by identical reconstructions
+        assert m.mesh_path != before[kind].mesh_path  # written by the rebuild job
+        assert m.params["poles"] == before[kind].params["poles"]
+        assert m.params["slices"] == before[kind].params["slices"]
+
+
+def test_preview_correction_fills_a_gap_without_saving(jobs: Jobs) -> None:
+    jobs.run()
+    with jobs.session() as session:
+        table = slice_table(session, jobs.survey_id)
+        on = np.flatnonzero(table.label == 1)
+        # one guardrail slice in the middle of a run set to "other" is filled back in
+        middle = on[len(on) // 4]
+        preview = preview_correction(session, jobs.survey_id, {int(table.id[middle]): 0})
+        entry = next(s for s in preview["slices"] if s["id"] == table.id[middle])
+        assert entry["proposed"] == 0 and entry["corrected_label"] == 1
+        assert slice_table(session, jobs.survey_id).label[middle] == 1  # nothing saved
+
+
+def test_bad_config_names_the_field(jobs: Jobs, tmp_path: Path) -> None:
+    outside = tmp_path / "elsewhere.pt"
+    outside.write_bytes(b"x")
+    cases = {
+        "config.threshold": {"threshold": 2},
+        "config.colour": {"colour": "red"},
+        "config.model_path": {"model_path": str(outside)},
+    }
+    for field, config in cases.items():
+        with pytest.raises(ConfigError) as err:
+            run_guardrail(jobs.context("run:guardrail"), config)
+        assert err.value.field == field
+    with pytest.raises(ConflictError, match="no guardrail run"):
+        rebuild_guardrail_models(jobs.context("guardrail:rebuild"), {})
+    with pytest.raises(ConfigError) as err:
+        rebuild_guardrail_models(jobs.context("guardrail:rebuild"), {"threshold": 0.7})
+    assert err.value.field == "config.threshold"
