@@ -67,9 +67,10 @@ def job_file(settings: Settings, job: Job, path: str) -> Path:
 
 
 def number(value: Any, digits: int = 1) -> str:
-    """Percentages and scores with `digits` decimals, counts with separators, NaN as n/a."""
+    """Percentages and scores with `digits` decimals, counts with separators; NaN (undefined,
+    e.g. DA without moving points) as n/a, None (not applicable) as an empty cell."""
     if value is None:
-        return "n/a"
+        return ""
     if isinstance(value, bool):
         return "yes" if value else "no"
     if isinstance(value, int):

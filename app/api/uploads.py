@@ -134,18 +134,18 @@ def extract_zip(archive: Path, dest: Path, name: str, limit_mb: float) -> Path:
         written = 0
         for path, info in members:
             target = dest.joinpath(*path.parts)
-            if info.is_dir():
-                target.mkdir(parents=True, exist_ok=True)
-                continue
-            target.parent.mkdir(parents=True, exist_ok=True)
             try:
+                if info.is_dir():
+                    target.mkdir(parents=True, exist_ok=True)
+                    continue
+                target.parent.mkdir(parents=True, exist_ok=True)
                 with zf.open(info) as src, target.open("wb") as out:
                     while chunk := src.read(COPY_CHUNK):
                         written += len(chunk)
                         if written > limit:  # sizes in the directory can lie
                             raise UploadTooLargeError(f"{name} (unpacked)", limit_mb)
                         out.write(chunk)
-            except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError) as exc:
+            except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, OSError) as exc:
                 raise InputError(name, f"zip member {info.filename!r}: {exc}") from None
     archive.unlink(missing_ok=True)
     return single_folder(dest)

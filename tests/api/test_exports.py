@@ -1,0 +1,394 @@
+"""Exports over a real server, with labels, jobs and guardrail models written straight into its
+SQLite file: clutter maps, guardrail meshes, the pillar label set, the QA report; 404 when there
+is nothing to export, 403 for annotators, every download audited."""
+
+from __future__ import annotations
+
+import base64
+import csv
+import io
+import json
+import re
+import zipfile
+from collections.abc import Iterator
+from datetime import UTC, datetime
+from pathlib import Path
+
+import cv2
+import httpx
+import numpy as np
+import pytest
+from sqlalchemy.engine import Engine
+from sqlmodel import Session, select
+
+from app.io.las import write_laz
+from app.metrics.classification import binary_scores, scores_from_confusion
+from app.metrics.removal import dynamic_scores, error_matrix
+from app.pipelines.guardrail.meshes import export_mesh
+from app.store.db import make_engine
+from app.store.models import (
+    AuditEvent,
+    ClutterDecision,
+    ClutterInstance,
+    Decision,
+    GuardrailKind,
+    GuardrailModel,
+    Job,
+    JobStatus,
+    LabelSource,
+    ModelStatus,
+    PillarLabel,
+)
+from app.store.pillar_labels import STORE_GRID
+from tests.api.server import Server
+
+EXPORTS = ("cleaned.laz", "removed.laz", "guardrails.zip", "pillars.csv", "qa-report.html")
+
+
+@pytest.fixture(scope="module")
+def engine(server: Server) -> Iterator[Engine]:
+    engine = make_engine(f"sqlite:///{server.data_dir / 'mmsclean.sqlite3'}")
+    yield engine
+    engine.dispose()
+
+
+@pytest.fixture(scope="module")
+def reviewer(server: Server) -> Iterator[httpx.Client]:
+    with server.add_user("rev", "reviewer") as client:
+        yield client
+
+
+@pytest.fixture(scope="module")
+def annotator(server: Server) -> Iterator[httpx.Client]:
+    with server.add_user("ann", "annotator") as client:
+        yield client
+
+
+@pytest.fixture(scope="module")
+def survey_id(server: Server, annotator: httpx.Client) -> int:
+    """A one-map survey uploaded as LAZ."""
+    path = write_laz(
+        server.data_dir / "upload.laz", np.random.default_rng(0).uniform(0, 9, (50, 3))
+    )
+    response = annotator.post(
+        "/surveys/upload", params={"filename": "Main Street.laz"}, content=path.read_bytes()
+    )
+    assert response.status_code == 201, response.text
+    return response.json()["id"]
+
+
+def user_id(client: httpx.Client, name: str) -> int:
+    return next(u["id"] for u in client.get("/users").json() if u["username"] == name)
+
+
+def exports_audited(engine: Engine, survey_id: int) -> list[str]:
+    with Session(engine) as session:
+        actions = session.exec(
+            select(AuditEvent.action).where(
+                AuditEvent.entity_id == str(survey_id), AuditEvent.action.startswith("export.")
+            )
+        ).all()
+    return list(actions)
+
+
+def add(engine: Engine, *records: object) -> None:
+    with Session(engine) as session:
+        session.add_all(records)
+        session.commit()
+
+
+def succeeded_job(survey_id: int, kind: str, files: dict, report: Path | None) -> Job:
+    now = datetime.now(UTC)
+    result: dict = {"files": {k: str(v) for k, v in files.items()}}
+    if report is not None:
+        result["report"] = str(report)
+    return Job(
+        survey_id=survey_id,
+        kind=kind,
+        status=JobStatus.succeeded,
+        progress=1.0,
+        started_at=now,
+        finished_at=now,
+        result=result,
+    )
+
+
+def test_nothing_to_export_is_404(survey_id: int, reviewer: httpx.Client) -> None:
+    for name in ("cleaned.laz", "removed.laz"):
+        response = reviewer.get(f"/surveys/{survey_id}/exports/{name}")
+        assert response.status_code == 404
+        assert "has no finished clutter run" in response.json()["detail"]
+    response = reviewer.get(f"/surveys/{survey_id}/exports/guardrails.zip")
+    assert response.status_code == 404 and "no approved guardrail model" in response.text
+    response = reviewer.get(f"/surveys/{survey_id}/exports/pillars.csv")
+    assert response.status_code == 404 and "no human pillar labels" in response.text
+    for name in EXPORTS:
+        response = reviewer.get(f"/surveys/9999/exports/{name}")
+        assert response.status_code == 404
+        assert response.json()["detail"] == "survey 9999 not found"
+
+
+def test_annotators_cannot_export(survey_id: int, annotator: httpx.Client) -> None:
+    for name in (*EXPORTS, "pillars.npz"):
+        response = annotator.get(f"/surveys/{survey_id}/exports/{name}")
+        assert response.status_code == 403, name
+        assert "needs the reviewer role" in response.json()["detail"]
+
+
+def test_pillars_csv_and_npz(
+    survey_id: int, engine: Engine, reviewer: httpx.Client, annotator: httpx.Client
+) -> None:
+    ann = user_id(reviewer, "ann")
+    ix = np.array([-3, 0, 12])
+    iy = np.array([7, 0, -1])
+    cells = STORE_GRID.cell_id(ix, iy)
+    add(
+        engine,
+        *[
+            PillarLabel(
+                survey_id=survey_id,
+                cell_id=int(c),
+                label=lab,
+                source=LabelSource.human,
+                user_id=ann,
+            )
+            for c, lab in zip(cells, [3, 0, 1], strict=True)
+        ],
+        PillarLabel(
+            survey_id=survey_id,
+            cell_id=int(cells[1]),
+            label=2,
+            source=LabelSource.model,
+            confidence=0.625,
+        ),
+    )
+    response = reviewer.get(f"/surveys/{survey_id}/exports/pillars.csv")
+    assert response.status_code == 200, response.text
+    assert response.headers["content-type"].startswith("text/csv")
+    assert (
+        response.headers["content-disposition"] == 'attachment; filename="Main-Street-pillars.csv"'
+    )
+    rows = list(csv.DictReader(io.StringIO(response.text)))
+    assert len(rows) == 3
+    by_cell = {int(r["cell_id"]): r for r in rows}
+    phantom = by_cell[int(cells[0])]
+    assert (phantom["ix"], phantom["iy"]) == ("-3", "7")
+    assert (float(phantom["x"]), float(phantom["y"])) == (-0.5, 1.5)  # centre of the 0.2 m cell
+    assert (phantom["label"], phantom["label_name"], phantom["source"]) == ("3", "phantom", "human")
+    assert phantom["user"] == "ann" and phantom["confidence"] == ""
+    assert datetime.fromisoformat(phantom["updated_at"]).tzinfo is not None
+
+    with_model = reviewer.get(
+        f"/surveys/{survey_id}/exports/pillars.csv", params={"include_model": "true"}
+    )
+    rows = list(csv.DictReader(io.StringIO(with_model.text)))
+    assert len(rows) == 4
+    model = next(r for r in rows if r["source"] == "model")
+    assert model["label_name"] == "short_object" and float(model["confidence"]) == 0.625
+
+    npz = reviewer.get(
+        f"/surveys/{survey_id}/exports/pillars.npz", params={"include_model": "true"}
+    )
+    assert npz.status_code == 200
+    arrays = np.load(io.BytesIO(npz.content))
+    assert sorted(arrays["cell_id"].tolist()) == sorted([*cells.tolist(), int(cells[1])])
+    assert arrays["cell_size"] == 0.2 and list(arrays["label_names"])[3] == "phantom"
+    assert np.isnan(arrays["confidence"][arrays["source"] == "human"]).all()
+    assert exports_audited(engine, survey_id) == [
+        "export.pillars_csv",
+        "export.pillars_csv",
+        "export.pillars_npz",
+    ]
+
+
+def test_cleaned_and_removed_maps(
+    server: Server, survey_id: int, engine: Engine, reviewer: httpx.Client
+) -> None:
+    out = server.data_dir / "jobs" / "clutter-old"
+    rng = np.random.default_rng(1)
+    old = write_laz(out / "cleaned.laz", rng.uniform(0, 5, (20, 3)))
+    job_dir = server.data_dir / "jobs" / "clutter-new"
+    cleaned = write_laz(job_dir / "cleaned.laz", rng.uniform(0, 5, (40, 3)))
+    removed = write_laz(job_dir / "removed.laz", rng.uniform(0, 5, (7, 3)))
+    add(engine, succeeded_job(survey_id, "run:clutter", {"cleaned": old, "removed": old}, None))
+    add(
+        engine,
+        succeeded_job(
+            survey_id, "clutter:recompute", {"cleaned": cleaned, "removed": removed}, None
+        ),
+        Job(survey_id=survey_id, kind="run:clutter", status=JobStatus.failed),
+    )
+    response = reviewer.get(f"/surveys/{survey_id}/exports/cleaned.laz")
+    assert response.status_code == 200, response.text
+    assert response.content == cleaned.read_bytes()  # the newest succeeded run, not the failed
+    assert response.headers["content-type"] == "application/vnd.laszip"
+    assert 'filename="Main-Street-cleaned.laz"' in response.headers["content-disposition"]
+    assert response.headers["content-disposition"].startswith("attachment")
+    response = reviewer.get(f"/surveys/{survey_id}/exports/removed.laz")
+    assert response.content == removed.read_bytes()
+
+    removed.unlink()
+    response = reviewer.get(f"/surveys/{survey_id}/exports/removed.laz")
+    assert response.status_code == 404 and "gone from disk" in response.json()["detail"]
+    assert exports_audited(engine, survey_id)[-2:] == ["export.cleaned_laz", "export.removed_laz"]
+
+
+def test_guardrail_meshes(
+    server: Server, survey_id: int, engine: Engine, reviewer: httpx.Client
+) -> None:
+    box = (
+        np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=np.float64) + 1000.0,
+        np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]),
+    )
+    folder = server.data_dir / "jobs" / "guardrail" / "guardrails"
+    first = export_mesh(box, folder, "g0")
+    second = export_mesh(box, folder, "g1")
+    rev = user_id(reviewer, "rev")
+    add(
+        engine,
+        GuardrailModel(
+            survey_id=survey_id,
+            guardrail_index=0,
+            kind=GuardrailKind.pipe,
+            mesh_path=first["glb"],
+            params={"files": first, "radius": 0.05},
+            unit_count=3,
+            status=ModelStatus.approved,
+            decided_by=rev,
+            decided_at=datetime.now(UTC),
+        ),
+        GuardrailModel(
+            survey_id=survey_id,
+            guardrail_index=1,
+            kind=GuardrailKind.beam,
+            mesh_path=second["glb"],
+            params={"files": second},
+            status=ModelStatus.rejected,
+        ),
+    )
+    for fmt in ("glb", "obj"):
+        response = reviewer.get(
+            f"/surveys/{survey_id}/exports/guardrails.zip", params={"format": fmt}
+        )
+        assert response.status_code == 200, response.text
+        assert response.headers["content-type"] == "application/zip"
+        assert (
+            f'filename="Main-Street-guardrails-{fmt}.zip"'
+            in response.headers["content-disposition"]
+        )
+        with zipfile.ZipFile(io.BytesIO(response.content)) as zf:
+            mesh = f"Main-Street-guardrail-000-pipe.{fmt}"
+            assert sorted(zf.namelist()) == sorted([mesh, "manifest.json"])
+            assert zf.read(mesh) == Path(first[fmt]).read_bytes()
+            manifest = json.loads(zf.read("manifest.json"))
+        assert manifest["models"][0]["approved_by"] == "rev"
+        assert manifest["models"][0]["params"] == {"radius": 0.05}
+    response = reviewer.get(
+        f"/surveys/{survey_id}/exports/guardrails.zip", params={"format": "ply"}
+    )
+    assert response.status_code == 422
+    leftovers = list((server.data_dir / "cache" / "exports").glob("*.zip"))
+    assert leftovers == []  # the temporary archives are deleted once sent
+
+
+def write_report(folder: Path, report: dict) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "report.json"
+    path.write_text(json.dumps(report))
+    return path
+
+
+def test_qa_report(server: Server, survey_id: int, engine: Engine, reviewer: httpx.Client) -> None:
+    reference = np.r_[np.ones(10, bool), np.zeros(90, bool)]
+    removed = np.r_[np.ones(8, bool), np.zeros(2, bool), np.ones(3, bool), np.zeros(87, bool)]
+    entry = {
+        "error_matrix": error_matrix(reference, removed).as_dict(),
+        "scores": dynamic_scores(reference, removed).as_dict(),
+    }
+    clutter_metrics = {"in_view": {"dynamic": entry}, "full": {"dynamic": entry, "clutter": entry}}
+    names = ["ground", "high object", "short object", "phantom"]
+    confusion = np.array([[50, 1, 0, 0], [2, 30, 1, 0], [0, 1, 20, 2], [0, 0, 3, 17]])
+    scores = scores_from_confusion(confusion, names, macro_exclude=("ground",)).as_dict()
+    truth = np.r_[np.ones(20, bool), np.zeros(30, bool)]
+    guess = np.r_[np.ones(18, bool), np.zeros(30, bool), np.ones(2, bool)]
+    phantom_metrics = {
+        "pillar": scores,
+        "pillar_raw": scores,
+        "point": scores,
+        "phantom_points": {"mmsclean": binary_scores(truth, guess).as_dict()},
+    }
+    guardrail_metrics = {
+        "reference": "simulated guardrail points",
+        "slice_raw": binary_scores(truth, guess).as_dict(),
+        "slice": binary_scores(truth, truth).as_dict(),
+        "point": binary_scores(truth, guess).as_dict(),
+    }
+    jobs = server.data_dir / "jobs"
+    clutter_report = write_report(
+        jobs / "c", {"counts": {"points": 100, "removed_points": 11}, "metrics": clutter_metrics}
+    )
+    add(
+        engine,
+        succeeded_job(survey_id, "run:clutter", {}, clutter_report),
+        succeeded_job(
+            survey_id, "run:phantom", {}, write_report(jobs / "p", {"metrics": phantom_metrics})
+        ),
+        succeeded_job(
+            survey_id,
+            "run:guardrail",
+            {},
+            write_report(jobs / "g", {"metrics": guardrail_metrics}),
+        ),
+    )
+    with Session(engine) as session:
+        instances = [
+            ClutterInstance(survey_id=survey_id, frame_id="map", instance_index=i, class_name="car")
+            for i in range(4)
+        ]
+        session.add_all(instances)
+        session.flush()
+        session.add_all(
+            [
+                ClutterDecision(instance_id=instances[0].id, decision=Decision.approved),
+                ClutterDecision(instance_id=instances[1].id, decision=Decision.approved),
+                ClutterDecision(instance_id=instances[2].id, decision=Decision.rejected),
+            ]
+        )
+        session.commit()
+
+    response = reviewer.get(f"/surveys/{survey_id}/exports/qa-report.html")
+    assert response.status_code == 200, response.text
+    assert response.headers["content-type"].startswith("text/html")
+    assert 'filename="Main-Street-qa-report.html"' in response.headers["content-disposition"]
+    page = response.text
+    assert "<h1>QA report: Main Street</h1>" in page
+    # clutter: OA 95.0, clutter omission 2/10 = 20.0, commission 3/11 = 27.3
+    assert "overall accuracy [%]" in page and "SA [%]" in page and "AA [%]" in page
+    assert "<td>95.0</td><td>20.0</td><td>27.3</td>" in page
+    # phantom: per-class table with the paper's overall row (ground left out)
+    phantom_p = 100 * 17 / 19
+    assert f"<td>phantom</td><td>{phantom_p:.1f}</td><td>85.0</td>" in page
+    assert "overall (mean of high object, short object, phantom)" in page
+    # guardrail: corrected slices perfect, CNN slices P 18/20
+    assert "<td>slices (corrected)</td><td>100.0</td><td>100.0</td><td>100.0</td>" in page
+    assert "<td>slices (CNN)</td><td>90.0</td><td>90.0</td>" in page
+    # review state: 3 human labels by ann (one phantom), clutter decisions 2 / 1 / 1
+    assert "<td>ann</td><td>1</td><td>1</td><td>0</td><td>1</td><td>3</td>" in page
+    assert "<td>4</td><td>2</td><td>1</td><td>1</td>" in page
+    images = re.findall(r'src="data:image/png;base64,([A-Za-z0-9+/=]+)"', page)
+    assert len(images) >= 5  # error matrices, confusion matrices, F bars, label bars
+    decoded = cv2.imdecode(np.frombuffer(base64.b64decode(images[0]), np.uint8), cv2.IMREAD_COLOR)
+    assert decoded is not None and decoded.shape[0] > 100 and decoded.shape[1] > 100
+    assert "http://" not in page and "https://" not in page  # self-contained
+    assert exports_audited(engine, survey_id)[-1] == "export.qa_report"
+
+
+def test_qa_report_without_runs(server: Server, reviewer: httpx.Client, tmp_path: Path) -> None:
+    path = write_laz(tmp_path / "bare.laz", np.zeros((3, 3)))
+    with server.client() as admin:
+        bare = admin.post(
+            "/surveys/upload", params={"filename": "bare.laz"}, content=path.read_bytes()
+        ).json()
+    page = reviewer.get(f"/surveys/{bare['id']}/exports/qa-report.html").text
+    assert page.count("No finished run of this pipeline") == 3
+    assert "No human pillar labels yet." in page
