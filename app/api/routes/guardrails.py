@@ -17,7 +17,7 @@ from pydantic import BaseModel, Field
 
 from app.api.deps import Annotator, CurrentUser, Reviewer, SessionDep
 from app.api.errors import errors
-from app.core.errors import NotFoundError
+from app.core.errors import ConflictError, NotFoundError
 from app.jobs.guardrail_tasks import preview_correction, slice_position
 from app.store.guardrail_review import (
     MAX_LABELS_PER_WRITE,
@@ -26,6 +26,7 @@ from app.store.guardrail_review import (
     SliceLabelEdit,
     decide_model,
     get_model,
+    latest_run,
     list_models,
     list_slices,
     next_uncertain,
@@ -217,7 +218,7 @@ def post_decision(
     )
 
 
-@router.post("/rebuild", response_model=JobRef, status_code=202, responses=errors(403, 422))
+@router.post("/rebuild", response_model=JobRef, status_code=202, responses=errors(403, 409, 422))
 def post_rebuild(
     survey_id: int, user: Reviewer, session: SessionDep, body: RebuildIn | None = None
 ) -> JobRef:
@@ -226,6 +227,8 @@ def post_rebuild(
     from app.jobs.queue import enqueue
 
     survey_or_404(session, survey_id)
+    if latest_run(session, survey_id) is None:
+        raise ConflictError(f"survey {survey_id} has no guardrail run yet; run run:guardrail")
     config = body.model_dump(exclude_none=True) if body is not None else {}
     job = enqueue(session, "guardrail:rebuild", config, survey_id, user.id)
     return JobRef(job_id=job.id, kind=job.kind, status=job.status.value)
