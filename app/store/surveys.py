@@ -180,7 +180,7 @@ def frames_summary(session: Session, survey_id: int) -> dict[str, Any]:
         return {"count": 0, "points": 0}
     ids, counts, times, poses = zip(*rows, strict=True)
     counts_arr = np.asarray(counts, dtype=np.int64)
-    stamps = np.asarray([np.nan if t is None else t for t in times], dtype=np.float64)
+    stamps = np.asarray(times, dtype=np.float64)  # None -> NaN
     positions = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)[:, :3, 3]
     finite = stamps[np.isfinite(stamps)]
     return {
