@@ -79,7 +79,8 @@ def guardrail_options(
 
 def allowed_model_path(value: object, settings: Settings) -> Path | None:
     """A classifier checkpoint inside the repository's models/ or the data directory (a job
-    must not load arbitrary files of the server); relative paths are taken from models/."""
+    must not load arbitrary files of the server); a relative path is taken from the
+    repository root (models/...)."""
     if value is None:
         return None
     if not isinstance(value, str) or not value.strip():
@@ -325,16 +326,16 @@ def preview_correction(
     run = _current_run(session, survey_id)
     table = slice_table(session, survey_id)
     by_id = np.argsort(table.id)
+    sorted_ids = table.id[by_id]
     ids = np.fromiter(labels.keys(), dtype=np.int64, count=len(labels))
     given = np.fromiter(labels.values(), dtype=np.int64, count=len(labels))
-    pos = np.clip(np.searchsorted(table.id[by_id], ids), 0, max(len(table.id) - 1, 0))
-    found = len(table.id) > 0 and table.id[by_id][pos] == ids
-    if not np.all(found):
-        missing = ids[~np.asarray(found, dtype=bool)][0] if len(ids) else None
-        raise NotFoundError(f"guardrail slice {missing} not found in survey {survey_id}")
-    if len(given) and not np.isin(given, (0, 1)).all():
+    pos = np.clip(np.searchsorted(sorted_ids, ids), 0, max(len(sorted_ids) - 1, 0))
+    found = sorted_ids[pos] == ids if len(sorted_ids) else np.zeros(len(ids), dtype=bool)
+    if not found.all():
+        raise NotFoundError(f"guardrail slice {ids[~found][0]} not found in survey {survey_id}")
+    if not np.isin(given, (0, 1)).all():
         raise ConfigError("labels", "every label must be 0 or 1")
-    rows = by_id[pos]
+    rows = by_id[pos] if len(ids) else np.zeros(0, dtype=np.int64)
     proposed = np.where(table.human, table.label, table.predicted)
     proposed[rows] = given
     saved = load_stage(run, slices_only=True)
