@@ -127,7 +127,9 @@ def clutter_section(metrics: Mapping[str, Any]) -> str:
         if not isinstance(by_kind, Mapping):
             continue
         for kind, entry in by_kind.items():
-            em, sc = entry.get("error_matrix", {}), entry.get("scores", {})
+            if not isinstance(entry, Mapping):
+                continue
+            em, sc = entry.get("error_matrix") or {}, entry.get("scores") or {}
             rows.append(
                 [
                     scope.replace("_", " "),
