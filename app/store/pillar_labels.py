@@ -18,7 +18,7 @@ from __future__ import annotations
 import json
 from collections.abc import Sequence
 from dataclasses import dataclass
-from datetime import datetime
+from datetime import UTC, datetime
 
 import numpy as np
 from sqlalchemy import text
@@ -33,11 +33,15 @@ STORE_GRID = PillarGrid(0.0, 0.0, 0.2)  # s_c = 0.2 m (Nagy & Benedek)
 MAX_BOX_CELLS = 25_000_000  # 1 km x 1 km at 0.2 m: larger reads are refused
 NO_LABEL = -1  # "no human label" in before/after arrays
 
+# Batch statements read their rows from one JSON array parameter (`json_each`), so a 10,000-label
+# batch is one statement executed in C instead of 10,000 parameter sets built in Python.
 _UPSERT = text(
     """INSERT INTO pillar_label
         (survey_id, cell_id, label, source, confidence, user_id, model_version_id, version,
          created_at, updated_at)
-    VALUES (:survey_id, :cell_id, :label, 'human', NULL, :user_id, NULL, 1, :now, :now)
+    SELECT :survey_id, json_extract(value, '$[0]'), json_extract(value, '$[1]'), 'human', NULL,
+        :user_id, NULL, 1, :now, :now
+    FROM json_each(:rows) WHERE true
     ON CONFLICT (survey_id, cell_id, source) DO UPDATE SET
         label = excluded.label,
         user_id = excluded.user_id,
@@ -45,9 +49,19 @@ _UPSERT = text(
         updated_at = excluded.updated_at"""
 )
 _DELETE = text(
-    "DELETE FROM pillar_label WHERE survey_id = :survey_id AND cell_id = :cell_id "
-    "AND source = 'human'"
+    "DELETE FROM pillar_label WHERE survey_id = :survey_id AND source = 'human' "
+    "AND cell_id IN (SELECT value FROM json_each(:ids))"
 )
+_RECORD_EDITS = text(
+    "INSERT INTO pillar_edit (batch_id, cell_id, before_label, after_label) "
+    "SELECT :batch, json_extract(value, '$[0]'), json_extract(value, '$[1]'), "
+    "json_extract(value, '$[2]') FROM json_each(:rows)"
+)
+
+
+def _sql_time(moment: datetime) -> str:
+    """A UTC time as SQLAlchemy stores DATETIME on SQLite (what `UTCDateTime` reads back)."""
+    return moment.astimezone(UTC).replace(tzinfo=None).strftime("%Y-%m-%d %H:%M:%S.%f")
 
 
 @dataclass(frozen=True)
@@ -117,17 +131,18 @@ def _apply(
     conn = session.connection()
     keep = labels != NO_LABEL
     if keep.any():
+        rows = np.stack([cell_ids[keep], labels[keep]], axis=1)
         conn.execute(
             _UPSERT,
-            [
-                {"survey_id": survey_id, "cell_id": c, "label": v, "user_id": user_id, "now": now}
-                for c, v in zip(cell_ids[keep].tolist(), labels[keep].tolist(), strict=True)
-            ],
+            {
+                "survey_id": survey_id,
+                "user_id": user_id,
+                "now": _sql_time(now),
+                "rows": json.dumps(rows.tolist()),
+            },
         )
     if (~keep).any():
-        conn.execute(
-            _DELETE, [{"survey_id": survey_id, "cell_id": c} for c in cell_ids[~keep].tolist()]
-        )
+        conn.execute(_DELETE, {"survey_id": survey_id, "ids": _ids_json(cell_ids[~keep])})
 
 
 def _versions_after(session: Session, survey_id: int, cell_ids: np.ndarray) -> np.ndarray:
@@ -206,21 +221,11 @@ def _record_batch(
     batch = PillarEditBatch(survey_id=survey_id, user_id=user_id, size=len(cell_ids))
     session.add(batch)
     session.flush()
-    conn.execute(
-        text(
-            "INSERT INTO pillar_edit (batch_id, cell_id, before_label, after_label) "
-            "VALUES (:b, :c, :before, :after)"
-        ),
-        [
-            {
-                "b": batch.id,
-                "c": c,
-                "before": before[c][0] if c in before else None,
-                "after": None if a == NO_LABEL else a,
-            }
-            for c, a in zip(cell_ids.tolist(), after.tolist(), strict=True)
-        ],
-    )
+    rows = [
+        [c, before[c][0] if c in before else None, None if a == NO_LABEL else a]
+        for c, a in zip(cell_ids.tolist(), after.tolist(), strict=True)
+    ]
+    conn.execute(_RECORD_EDITS, {"batch": batch.id, "rows": json.dumps(rows)})
     return batch
 
 
@@ -319,30 +324,29 @@ def box_cell_ranges(x0: float, y0: float, x1: float, y1: float) -> list[tuple[in
     return list(zip(np.atleast_1d(lo).tolist(), np.atleast_1d(hi).tolist(), strict=True))
 
 
+def _box_rows(ranges: list[tuple[int, int]], source: LabelSource | None) -> str:
+    """SQL of the labels in the cell-id ranges: the ranges drive the loop (CROSS JOIN keeps
+    SQLite from scanning the table once per range), each one an index range scan."""
+    where = "" if source is None else f" AND p.source = '{LabelSource(source).value}'"
+    return (
+        "SELECT p.cell_id, p.source, p.label, p.version, p.confidence, p.user_id FROM "
+        "(SELECT json_extract(value, '$[0]') AS lo, json_extract(value, '$[1]') AS hi "
+        "FROM json_each(:ranges)) AS r CROSS JOIN pillar_label AS p INDEXED BY "
+        f"ix_pillar_label_tile WHERE p.survey_id = :s AND p.cell_id BETWEEN r.lo AND r.hi{where}"
+    )
+
+
 def labels_in_box(
     session: Session,
     survey_id: int,
     box: tuple[float, float, float, float],
     source: LabelSource | None = None,
 ) -> TileLabels:
-    """Every label (of `source`, or both) of the pillars in the world box, read through the
-    covering index."""
+    """Every label (of `source`, or both) of the pillars in the world box, as arrays."""
     ranges = box_cell_ranges(*box)
-    where = "" if source is None else f"AND p.source = '{LabelSource(source).value}'"
-    rows = (
-        session.connection()
-        .execute(
-            text(
-                "WITH r(lo, hi) AS (SELECT json_extract(value, '$[0]'), json_extract(value, '$[1]') "
-                "FROM json_each(:ranges)) "
-                "SELECT p.cell_id, p.source, p.label, p.version, p.confidence, p.user_id "
-                "FROM r JOIN pillar_label AS p INDEXED BY ix_pillar_label_tile "
-                f"ON p.survey_id = :s AND p.cell_id BETWEEN r.lo AND r.hi {where}"
-            ),
-            {"ranges": json.dumps(ranges), "s": survey_id},
-        )
-        .all()
-    )
+    query = text(_box_rows(ranges, source))
+    params = {"ranges": json.dumps(ranges), "s": survey_id}
+    rows = session.connection().execute(query, params).all()
     if not rows:
         empty = np.zeros(0, dtype=np.int64)
         return TileLabels(empty, np.zeros(0, dtype="<U5"), empty, empty, np.zeros(0), empty)
@@ -355,6 +359,43 @@ def labels_in_box(
         confidence=np.array([np.nan if c is None else c for c in confidence], dtype=np.float64),
         user_id=np.array([-1 if u is None else u for u in user], dtype=np.int64),
     )
+
+
+def _centre_sql(shift: str, origin: float) -> str:
+    """SQL of a pillar centre coordinate from its packed id (STORE_GRID.decode/cell_center)."""
+    index = f"((p.cell_id{shift}) & 4294967295) - 2147483648"
+    return f"round(({index} + 0.5) * {STORE_GRID.cell_size!r} + {origin!r}, 4)"
+
+
+TILE_FIELDS = ("cell_id", "x", "y", "label", "source", "confidence", "version", "user_id")
+
+
+def tile_json(
+    session: Session,
+    survey_id: int,
+    box: tuple[float, float, float, float],
+    source: LabelSource | None = None,
+) -> str:
+    """The box's labels as a columnar JSON object (one array per TILE_FIELDS entry, plus
+    `cell_size` and `count`), built by SQLite's JSON functions: no Python object per label, so
+    a tile of 50,000 labels is served in tens of milliseconds."""
+    ranges = box_cell_ranges(*box)
+    columns = {
+        "cell_id": "p.cell_id",
+        "x": _centre_sql(" >> 32", STORE_GRID.origin_x),
+        "y": _centre_sql("", STORE_GRID.origin_y),
+        "label": "p.label",
+        "source": "p.source",
+        "confidence": "p.confidence",
+        "version": "p.version",
+        "user_id": "p.user_id",
+    }
+    select = ", ".join(f"json_group_array({columns[f]})" for f in TILE_FIELDS)
+    query = text(f"SELECT count(*), {select} FROM ({_box_rows(ranges, source)}) AS p")
+    params = {"ranges": json.dumps(ranges), "s": survey_id}
+    count, *arrays = session.connection().execute(query, params).one()
+    body = ",".join(f'"{name}":{array}' for name, array in zip(TILE_FIELDS, arrays, strict=True))
+    return f'{{"cell_size":{STORE_GRID.cell_size!r},"count":{count},{body}}}'
 
 
 @dataclass(frozen=True)
@@ -446,5 +487,5 @@ def human_labels_since(session: Session, since: datetime | None) -> int:
     params: dict = {}
     if since is not None:
         query += " AND updated_at > :since"
-        params["since"] = since.replace(tzinfo=None)
+        params["since"] = _sql_time(since)
     return int(session.connection().execute(text(query), params).scalar_one())

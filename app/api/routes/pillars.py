@@ -9,7 +9,7 @@ from __future__ import annotations
 from typing import Annotated
 
 import numpy as np
-from fastapi import APIRouter, Query, Request
+from fastapi import APIRouter, Query, Request, Response
 from pydantic import BaseModel, Field, model_validator
 
 from app.api.deps import Annotator, CurrentUser, SessionDep
@@ -21,8 +21,8 @@ from app.store.pillar_labels import (
     STORE_GRID,
     LabelWrite,
     label_counts,
-    labels_in_box,
     redo,
+    tile_json,
     uncertain_areas,
     undo,
     write_labels,
@@ -78,6 +78,7 @@ class TileOut(BaseModel):
     """Columnar: entry i of every list is one (pillar, source) label."""
 
     cell_size: float
+    count: int
     cell_id: list[int]
     x: list[float]  # pillar centre, world coordinates
     y: list[float]
@@ -141,7 +142,11 @@ def put_labels(
     return _write_out(result)
 
 
-@router.get("/labels", response_model=TileOut, responses=errors(422))
+@router.get(
+    "/labels",
+    response_class=Response,
+    responses={200: {"model": TileOut, "description": "columnar labels"}, **errors(422)},
+)
 def get_labels(
     survey_id: int,
     user: CurrentUser,
@@ -151,23 +156,12 @@ def get_labels(
     x1: float,
     y1: float,
     source: LabelSource | None = None,
-) -> TileOut:
-    """Labels of the pillars in a world box (at most 1 km x 1 km), human and model."""
+) -> Response:
+    """Labels of the pillars in a world box (at most 1 km x 1 km), human and model, columnar
+    (entry i of every array is one label; `x`, `y` the pillar centre)."""
     survey_or_404(session, survey_id)
-    tile = labels_in_box(session, survey_id, (x0, y0, x1, y1), source)
-    ix, iy = STORE_GRID.decode(tile.cell_id)
-    centres = STORE_GRID.cell_center(ix, iy) if len(ix) else np.zeros((0, 2))
-    return TileOut(
-        cell_size=STORE_GRID.cell_size,
-        cell_id=tile.cell_id.tolist(),
-        x=centres[:, 0].tolist(),
-        y=centres[:, 1].tolist(),
-        label=tile.label.tolist(),
-        source=tile.source.tolist(),
-        confidence=[None if np.isnan(c) else c for c in tile.confidence.tolist()],
-        version=tile.version.tolist(),
-        user_id=[None if u < 0 else u for u in tile.user_id.tolist()],
-    )
+    body = tile_json(session, survey_id, (x0, y0, x1, y1), source)
+    return Response(body, media_type="application/json")
 
 
 @router.post("/undo", response_model=LabelWriteOut, responses=errors(403, 409))
