@@ -17,7 +17,7 @@ from pathlib import Path, PurePosixPath
 from fastapi import Request
 
 from app.core.errors import ConfigError, InputError, PathOutsideRootError, UploadTooLargeError
-from app.io.detect import FILE_SUFFIXES
+from app.io.detect import FILE_SUFFIXES, detect_format
 
 UPLOAD_SUFFIXES = (*sorted(FILE_SUFFIXES), ".zip")
 MAX_ZIP_MEMBERS = 500_000  # a 5,000-frame KITTI drive with images has ~30,000
@@ -115,7 +115,7 @@ def _member_path(archive: str, info: zipfile.ZipInfo) -> PurePosixPath:
 
 def extract_zip(archive: Path, dest: Path, name: str, limit_mb: float) -> Path:
     """Unpack ARCHIVE into DEST (checked member by member before anything is written), delete
-    the archive and return the survey folder: DEST, or the one folder DEST holds."""
+    the archive and return the survey folder (see `survey_folder`)."""
     limit = limit_bytes(limit_mb)
     try:
         zf = zipfile.ZipFile(archive)
@@ -148,16 +148,26 @@ def extract_zip(archive: Path, dest: Path, name: str, limit_mb: float) -> Path:
             except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, OSError) as exc:
                 raise InputError(name, f"zip member {info.filename!r}: {exc}") from None
     archive.unlink(missing_ok=True)
-    return single_folder(dest)
+    return survey_folder(dest)
 
 
-def single_folder(folder: Path) -> Path:
-    """Archives usually wrap everything in one top folder: descend through such wrappers."""
+def survey_folder(folder: Path) -> Path:
+    """Archives usually wrap the survey in one or more top folders: follow the chain of single
+    subfolders down to the first folder holding more, then take the deepest folder of the chain
+    whose format can be told (else FOLDER itself, so the error names the archive's top)."""
+    chain = [folder]
     while True:
-        entries = [e for e in folder.iterdir() if not e.name.startswith(".")]
+        entries = [e for e in chain[-1].iterdir() if not e.name.startswith(".")]
         if len(entries) != 1 or not entries[0].is_dir() or entries[0].is_symlink():
-            return folder
-        folder = entries[0]
+            break
+        chain.append(entries[0])
+    for candidate in reversed(chain):
+        try:
+            detect_format(candidate)
+        except InputError:
+            continue
+        return candidate
+    return folder
 
 
 def remove_tree(folder: Path) -> None:

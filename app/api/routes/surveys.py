@@ -212,10 +212,10 @@ async def upload_survey(
             archive = folder / ".upload.zip"
             size = await receive_upload(request, archive, filename, limit_mb)
             source = await run_in_threadpool(
-                extract_zip, archive, folder / "data", filename, limit_mb
+                extract_zip, archive, source_of_upload(folder, filename), filename, limit_mb
             )
         else:
-            source = folder / filename
+            source = source_of_upload(folder, filename)
             size = await receive_upload(request, source, filename, limit_mb)
         survey = await run_in_threadpool(
             import_source,
@@ -231,11 +231,17 @@ async def upload_survey(
     except InputError as exc:
         remove_tree(folder)
         # name the file as the user knows it, not by the server's folder
-        raise InputError(None, exc.message.replace(str(folder), filename)) from exc
+        message = exc.message.replace(str(source_of_upload(folder, filename)), filename)
+        raise InputError(None, message) from exc
     except BaseException:
         remove_tree(folder)
         raise
     return SurveyPublic.of(survey)
+
+
+def source_of_upload(folder: Path, filename: str) -> Path:
+    """Where an upload lies on the server: the file itself, or the folder a zip unpacks to."""
+    return folder / "data" if filename.lower().endswith(".zip") else folder / filename
 
 
 def upload_folder(surveys_dir: Path, source_path: str) -> Path | None:
