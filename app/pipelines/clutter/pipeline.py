@@ -187,6 +187,8 @@ class ClutterPipeline:
             padded=padded,
             cluster=clusters.label,
             free=np.zeros(n, dtype=bool),
+            instance=instance,
+            mask_class=mask_class,
         )
         return evidence, observation
 

@@ -24,14 +24,15 @@ def segmented_class_maps(
     camera: str,
     segmenter: Segmenter | None = None,
     progress: Progress | None = None,
+    cache_dir: Path | None = None,
 ) -> tuple[ClassMaps, CachedSegmenter]:
-    """Segment every frame's image of `camera` in batches (cached per image file), then hand
-    the pipeline a per-frame lookup."""
+    """Segment every frame's image of `camera` in batches (cached per image file, under
+    `cache_dir`, default the settings' cache), then hand the pipeline a per-frame lookup."""
     if segmenter is None:
         from app.pipelines.clutter.segmenter import ESPNetv2Segmenter
 
         segmenter = ESPNetv2Segmenter()
-    cached = CachedSegmenter(segmenter)
+    cached = CachedSegmenter(segmenter, cache_dir)
     paths = [f.image_paths[camera] for f in survey.frames if camera in f.image_paths]
     step = max(cached.chunk, 1)
     for start in range(0, len(paths), step):
@@ -50,6 +51,7 @@ def run_clutter(
     config: ClutterConfig | None = None,
     segmenter: Segmenter | None = None,
     progress: Progress | None = None,
+    cache_dir: Path | None = None,
 ) -> tuple[ClutterResult, CachedSegmenter | None, float]:
     """The pipeline with its segmentation; returns the result, the cache and the network time."""
     pipeline = ClutterPipeline(config or ClutterConfig())
@@ -57,7 +59,9 @@ def run_clutter(
     cached = None
     started = time.perf_counter()
     if camera is not None:
-        pipeline.class_maps, cached = segmented_class_maps(survey, camera.name, segmenter, progress)
+        pipeline.class_maps, cached = segmented_class_maps(
+            survey, camera.name, segmenter, progress, cache_dir
+        )
     segmentation_s = time.perf_counter() - started
     return pipeline.run(survey, progress), cached, segmentation_s
 
@@ -73,13 +77,31 @@ def run_clutter_to_folder(
     started = time.perf_counter()
     config = config or ClutterConfig()
     result, cached, segmentation_s = run_clutter(survey, config, segmenter, progress)
+    return write_clutter_outputs(
+        survey, out, config, result, cached, segmentation_s, overlays, started
+    )
+
+
+def write_clutter_outputs(
+    survey: Survey,
+    out: Path,
+    config: ClutterConfig,
+    result: ClutterResult,
+    cached: CachedSegmenter | None,
+    segmentation_s: float,
+    overlays: int = 0,
+    started: float | None = None,
+) -> dict:
+    """The contract's files of a finished run (labels, cleaned and removed LAZ, overlays,
+    report.json); the web app's job calls it between the run and its review ingestion."""
+    started = time.perf_counter() if started is None else started
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_frame_labels(out, result.frame_labels())
     t0 = time.perf_counter()
     kept, removed = accumulate(survey, result.removed, config.voxel_dedup)
     result.timings["accumulation"] = round(time.perf_counter() - t0, 3)
-    files = _write_maps(out, kept, removed)
+    files = write_maps(out, kept, removed)
     camera = ClutterPipeline(config).camera(survey)
     if overlays and cached is not None and camera is not None:
         files.update(_write_overlays(out, survey, camera.name, cached, overlays))
@@ -100,23 +122,33 @@ def run_clutter_to_folder(
         "timings": timings,
         "files": files,
     }
-    if "semantic" in survey.reference_label_kinds:
-        from app.pipelines.clutter.evaluate import removal_metrics
-
-        references = [f.reference_labels() for f in survey.frames]
-        semantic = np.concatenate([r["semantic"] for r in references])
-        moving = None
-        if "moving" in survey.reference_label_kinds:  # the simulator's per-point flag
-            moving = np.concatenate([r["moving"] for r in references])
-        report["metrics"] = removal_metrics(
-            semantic, np.concatenate(result.removed), np.concatenate(result.in_view), moving
-        )
+    metrics = reference_metrics(survey, result.removed, result.in_view)
+    if metrics is not None:
+        report["metrics"] = metrics
     report["timings"]["total"] = round(time.perf_counter() - started, 3)
     write_report(out, report)
     return report
 
 
-def _write_maps(out: Path, kept: WorldMap, removed: WorldMap) -> dict[str, str]:
+def reference_metrics(
+    survey: Survey, removed: list[np.ndarray], in_view: list[np.ndarray]
+) -> dict | None:
+    """The paper's removal metrics of per-frame removed flags against the survey's reference
+    labels; None when it has none."""
+    if "semantic" not in survey.reference_label_kinds:
+        return None
+    from app.pipelines.clutter.evaluate import removal_metrics
+
+    references = [f.reference_labels() for f in survey.frames]
+    semantic = np.concatenate([r["semantic"] for r in references])
+    moving = None
+    if "moving" in survey.reference_label_kinds:  # the simulator's per-point flag
+        moving = np.concatenate([r["moving"] for r in references])
+    return removal_metrics(semantic, np.concatenate(removed), np.concatenate(in_view), moving)
+
+
+def write_maps(out: Path, kept: WorldMap, removed: WorldMap) -> dict[str, str]:
+    """cleaned.laz and removed.laz in `out`; returns {name: file name}."""
     written = {}
     for name, world, label in (("cleaned.laz", kept, 0), ("removed.laz", removed, 1)):
         n = len(world.xyz)

@@ -1,0 +1,252 @@
+"""Clutter jobs run directly: `run:clutter` ingests its instances for review with their point
+membership, `clutter:recompute` rebuilds the maps from the decisions (a small simulated street,
+the real ESPNetv2 weights)."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from pathlib import Path
+
+import cv2
+import laspy
+import numpy as np
+import pytest
+from sqlmodel import Session, select
+
+from app.core.errors import ConfigError
+from app.core.settings import Settings
+from app.io import open_survey
+from app.jobs.clutter_tasks import frame_instances, recompute_clutter, run_clutter_task
+from app.jobs.registry import JobContext, task_for
+from app.pipelines.clutter.config import ClutterConfig
+from app.pipelines.clutter.fusion import FrameEvidence
+from app.simulate.survey import SimulationConfig, simulate
+from app.store.clutter_review import (
+    DecisionWrite,
+    decide,
+    list_instances,
+    replace_instances,
+    review_decisions,
+)
+from app.store.db import init_db, make_engine
+from app.store.models import AuditEvent, ClutterDecision, ClutterInstance, Decision, Survey
+from app.store.surveys import register_opened_survey
+from tests.pipelines.clutter.conftest import weights_dir  # noqa: F401  (the fixture)
+
+
+def make_context(settings: Settings, engine, survey_id: int | None, job_id: int) -> JobContext:
+    workdir = settings.jobs_dir / str(job_id)
+    workdir.mkdir(parents=True)
+    return JobContext(
+        job_id=job_id,
+        survey_id=survey_id,
+        user_id=None,
+        engine=engine,
+        settings=settings,
+        workdir=workdir,
+        log=logging.getLogger("test-clutter-job"),
+        report_progress=lambda fraction, message: False,
+    )
+
+
+@pytest.fixture(scope="module")
+def ran(tmp_path_factory: pytest.TempPathFactory, weights_dir: Path) -> Iterator[dict]:  # noqa: F811
+    """A 7-frame simulated street registered in a fresh store and run through `run:clutter`."""
+    root = tmp_path_factory.mktemp("clutter-jobs")
+    simulate(SimulationConfig(scene="urban", length=6.0, seed=3), root / "sim")
+    settings = Settings(data_dir=root / "var", weights_dir=weights_dir)
+    engine = make_engine(settings.database_url)
+    init_db(engine)
+    survey = open_survey(root / "sim", "sim")
+    with Session(engine) as session:
+        record = register_opened_survey(
+            session, survey, format="sim", source_path=(root / "sim").resolve()
+        )
+    context = make_context(settings, engine, record.id, 1)
+    result = task_for("run:clutter")(context, {"threads": 2})
+    yield {"context": context, "result": result, "survey": survey, "settings": settings}
+    engine.dispose()
+
+
+def test_run_ingests_every_instance_pending(ran: dict) -> None:
+    context, result = ran["context"], ran["result"]
+    for name in ("cleaned", "removed", "report", "labels", "instances"):
+        assert Path(result["files"][name]).is_absolute() and Path(result["files"][name]).exists()
+    with Session(context.engine) as session:
+        total, states = list_instances(session, context.survey_id, limit=1000)
+    assert total == result["counts"]["instances"] == len(states) > 0
+    assert {s.decision for s in states} == {Decision.pending} and {s.version for s in states} == {1}
+    classes = {s.class_name for s in states}
+    assert classes & {"person", "car", "truck", "bus", "train", "bicycle", "motorcycle", "rider"}
+    for s in states[:: max(len(states) // 20, 1)]:  # mask images: readable PNGs in the run folder
+        image = cv2.imread(s.mask_path)
+        assert image is not None and image.ndim == 3
+        assert Path(s.mask_path).is_relative_to(context.workdir.resolve())
+    in_image = [s for s in states if s.bbox is not None]
+    assert in_image and all(s.bbox[0] <= s.bbox[2] and s.bbox[1] <= s.bbox[3] for s in in_image)
+    assert any(s.track_id is not None for s in states)
+
+
+def test_membership_matches_the_labels(ran: dict) -> None:
+    """Per frame: the npz's removed flags are labels/*.npy, every removed point belongs to an
+    instance, and the store's instances are exactly the npz's, with their point counts."""
+    context, survey = ran["context"], ran["survey"]
+    with Session(context.engine) as session:
+        _, states = list_instances(session, context.survey_id, limit=1000)
+    by_frame: dict[str, dict[int, int]] = {}
+    for s in states:
+        by_frame.setdefault(s.frame_id, {})[s.instance_index] = s.point_count
+    for frame in survey.frames:
+        labels = np.load(context.workdir / "labels" / f"{frame.frame_id}.npy")
+        member = np.load(context.workdir / "instances" / f"{frame.frame_id}.npz")
+        owner, removed = member["instance"], member["removed"]
+        assert len(owner) == len(labels) == len(frame.points())
+        assert np.array_equal(removed, labels.astype(bool))
+        assert (owner[removed] >= 0).all()
+        sizes = np.bincount(owner[owner >= 0], minlength=int(owner.max(initial=-1)) + 1)
+        assert by_frame.get(frame.frame_id, {}) == {i: int(n) for i, n in enumerate(sizes.tolist())}
+
+
+def map_points(path: str) -> int:
+    return len(laspy.read(path).points)
+
+
+def test_recompute_applies_approvals_and_rejections(ran: dict) -> None:
+    context, survey, result = ran["context"], ran["survey"], ran["result"]
+    engine, settings = context.engine, ran["settings"]
+    with Session(engine) as session:
+        _, states = list_instances(session, context.survey_id, limit=1000)
+    members = {
+        f.frame_id: np.load(context.workdir / "instances" / f"{f.frame_id}.npz")
+        for f in survey.frames
+    }
+
+    def split(s) -> tuple[int, int]:
+        """(points the pipeline removed, points it kept) of an instance."""
+        m = members[s.frame_id]
+        mine = m["instance"] == s.instance_index
+        return int((mine & m["removed"]).sum()), int((mine & ~m["removed"]).sum())
+
+    # approve one with points the pipeline kept (if any), reject one it removed entirely
+    partly_kept = [s for s in states if split(s)[1] > 0]
+    approve = max(partly_kept or states, key=lambda s: split(s)[1])
+    reject = max((s for s in states if s.id != approve.id), key=lambda s: split(s)[0])
+    with Session(engine) as session:
+        decide(
+            session,
+            context.survey_id,
+            [
+                DecisionWrite(approve.id, 1, Decision.approved),
+                DecisionWrite(reject.id, 1, Decision.rejected),
+            ],
+            None,
+        )
+    assert split(approve)[1] > 0 and split(reject)[0] > 0  # both decisions change the map
+    out = recompute_clutter(make_context(settings, engine, context.survey_id, 2), {})
+    cleaned_before = map_points(result["files"]["cleaned"])
+    expected = cleaned_before - split(approve)[1] + split(reject)[0]
+    assert map_points(out["files"]["cleaned"]) == expected
+    total = result["counts"]["points"]
+    assert map_points(out["files"]["removed"]) == total - expected
+    assert out["counts"]["map_points"] == expected and out["counts"]["decisions"]["approved"] == 1
+    frame_labels = np.load(Path(out["files"]["labels"]) / f"{reject.frame_id}.npy")
+    rejected = members[reject.frame_id]["instance"] == reject.instance_index
+    assert not frame_labels[rejected].any()  # the rejected instance's points stay
+    with Session(engine) as session:  # both decisions are audited
+        actions = session.exec(select(AuditEvent.action)).all()
+    assert {"clutter.approve", "clutter.reject", "clutter.ingest"} <= set(actions)
+
+    # all pending again: the maps are the pipeline's own
+    with Session(engine) as session:
+        decide(
+            session,
+            context.survey_id,
+            [
+                DecisionWrite(approve.id, 2, Decision.pending),
+                DecisionWrite(reject.id, 2, Decision.pending),
+            ],
+            None,
+        )
+    again = recompute_clutter(make_context(settings, engine, context.survey_id, 3), {})
+    assert map_points(again["files"]["cleaned"]) == cleaned_before
+    assert again["metrics"] is not None  # the simulator's reference labels: the paper's metrics
+
+
+def test_bad_config_names_the_field(tmp_path: Path) -> None:
+    settings = Settings(data_dir=tmp_path / "var")
+    context = make_context(settings, None, 1, 1)
+    with pytest.raises(ConfigError, match="^mode:"):
+        run_clutter_task(context, {"mode": "everything"})
+    with pytest.raises(ConfigError, match="^padding:"):
+        run_clutter_task(context, {"padding": 3})
+    with pytest.raises(ConfigError, match="^dufomap_d_p:"):
+        run_clutter_task(context, {"dufomap_d_p": -1})
+    with pytest.raises(ConfigError, match="^force:"):
+        recompute_clutter(context, {"force": True})
+
+
+def test_review_units_of_one_frame() -> None:
+    """A masked car cluster with a wheel point at ground level, a free-space cluster without a
+    mask, and two loose free-space points on the ground far from everything."""
+    xyz = np.array(
+        [
+            [10, 0, 1.0], [10.2, 0, 1.0], [10.4, 0, 1.0],  # car cluster 0: seeds 0, 1
+            [10.1, 0, 0.9],  # wheel: masked, ground level (unclustered), 0.14 m from the car
+            [20, 5, 1.0], [20.2, 5, 1.0],  # free-space cluster 1 (a passing cyclist, unseen)
+            [30, -5, 0.0], [30.1, -5, 0.0],  # free-space points on the ground
+            [40, 0, 0.0],  # road, kept
+        ]
+    )  # fmt: skip
+    removed = np.array([1, 1, 1, 1, 1, 1, 1, 1, 0], bool)
+    evidence = FrameEvidence(
+        in_view=np.array([1, 1, 1, 1, 0, 0, 0, 0, 0], bool),
+        camera_removed=np.array([1, 1, 1, 1, 0, 0, 0, 0, 0], bool),
+        padded=np.array([1, 1, 1, 1, 0, 0, 0, 0, 0], bool),
+        cluster=np.array([0, 0, 0, -1, 1, 1, -1, -1, -1], np.int32),
+        free=np.array([0, 0, 0, 0, 1, 1, 1, 1, 0], bool),
+        instance=np.array([0, 0, -1, -1, -1, -1, -1, -1, -1], np.int32),
+        mask_class=np.array([3, 3, 3, 3, 0, 0, 0, 0, 0], np.uint8),
+    )
+    cluster_track = np.array([4, -1], np.int32)  # the car is track 4, the cyclist untracked
+    units = frame_instances(
+        xyz,
+        removed,
+        evidence,
+        cluster_track,
+        track_moving=np.array([0, 0, 0, 0, 0], bool),
+        track_class=np.array([0, 0, 0, 0, 3], np.uint8),
+        config=ClutterConfig(),
+    )
+    assert units.owner.tolist() == [0, 0, 0, 0, 1, 1, 2, 2, -1]
+    assert units.class_names == ["car", "free-space", "free-space"]
+    assert units.track_id.tolist() == [4, -1, -1]
+    assert units.moving == [False, True, True]
+
+
+def test_rerun_replaces_the_instances(tmp_path: Path) -> None:
+    engine = make_engine(f"sqlite:///{tmp_path / 'db.sqlite3'}")
+    init_db(engine)
+    with Session(engine) as session:
+        session.add(Survey(id=1, name="s", format="sim", source_path="/nowhere"))
+        session.commit()
+    row = {"class_name": "car", "point_count": 5, "mask_path": None, "bbox": [1, 2, 3, 4]}
+    with Session(engine) as session:
+        replace_instances(session, 1, [{**row, "frame_id": "a", "instance_index": 0}], None)
+        replace_instances(
+            session,
+            1,
+            [{**row, "frame_id": "b", "instance_index": i} for i in range(3)],
+            None,
+        )
+        instances = session.exec(select(ClutterInstance)).all()
+        assert sorted((i.frame_id, i.instance_index) for i in instances) == [
+            ("b", 0),
+            ("b", 1),
+            ("b", 2),
+        ]
+        decisions = session.exec(select(ClutterDecision)).all()
+        assert len(decisions) == 3 and {d.decision for d in decisions} == {Decision.pending}
+        assert [d[:3] for d in review_decisions(session, 1)][0][2] == Decision.pending
+        assert instances[0].bbox == [1, 2, 3, 4]
+    engine.dispose()
