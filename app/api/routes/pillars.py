@@ -78,10 +78,11 @@ class TileOut(BaseModel):
     """Columnar: entry i of every list is one (pillar, source) label."""
 
     cell_size: float
+    origin: tuple[float, float]
     count: int
     cell_id: list[int]
-    x: list[float]  # pillar centre, world coordinates
-    y: list[float]
+    ix: list[int]  # grid index: centre x = origin[0] + (ix + 0.5) * cell_size
+    iy: list[int]
     label: list[int]
     source: list[str]
     confidence: list[float | None]
@@ -158,7 +159,7 @@ def get_labels(
     source: LabelSource | None = None,
 ) -> Response:
     """Labels of the pillars in a world box (at most 1 km x 1 km), human and model, columnar
-    (entry i of every array is one label; `x`, `y` the pillar centre)."""
+    (entry i of every array is one label; `ix`, `iy` the pillar's grid index)."""
     survey_or_404(session, survey_id)
     body = tile_json(session, survey_id, (x0, y0, x1, y1), source)
     return Response(body, media_type="application/json")
