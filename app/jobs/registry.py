@@ -5,13 +5,17 @@ A task takes a `JobContext` and the job's config dict and returns a JSON-able re
 what it wrote (cleaned map, meshes, report) and `"report"` for the report.json path when there
 is one. Tasks call `context.progress(fraction, message)` often: it records progress and raises
 `JobCancelled` once a user asked to cancel. Task modules register with `@task("kind")`;
-`load_tasks()` imports them all (worker processes call it at start).
+`load_tasks()` imports them all (worker processes call it at start), plus the modules named in
+`MMSCLEAN_EXTRA_TASK_MODULES` (comma-separated; tests register their own kinds that way).
+A task may also register `check=fn(config, settings)`, run when the job is queued, so a bad
+config is refused at once (422) instead of failing later in a worker.
 """
 
 from __future__ import annotations
 
 import importlib
 import logging
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +32,7 @@ TASK_MODULES = (
     "app.jobs.guardrail_tasks",
     "app.jobs.training_tasks",
 )
+EXTRA_TASK_MODULES_ENV = "MMSCLEAN_EXTRA_TASK_MODULES"
 
 
 class JobCancelled(Exception):  # noqa: N818  (a signal, not an error)
@@ -51,19 +56,28 @@ class JobContext:
 
 
 TaskFn = Callable[[JobContext, dict[str, Any]], dict[str, Any]]
+CheckFn = Callable[[dict[str, Any], Settings], None]
 TASKS: dict[str, TaskFn] = {}
+CHECKS: dict[str, CheckFn] = {}
 
 
-def task(kind: str) -> Callable[[TaskFn], TaskFn]:
+def task(kind: str, check: CheckFn | None = None) -> Callable[[TaskFn], TaskFn]:
     def register(fn: TaskFn) -> TaskFn:
         TASKS[kind] = fn
+        if check is not None:
+            CHECKS[kind] = check
         return fn
 
     return register
 
 
+def _module_names() -> tuple[str, ...]:
+    extra = os.environ.get(EXTRA_TASK_MODULES_ENV, "")
+    return TASK_MODULES + tuple(n.strip() for n in extra.split(",") if n.strip())
+
+
 def load_tasks() -> dict[str, TaskFn]:
-    for name in TASK_MODULES:
+    for name in _module_names():
         try:
             importlib.import_module(name)
         except ModuleNotFoundError as exc:
@@ -77,3 +91,10 @@ def task_for(kind: str) -> TaskFn:
     if kind not in tasks:
         raise ConfigError("kind", f"unknown job kind {kind!r}; known: {', '.join(sorted(tasks))}")
     return tasks[kind]
+
+
+def check_config(kind: str, config: dict[str, Any], settings: Settings) -> None:
+    """Raise the task's ConfigError for a config it would refuse (kinds without a check pass)."""
+    check = CHECKS.get(kind)
+    if check is not None:
+        check(config, settings)
