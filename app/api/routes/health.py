@@ -7,12 +7,14 @@ from fastapi.responses import JSONResponse
 from sqlalchemy import text
 
 from app import __version__
+from app.api.errors import errors
 
 router = APIRouter(tags=["health"])
 
 
-@router.get("/health")
+@router.get("/health", responses=errors(503))
 def health(request: Request) -> JSONResponse:
+    """200 with the version once the database answers; 503 naming the problem otherwise."""
     engine = request.app.state.engine
     try:
         with engine.connect() as conn:
