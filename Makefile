@@ -36,6 +36,9 @@ test: system-deps $(STAMP) lint
 
 run: system-deps $(STAMP)
 	@echo "mmsclean: http://$(HOST):$(PORT)  (health: http://$(HOST):$(PORT)/health)"
+	@echo "log in: start with MMSCLEAN_ADMIN_PASSWORD=... set to create the user 'admin' on the"
+	@echo "        first start, or add users with: .venv/bin/mmsclean user add NAME --role admin"
+	@echo "        (the password is read from stdin); API docs: http://$(HOST):$(PORT)/docs"
 	$(VENV)/bin/mmsclean serve --host $(HOST) --port $(PORT)
 
 clean:

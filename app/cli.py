@@ -398,6 +398,36 @@ def _seed_list(option: str, text: str) -> list[int]:
     return seeds
 
 
+user_app = typer.Typer(help="Manage the web app's users.")
+cli.add_typer(user_app, name="user")
+
+
+@user_app.command("add")
+def user_add(
+    name: Annotated[str, typer.Argument(help="login name")],
+    role: Annotated[str, typer.Option(help="annotator, reviewer or admin")] = "annotator",
+) -> None:
+    """Create a user; the password is read from stdin (first line), never from the command."""
+    from sqlmodel import Session
+
+    from app.core.errors import ConfigError
+    from app.store.db import get_engine
+    from app.store.models import Role
+    from app.store.users import create_user
+
+    if role not in Role.__members__:
+        raise ConfigError("--role", f"must be one of {', '.join(Role.__members__)}, got {role!r}")
+    if sys.stdin.isatty():
+        import getpass
+
+        password = getpass.getpass(f"password for {name}: ")
+    else:
+        password = sys.stdin.readline().rstrip("\r\n")
+    with Session(get_engine()) as session:
+        user = create_user(session, name, password, Role(role))
+    console.print(f"created user {user.username} ({user.role.value}), id {user.id}")
+
+
 @cli.command()
 def serve(
     host: Annotated[str | None, typer.Option(help="bind address (default 127.0.0.1)")] = None,
