@@ -11,10 +11,11 @@ from sqlmodel import Session
 
 from app import __version__
 from app.api.errors import install_error_handlers
-from app.api.routes import auth, exports, guardrails, health, pillars, surveys, users
+from app.api.routes import auth, exports, guardrails, health, jobs, pillars, surveys, users
 from app.api.sample import load_sample_on_first_start
 from app.core.security import TokenSigner
 from app.core.settings import Settings, get_settings
+from app.jobs.pool import WorkerPool
 from app.store.db import init_db, make_engine
 from app.store.users import ensure_first_admin
 
@@ -35,7 +36,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         load_sample_on_first_start(engine, settings.sample_dir)
         app.state.engine = engine
         app.state.token_signer = TokenSigner.for_data_dir(settings.data_dir)
+        app.state.worker_pool = WorkerPool(settings, engine).start()  # after init_db
         yield
+        app.state.worker_pool.stop()
         engine.dispose()
 
     app = FastAPI(
@@ -49,6 +52,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     for router in (health.router, auth.router, users.router):
         app.include_router(router)
     app.include_router(pillars.router)
+    app.include_router(jobs.router)
     app.include_router(surveys.router)
     app.include_router(exports.router)
     app.include_router(guardrails.router)

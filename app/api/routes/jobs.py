@@ -1,0 +1,233 @@
+"""`/jobs`: start pipeline and training jobs, watch their progress, cancel, resume, fetch results.
+
+The API only writes job rows; worker processes (app.jobs.pool) pick them up, so a long job
+never holds up a request. Annotators may start `run:*` and other non-training jobs and control
+their own; reviewers and admins control anyone's; `train:*` jobs are for admins.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from datetime import datetime
+from pathlib import Path
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Query
+from fastapi.responses import FileResponse, PlainTextResponse
+from pydantic import BaseModel, Field
+from sqlmodel import select
+
+from app.api.deps import Annotator, CurrentUser, SessionDep, SettingsDep
+from app.api.errors import errors
+from app.core.errors import MmscleanError, NotFoundError, PermissionDeniedError
+from app.core.settings import Settings
+from app.jobs.queue import enqueue, get_job, request_cancel, requeue, resume
+from app.store.models import Job, JobStatus, Role, User
+from app.store.users import has_role
+
+router = APIRouter(prefix="/jobs", tags=["jobs"], responses=errors(401))
+
+MAX_TAIL = 100_000
+
+
+class JobCreate(BaseModel):
+    kind: str = Field(min_length=1, max_length=64, description="e.g. run:phantom, train:phantom")
+    survey_id: int | None = Field(None, description="the survey a run:* job works on")
+    config: dict[str, Any] = Field(default_factory=dict, description="the kind's options")
+
+
+class JobPublic(BaseModel):
+    id: int
+    kind: str
+    survey_id: int | None
+    config: dict[str, Any]
+    status: JobStatus
+    progress: float = Field(description="0..1")
+    message: str
+    created_by: int | None
+    created_at: datetime
+    updated_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+    seconds: float | None = Field(description="run time of the last attempt so far")
+    attempts: int
+    cancel_requested: bool
+    worker_pid: int | None
+    result: dict[str, Any]
+
+    @classmethod
+    def of(cls, job: Job) -> JobPublic:
+        seconds = None
+        if job.started_at is not None:
+            end = job.finished_at or job.updated_at
+            seconds = round(max((end - job.started_at).total_seconds(), 0.0), 3)
+        return cls(
+            id=job.id,
+            kind=job.kind,
+            survey_id=job.survey_id,
+            config=dict(job.config),
+            status=job.status,
+            progress=job.progress,
+            message=job.message,
+            created_by=job.created_by,
+            created_at=job.created_at,
+            updated_at=job.updated_at,
+            started_at=job.started_at,
+            finished_at=job.finished_at,
+            seconds=seconds,
+            attempts=job.attempts,
+            cancel_requested=job.cancel_requested,
+            worker_pid=job.worker_pid,
+            result=dict(job.result),
+        )
+
+
+class JobFile(BaseModel):
+    name: str = Field(description="path relative to the job folder: GET /jobs/{id}/files/{name}")
+    size: int
+
+
+class JobResults(BaseModel):
+    job_id: int
+    status: JobStatus
+    result: dict[str, Any]
+    files: list[JobFile]
+
+
+def may_start(user: User, kind: str) -> None:
+    if kind.startswith("train:") and not has_role(user, Role.admin):
+        raise PermissionDeniedError(
+            f"user {user.username!r} is {user.role.value}; {kind} jobs need the admin role"
+        )
+
+
+def may_control(user: User, job: Job) -> None:
+    may_start(user, job.kind)
+    if job.created_by != user.id and not has_role(user, Role.reviewer):
+        raise PermissionDeniedError(
+            f"job {job.id} was started by another user; only reviewers and admins may change it"
+        )
+
+
+def workdir_of(job: Job, settings: Settings) -> Path:
+    return Path(job.result_path or settings.jobs_dir / str(job.id)).resolve()
+
+
+@router.post("", response_model=JobPublic, status_code=201, responses=errors(403, 422))
+def create_job(
+    body: JobCreate, user: Annotator, session: SessionDep, settings: SettingsDep
+) -> JobPublic:
+    """Queue a job; a worker starts it when one is free. Kind, survey and config are checked
+    now (422 names the field)."""
+    may_start(user, body.kind)
+    job = enqueue(session, body.kind, body.config, body.survey_id, user.id, settings)
+    return JobPublic.of(job)
+
+
+@router.get("", response_model=list[JobPublic], responses=errors(422))
+def list_jobs(
+    _: CurrentUser,
+    session: SessionDep,
+    status: JobStatus | None = None,
+    survey_id: int | None = None,
+    kind: str | None = None,
+    limit: Annotated[int, Query(ge=1, le=500)] = 50,
+    offset: Annotated[int, Query(ge=0)] = 0,
+) -> list[JobPublic]:
+    """Jobs, newest first."""
+    query = select(Job)
+    if status is not None:
+        query = query.where(Job.status == status)
+    if survey_id is not None:
+        query = query.where(Job.survey_id == survey_id)
+    if kind is not None:
+        query = query.where(Job.kind == kind)
+    query = query.order_by(Job.created_at.desc(), Job.id.desc()).offset(offset).limit(limit)
+    return [JobPublic.of(j) for j in session.exec(query).all()]
+
+
+@router.get("/{job_id}", response_model=JobPublic, responses=errors(404))
+def read_job(job_id: int, _: CurrentUser, session: SessionDep) -> JobPublic:
+    """Status, progress, message, timings and (once succeeded) the result summary."""
+    return JobPublic.of(get_job(session, job_id))
+
+
+@router.get(
+    "/{job_id}/log",
+    response_class=PlainTextResponse,
+    responses={**errors(404, 422), 200: {"content": {"text/plain": {}}}},
+)
+def read_log(
+    job_id: int,
+    _: CurrentUser,
+    session: SessionDep,
+    settings: SettingsDep,
+    tail: Annotated[int | None, Query(ge=1, le=MAX_TAIL, description="last N lines")] = None,
+) -> PlainTextResponse:
+    """The job's log (every attempt, appended); empty before a worker started it."""
+    job = get_job(session, job_id)
+    path = Path(job.log_path) if job.log_path else workdir_of(job, settings) / "job.log"
+    if not path.is_file():
+        return PlainTextResponse("")
+    with path.open(encoding="utf-8", errors="replace") as lines:
+        text = "".join(deque(lines, maxlen=tail) if tail else lines)
+    return PlainTextResponse(text)
+
+
+@router.post("/{job_id}/cancel", response_model=JobPublic, responses=errors(403, 404, 409))
+def cancel_job(job_id: int, user: Annotator, session: SessionDep) -> JobPublic:
+    """Cancel: a queued job at once, a running one at its next progress report (409 when it
+    already ended)."""
+    may_control(user, get_job(session, job_id))
+    return JobPublic.of(request_cancel(session, job_id, user.id))
+
+
+@router.post("/{job_id}/resume", response_model=JobPublic, responses=errors(403, 404, 409))
+def resume_job(job_id: int, user: Annotator, session: SessionDep) -> JobPublic:
+    """Queue an interrupted, failed or cancelled job again under the same id and config."""
+    may_control(user, get_job(session, job_id))
+    return JobPublic.of(resume(session, job_id, user.id))
+
+
+@router.post(
+    "/{job_id}/requeue",
+    response_model=JobPublic,
+    status_code=201,
+    responses=errors(403, 404, 409, 422),
+)
+def requeue_job(
+    job_id: int, user: Annotator, session: SessionDep, settings: SettingsDep
+) -> JobPublic:
+    """A new job with the same kind, survey and config (409 while the old one is active)."""
+    may_start(user, get_job(session, job_id).kind)
+    return JobPublic.of(requeue(session, job_id, user.id, settings))
+
+
+@router.get("/{job_id}/results", response_model=JobResults, responses=errors(404))
+def read_results(
+    job_id: int, _: CurrentUser, session: SessionDep, settings: SettingsDep
+) -> JobResults:
+    """The result summary and every file the job wrote (download with /files/{name})."""
+    job = get_job(session, job_id)
+    workdir = workdir_of(job, settings)
+    paths = sorted(p for p in workdir.rglob("*") if p.is_file()) if workdir.is_dir() else []
+    files = [JobFile(name=p.relative_to(workdir).as_posix(), size=p.stat().st_size) for p in paths]
+    return JobResults(job_id=job.id, status=job.status, result=dict(job.result), files=files)
+
+
+@router.get(
+    "/{job_id}/files/{name:path}",
+    response_class=FileResponse,
+    responses={**errors(400, 404), 200: {"content": {"application/octet-stream": {}}}},
+)
+def download_file(
+    job_id: int, name: str, _: CurrentUser, session: SessionDep, settings: SettingsDep
+) -> FileResponse:
+    """One file of the job's folder; a name leading outside it is refused (400)."""
+    workdir = workdir_of(get_job(session, job_id), settings)
+    target = (workdir / name).resolve()
+    if not target.is_relative_to(workdir):
+        raise MmscleanError(f"{name}: outside the folder of job {job_id}")
+    if not target.is_file():
+        raise NotFoundError(f"job {job_id} has no file {name}")
+    return FileResponse(target, filename=target.name)

@@ -1,0 +1,238 @@
+"""`run:phantom`: the phantom pipeline on a stored survey, its output folder in the job's
+workdir, and the CNN's pillar classes stored as model pre-labels for the labelling view.
+
+Pre-labels go onto the store's one world grid (`STORE_GRID`), so they line up with human labels
+of any earlier or later run. A survey keeps only its newest model labels: the old ones are
+replaced in the same transaction that writes the new, so a reader never sees half of each.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, ValidationError
+from sqlalchemy.engine import Engine
+from sqlmodel import Session, select
+
+from app.core.errors import ConfigError, NotFoundError
+from app.core.settings import Settings
+from app.io import open_survey
+from app.jobs.registry import JobContext, task
+from app.pipelines.phantom.config import PhantomConfig
+from app.pipelines.phantom.model import DEFAULT_MODEL
+from app.pipelines.phantom.run import run_phantom_to_folder
+from app.store.audit import audit
+from app.store.model_versions import ensure_shipped_version, promoted_version
+from app.store.models import LabelSource, ModelVersion, Pipeline, Survey, utcnow
+from app.store.pillar_labels import STORE_GRID
+
+KIND = "run:phantom"
+MODELS_DIR = Path(__file__).resolve().parents[2] / "models"
+# overall progress reached at the start and end of each pipeline stage; the rest is ingestion
+STAGES = {"accumulate": (0.02, 0.15), "classify": (0.15, 0.8), "done": (0.85, 0.85)}
+INGEST_AT = 0.9
+
+_INSERT_MODEL_LABELS = (
+    "INSERT INTO pillar_label (survey_id, cell_id, label, source, confidence, user_id, "
+    "model_version_id, version, created_at, updated_at) VALUES (?, ?, ?, ?, ?, NULL, ?, 1, ?, ?)"
+)
+_DELETE_MODEL_LABELS = "DELETE FROM pillar_label WHERE survey_id = ? AND source = ?"
+
+
+class PhantomJobConfig(BaseModel):
+    """What a run:phantom job may set; the pipeline parameters stay the paper's."""
+
+    model_config = ConfigDict(extra="forbid", protected_namespaces=())
+
+    model_path: str | None = None  # a checkpoint in models/ or the data dir; default: promoted
+    dense: bool = True  # dense tiled inference (False: the paper's per-window path)
+    refine: bool = True  # Algorithm 1 neighbourhood vote
+
+
+def parse_config(
+    config: dict[str, Any], settings: Settings
+) -> tuple[PhantomJobConfig, Path | None]:
+    try:
+        options = PhantomJobConfig.model_validate(config)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        field = ".".join(str(p) for p in first["loc"]) or "config"
+        raise ConfigError(f"config.{field}", first["msg"]) from None
+    return options, allowed_model_path(options.model_path, settings)
+
+
+def check_config(config: dict[str, Any], settings: Settings) -> None:
+    parse_config(config, settings)
+
+
+def allowed_model_path(value: str | None, settings: Settings) -> Path | None:
+    """A checkpoint inside the repository's models/ or the data dir (a job must not load any
+    file of the server); relative paths are taken from the repository root."""
+    if value is None:
+        return None
+    if not value.strip():
+        raise ConfigError("config.model_path", "must be a non-empty path")
+    path = Path(value)
+    path = (path if path.is_absolute() else MODELS_DIR.parent / path).resolve()
+    roots = (MODELS_DIR.resolve(), settings.data_dir.resolve())
+    if not any(path.is_relative_to(root) for root in roots):
+        where = " or ".join(str(r) for r in roots)
+        raise ConfigError("config.model_path", f"{value} is outside {where}")
+    if not path.is_file():
+        raise ConfigError("config.model_path", f"{path} does not exist")
+    return path
+
+
+def _card(checkpoint: Path) -> dict[str, Any]:
+    sidecar = checkpoint.with_suffix(".card.json")
+    return json.loads(sidecar.read_text()) if sidecar.is_file() else {}
+
+
+def model_version_for(session: Session, model_path: Path | None) -> ModelVersion:
+    """The version row of the checkpoint to run: the given one, else the promoted one, else the
+    shipped default (rows for shipped checkpoints are created on first use)."""
+    if model_path is None:
+        promoted = promoted_version(session, Pipeline.phantom)
+        if promoted is not None and Path(promoted.checkpoint_path).is_file():
+            return promoted
+        model_path = DEFAULT_MODEL.resolve()
+    known = session.exec(
+        select(ModelVersion).where(
+            ModelVersion.pipeline == Pipeline.phantom,
+            ModelVersion.checkpoint_path == str(model_path),
+        )
+    ).first()
+    return known or ensure_shipped_version(session, Pipeline.phantom, model_path, _card(model_path))
+
+
+def stage_progress(context: JobContext):
+    """The pipeline's `progress(stage, fraction)` as the job's overall fraction."""
+
+    def progress(stage: str, fraction: float) -> None:
+        start, end = STAGES.get(stage, (None, None))
+        if start is None:
+            context.progress(STAGES["done"][0], stage)
+        else:
+            context.progress(start + (end - start) * fraction, stage)
+
+    return progress
+
+
+def model_label_rows(pillars_npz: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(cell ids on STORE_GRID, argmax class, max posterior) of the pillars the CNN judged; one
+    row per store cell (the most confident pillar, should the run's grid be finer)."""
+    with np.load(pillars_npz) as data:
+        classified = data["classified"].astype(bool)
+        pillars = data["pillars"][classified]
+        probabilities = data["probabilities"][classified]
+        cell_size = float(data["cell_size"])
+    centres = (pillars.astype(np.float64) + 0.5) * cell_size  # world x, y of pillar centres
+    cells = STORE_GRID.point_cell_ids(centres)
+    labels = probabilities.argmax(axis=1).astype(np.int64)
+    confidence = np.clip(probabilities.max(axis=1).astype(np.float64), 0.0, 1.0)
+    order = np.lexsort((-confidence, cells))
+    cells, labels, confidence = cells[order], labels[order], confidence[order]
+    first = np.ones(len(cells), dtype=bool)
+    first[1:] = cells[1:] != cells[:-1]
+    return cells[first], labels[first], confidence[first]
+
+
+def store_model_labels(
+    engine: Engine,
+    survey_id: int,
+    cells: np.ndarray,
+    labels: np.ndarray,
+    confidence: np.ndarray,
+    model_version_id: int,
+    user_id: int | None,
+    job_id: int,
+) -> int:
+    """Replace the survey's model pre-labels in one transaction; returns how many were written."""
+    now = utcnow().replace(tzinfo=None).isoformat(sep=" ", timespec="microseconds")
+    model = LabelSource.model.value
+    rows = zip(
+        itertools.repeat(survey_id),
+        cells.tolist(),
+        labels.tolist(),
+        itertools.repeat(model),
+        confidence.tolist(),
+        itertools.repeat(model_version_id),
+        itertools.repeat(now),
+        itertools.repeat(now),
+    )
+    with Session(engine) as session:
+        conn = session.connection()
+        conn.exec_driver_sql(_DELETE_MODEL_LABELS, (survey_id, model))
+        if len(cells):
+            conn.exec_driver_sql(_INSERT_MODEL_LABELS, list(rows))
+        audit(
+            session,
+            user_id,
+            "pillar.model_labels",
+            "survey",
+            survey_id,
+            job_id=job_id,
+            model_version_id=model_version_id,
+            pillars=len(cells),
+            per_class=np.bincount(labels, minlength=4).tolist(),
+        )
+        session.commit()
+    return len(cells)
+
+
+@task(KIND, check=check_config)
+def run_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
+    options, model_path = parse_config(config, context.settings)
+    if context.survey_id is None:
+        raise ConfigError("survey_id", f"{KIND} jobs need a survey")
+    with Session(context.engine, expire_on_commit=False) as session:
+        record = session.get(Survey, context.survey_id)
+        if record is None:
+            raise NotFoundError(f"survey {context.survey_id} not found")
+        source, fmt = record.source_path, record.format
+        version = model_version_for(session, model_path)
+    checkpoint = Path(version.checkpoint_path)
+    context.log.info("survey %s (%s, %s), model %s", context.survey_id, fmt, source, checkpoint)
+    context.progress(0.0, "opening the survey")
+    survey = open_survey(source, fmt)
+    threads = max(1, (os.cpu_count() or 1) // context.settings.workers)  # share the cores
+    report = run_phantom_to_folder(
+        survey,
+        context.workdir,
+        PhantomConfig(threads=threads),
+        checkpoint,
+        dense=options.dense,
+        refine=options.refine,
+        progress=stage_progress(context),
+    )
+    context.progress(INGEST_AT, "storing model pre-labels")  # last chance to cancel
+    cells, labels, confidence = model_label_rows(context.workdir / report["files"]["pillars"])
+    written = store_model_labels(
+        context.engine,
+        context.survey_id,
+        cells,
+        labels,
+        confidence,
+        version.id,
+        context.user_id,
+        context.job_id,
+    )
+    context.log.info("stored %d model pre-labels (model version %d)", written, version.id)
+    files = {name: str(context.workdir / rel) for name, rel in report["files"].items()}
+    files["labels"] = str(context.workdir / "labels")
+    files["report"] = str(context.workdir / "report.json")
+    result: dict[str, Any] = {
+        "files": files,
+        "report": files["report"],
+        "counts": {**report["counts"], "model_labels": written},
+        "model_version_id": version.id,
+        "timings": report["timings"],
+    }
+    if "metrics" in report:
+        result["metrics"] = report["metrics"]
+    return result

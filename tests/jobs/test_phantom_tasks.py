@@ -1,0 +1,207 @@
+"""run:phantom's parts around the pipeline: pre-label rows on the store grid, replacing a
+survey's model labels, the model version row, progress mapping (the full run is exercised
+through the API in tests/api/test_jobs.py)."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from datetime import timedelta
+from pathlib import Path
+
+import numpy as np
+import pytest
+from sqlalchemy import text
+from sqlalchemy.engine import Engine
+from sqlmodel import Session, select
+
+from app.core.errors import ConfigError
+from app.core.settings import Settings
+from app.jobs.phantom_tasks import (
+    STAGES,
+    model_label_rows,
+    model_version_for,
+    parse_config,
+    run_phantom,
+    stage_progress,
+    store_model_labels,
+)
+from app.jobs.registry import JobContext
+from app.pipelines.phantom.model import DEFAULT_MODEL, PAPER_MODEL
+from app.store.db import init_db, make_engine
+from app.store.models import AuditEvent, PillarLabel, Pipeline, Survey, utcnow
+from app.store.pillar_labels import STORE_GRID
+
+
+@pytest.fixture
+def settings(tmp_path: Path) -> Settings:
+    return Settings(data_dir=tmp_path / "var", sample_dir=None)
+
+
+@pytest.fixture
+def engine(settings: Settings) -> Iterator[Engine]:
+    engine = make_engine(settings.database_url)
+    init_db(engine)
+    yield engine
+    engine.dispose()
+
+
+@pytest.fixture
+def survey_id(engine: Engine) -> int:
+    with Session(engine) as session:
+        survey = Survey(name="street", format="sim", source_path="/nowhere")
+        session.add(survey)
+        session.commit()
+        return survey.id
+
+
+def pillars_npz(path: Path, pillars: np.ndarray, probs: np.ndarray, classified, cell_size=0.2):
+    np.savez(
+        path,
+        pillars=np.asarray(pillars, dtype=np.int64),
+        probabilities=np.asarray(probs, dtype=np.float32),
+        classified=np.asarray(classified, dtype=bool),
+        cell_size=cell_size,
+    )
+    return path
+
+
+def test_rows_are_the_judged_pillars_on_the_store_grid(tmp_path: Path) -> None:
+    pillars = np.array([[-3, 7], [10, -2], [500_000, 12], [4, 4]])  # 100 km east: still exact
+    probs = np.array(
+        [[0.1, 0.7, 0.1, 0.1], [1, 0, 0, 0], [0.05, 0.05, 0.1, 0.8], [0.2, 0.2, 0.5, 0.1]]
+    )
+    cells, labels, confidence = model_label_rows(
+        pillars_npz(tmp_path / "p.npz", pillars, probs, [True, False, True, True])
+    )
+    judged = pillars[[0, 2, 3]]
+    expected = STORE_GRID.cell_id(judged[:, 0], judged[:, 1])
+    order = np.argsort(expected)
+    np.testing.assert_array_equal(cells, expected[order])
+    np.testing.assert_array_equal(labels, np.array([1, 3, 2])[order])
+    np.testing.assert_allclose(confidence, np.array([0.7, 0.8, 0.5])[order], rtol=1e-6)
+
+
+def test_a_finer_run_grid_keeps_the_most_confident_pillar_per_cell(tmp_path: Path) -> None:
+    pillars = np.array([[0, 0], [1, 1], [2, 0]])  # 0.1 m pillars: the first two share a cell
+    probs = np.array([[0.6, 0.4, 0, 0], [0, 0.1, 0, 0.9], [0, 0, 1.0, 0]])
+    cells, labels, confidence = model_label_rows(
+        pillars_npz(tmp_path / "p.npz", pillars, probs, [True] * 3, cell_size=0.1)
+    )
+    np.testing.assert_array_equal(cells, STORE_GRID.cell_id([0, 1], [0, 0]))
+    np.testing.assert_array_equal(labels, [3, 2])
+    np.testing.assert_allclose(confidence, [0.9, 1.0], rtol=1e-6)
+
+
+def model_rows(engine: Engine, survey_id: int, source: str = "model") -> list[tuple]:
+    with engine.connect() as conn:
+        return conn.execute(
+            text(
+                "SELECT cell_id, label, confidence, model_version_id, user_id FROM pillar_label "
+                "WHERE survey_id = :s AND source = :src ORDER BY cell_id"
+            ),
+            {"s": survey_id, "src": source},
+        ).all()
+
+
+def test_new_model_labels_replace_the_old_and_leave_human_ones(
+    engine: Engine, survey_id: int
+) -> None:
+    with Session(engine) as session:
+        version = model_version_for(session, None)
+    with engine.begin() as conn:
+        conn.execute(
+            text(
+                "INSERT INTO pillar_label (survey_id, cell_id, label, source, version, "
+                "created_at, updated_at) VALUES (:s, 5, 2, 'human', 1, :t, :t)"
+            ),
+            {"s": survey_id, "t": "2024-01-01 00:00:00.000000"},
+        )
+    first = np.arange(1, 1001, dtype=np.int64)
+    store_model_labels(engine, survey_id, first, first % 4, np.full(1000, 0.5), version.id, None, 1)
+    assert len(model_rows(engine, survey_id)) == 1000
+    written = store_model_labels(
+        engine,
+        survey_id,
+        np.array([5, 7]),
+        np.array([3, 1]),
+        np.array([0.9, 0.6]),
+        version.id,
+        None,
+        2,
+    )
+    assert written == 2
+    assert model_rows(engine, survey_id) == [
+        (5, 3, pytest.approx(0.9), version.id, None),
+        (7, 1, pytest.approx(0.6), version.id, None),
+    ]
+    assert [r[:2] for r in model_rows(engine, survey_id, "human")] == [(5, 2)]
+    with Session(engine) as session:
+        labelled = session.exec(
+            select(AuditEvent).where(AuditEvent.action == "pillar.model_labels")
+        ).all()
+        model = session.exec(select(PillarLabel).where(PillarLabel.source == "model")).first()
+        assert abs(model.updated_at - utcnow()) < timedelta(minutes=5)  # ORM reads our times
+    assert [e.payload["pillars"] for e in labelled] == [1000, 2]
+
+
+def test_the_model_version_row(engine: Engine, settings: Settings) -> None:
+    with Session(engine) as session:
+        shipped = model_version_for(session, None)
+        assert shipped.checkpoint_path == str(DEFAULT_MODEL.resolve())
+        assert shipped.pipeline == Pipeline.phantom and shipped.is_promoted
+        assert model_version_for(session, None).id == shipped.id
+        paper = model_version_for(session, PAPER_MODEL.resolve())
+        assert paper.id != shipped.id and not paper.is_promoted
+        assert model_version_for(session, PAPER_MODEL.resolve()).id == paper.id
+        assert model_version_for(session, DEFAULT_MODEL.resolve()).id == shipped.id
+
+
+def test_model_path_must_stay_inside_models_or_the_data_dir(
+    settings: Settings, tmp_path: Path
+) -> None:
+    options, path = parse_config({"model_path": "models/phantom/phantom_cnn.pt"}, settings)
+    assert path == PAPER_MODEL.resolve() and options.dense
+    outside = tmp_path / "elsewhere.pt"
+    outside.write_bytes(b"x")
+    for value in (str(outside), "models/../pyproject.toml", "  "):
+        with pytest.raises(ConfigError) as caught:
+            parse_config({"model_path": value}, settings)
+        assert caught.value.field == "config.model_path"
+    inside = settings.data_dir / "models" / "mine.pt"
+    inside.parent.mkdir(parents=True)
+    inside.write_bytes(b"x")
+    assert parse_config({"model_path": str(inside)}, settings)[1] == inside.resolve()
+
+
+def test_stage_progress_rises_through_the_pipeline() -> None:
+    seen: list[float] = []
+
+    class Context:
+        def progress(self, fraction: float, message: str = "") -> None:
+            seen.append(fraction)
+
+    report = stage_progress(Context())
+    report("accumulate", 0.0)
+    for f in np.linspace(0, 1, 11):
+        report("classify", f)
+    report("done", 1.0)
+    report("something new", 0.5)
+    assert seen == sorted(seen)
+    assert seen[0] == STAGES["accumulate"][0] and seen[-1] == STAGES["done"][0] < 1
+
+
+def test_a_run_needs_a_survey(engine: Engine, settings: Settings, tmp_path: Path) -> None:
+    context = JobContext(
+        job_id=1,
+        survey_id=None,
+        user_id=None,
+        engine=engine,
+        settings=settings,
+        workdir=tmp_path,
+        log=logging.getLogger("test"),
+        report_progress=lambda f, m: False,
+    )
+    with pytest.raises(ConfigError) as caught:
+        run_phantom(context, {})
+    assert caught.value.field == "survey_id"
