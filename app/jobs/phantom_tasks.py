@@ -19,7 +19,7 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 from sqlalchemy.engine import Engine
 from sqlmodel import Session, select
 
-from app.core.errors import ConfigError, NotFoundError
+from app.core.errors import ConfigError, ConflictError, NotFoundError
 from app.core.settings import Settings
 from app.io import open_survey
 from app.jobs.registry import JobContext, task
@@ -101,13 +101,17 @@ def model_version_for(session: Session, model_path: Path | None) -> ModelVersion
         if promoted is not None and Path(promoted.checkpoint_path).is_file():
             return promoted
         model_path = DEFAULT_MODEL.resolve()
-    known = session.exec(
-        select(ModelVersion).where(
-            ModelVersion.pipeline == Pipeline.phantom,
-            ModelVersion.checkpoint_path == str(model_path),
-        )
-    ).first()
-    return known or ensure_shipped_version(session, Pipeline.phantom, model_path, _card(model_path))
+    same_file = select(ModelVersion).where(
+        ModelVersion.pipeline == Pipeline.phantom,
+        ModelVersion.checkpoint_path == str(model_path),
+    )
+    known = session.exec(same_file).first()
+    if known is not None:
+        return known
+    try:
+        return ensure_shipped_version(session, Pipeline.phantom, model_path, _card(model_path))
+    except ConflictError:  # another worker created the row a moment ago
+        return session.exec(same_file).one()
 
 
 def stage_progress(context: JobContext):
