@@ -11,7 +11,7 @@ from sqlmodel import Session
 
 from app import __version__
 from app.api.errors import install_error_handlers
-from app.api.routes import auth, exports, guardrails, health, jobs, pillars, surveys, users
+from app.api.routes import auth, clutter, exports, guardrails, health, jobs, pillars, surveys, users
 from app.api.sample import load_sample_on_first_start
 from app.core.security import TokenSigner
 from app.core.settings import Settings, get_settings
@@ -56,4 +56,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(surveys.router)
     app.include_router(exports.router)
     app.include_router(guardrails.router)
+    app.include_router(clutter.router)
     return app

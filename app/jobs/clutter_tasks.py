@@ -41,6 +41,7 @@ from scipy.spatial import cKDTree
 from sqlmodel import Session
 
 from app.core.errors import ConfigError, ConflictError, InputError
+from app.core.settings import Settings
 from app.geometry.projection import pixel_indices, project
 from app.io import open_survey
 from app.io.survey import Camera, Frame, Survey
@@ -88,7 +89,17 @@ _STAGES = {
 # --- run:clutter --------------------------------------------------------------------------
 
 
-@task(clutter_review.RUN_KIND)
+def check_run_config(config: dict[str, Any], settings: Settings) -> None:
+    """Refuse a bad `run:clutter` config when the job is queued (422), not in the worker."""
+    clutter_config(config)
+
+
+def check_recompute_config(config: dict[str, Any], settings: Settings) -> None:
+    if config:
+        raise ConfigError(f"config.{next(iter(config))}", "clutter:recompute takes no options")
+
+
+@task(clutter_review.RUN_KIND, check=check_run_config)
 def run_clutter_task(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
     """The pipeline on the job's survey, its contract files in the workdir, and its instances
     (each pending) in the store in place of the previous run's."""
@@ -133,15 +144,16 @@ def run_clutter_task(context: JobContext, config: dict[str, Any]) -> dict[str, A
 
 def clutter_config(config: dict[str, Any]) -> ClutterConfig:
     """The job config as a ClutterConfig; an unknown key or a bad value names the field."""
+    config = dict(config or {})
     unknown = sorted(set(config) - set(ClutterConfig.model_fields))
     if unknown:
         known = ", ".join(ClutterConfig.model_fields)
-        raise ConfigError(unknown[0], f"not a clutter option (known: {known})")
+        raise ConfigError(f"config.{unknown[0]}", f"unknown field; known: {known}")
     try:
         return ClutterConfig.model_validate(config)
     except ValidationError as exc:
         first = exc.errors()[0]
-        field = ".".join(str(p) for p in first["loc"]) or "config"
+        field = ".".join(["config", *(str(p) for p in first["loc"])])
         raise ConfigError(field, f"{first['msg']} (got {first.get('input')!r})") from None
 
 
@@ -445,12 +457,11 @@ def _write_png(path: Path, rgb: np.ndarray) -> None:
 # --- clutter:recompute --------------------------------------------------------------------
 
 
-@task(clutter_review.RECOMPUTE_KIND)
+@task(clutter_review.RECOMPUTE_KIND, check=check_recompute_config)
 def recompute_clutter(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
     """The cleaned and removed maps (and labels) of the survey from the reviewers' decisions
     on the instances of its current clutter run."""
-    if config:
-        raise ConfigError(next(iter(config)), "clutter:recompute takes no options")
+    check_recompute_config(config, context.settings)
     started = time.perf_counter()
     sid = survey_id(context)
     with Session(context.engine) as session:

@@ -411,3 +411,11 @@ def run_folder_of(mask_paths: Sequence[str | None]) -> Path | None:
     if len(folders) > 1:
         raise ConfigError("mask_path", f"instances of one survey point at {len(folders)} runs")
     return folders.pop() if folders else None
+
+
+def has_review(session: Session, survey_id: int) -> bool:
+    """The survey has instances, or at least a finished clutter run (possibly with none)."""
+    first = session.connection().execute(
+        sa.select(_INSTANCE.c.id).where(_INSTANCE.c.survey_id == survey_id).limit(1)
+    )
+    return first.first() is not None or latest_run(session, survey_id) is not None

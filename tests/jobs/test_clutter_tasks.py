@@ -176,13 +176,13 @@ def test_recompute_applies_approvals_and_rejections(ran: dict) -> None:
 def test_bad_config_names_the_field(tmp_path: Path) -> None:
     settings = Settings(data_dir=tmp_path / "var")
     context = make_context(settings, None, 1, 1)
-    with pytest.raises(ConfigError, match="^mode:"):
+    with pytest.raises(ConfigError, match="^config.mode:"):
         run_clutter_task(context, {"mode": "everything"})
-    with pytest.raises(ConfigError, match="^padding:"):
+    with pytest.raises(ConfigError, match="^config.padding:"):
         run_clutter_task(context, {"padding": 3})
-    with pytest.raises(ConfigError, match="^dufomap_d_p:"):
+    with pytest.raises(ConfigError, match="^config.dufomap_d_p:"):
         run_clutter_task(context, {"dufomap_d_p": -1})
-    with pytest.raises(ConfigError, match="^force:"):
+    with pytest.raises(ConfigError, match="^config.force:"):
         recompute_clutter(context, {"force": True})
 
 
