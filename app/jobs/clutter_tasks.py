@@ -359,9 +359,11 @@ def _frame_rows(
         under = components[row[seed], col[seed]]
         on = under >= 0
         component = _dominant(owner[seed][on], under[on], units.count)
+    order = np.argsort(owner, kind="stable")  # each instance's points: one slice of `order`
+    starts = np.searchsorted(owner[order], np.arange(units.count + 1))
     rows = []
     for k in range(units.count):  # one image per instance
-        mine = owner == k
+        mine = order[starts[k] : starts[k + 1]]
         bbox = None if hi[k, 0] < 0 else [*lo[k].tolist(), *hi[k].tolist()]
         path = out / f"{k}.png"
         if bbox is not None and image is not None:
@@ -377,7 +379,7 @@ def _frame_rows(
                 "frame_id": frame.frame_id,
                 "instance_index": k,
                 "class_name": units.class_names[k],
-                "point_count": int(mine.sum()),
+                "point_count": len(mine),
                 "mask_path": str(path.resolve()),
                 "bbox": bbox,
                 "moving": units.moving[k],
@@ -395,7 +397,7 @@ def _crop(
     bbox: list[int],
     row: np.ndarray,
     col: np.ndarray,
-    mine: np.ndarray,
+    mine: np.ndarray,  # (M,) indices of the instance's points
     removed: np.ndarray,
 ) -> np.ndarray:
     """The image around the instance: its mask component tinted in its class colour, its
@@ -408,7 +410,7 @@ def _crop(
         on = components[v0 : v1 + 1, u0 : u1 + 1] == component
         crop[on] = 0.5 * crop[on] + 0.5 * tint.astype(np.float32)
     crop = crop.astype(np.uint8)
-    dots = mine & (row >= 0)
+    dots = mine[row[mine] >= 0]
     colours = np.where(removed[dots, None], IMAGE_RGB[True], IMAGE_RGB[False]).astype(np.uint8)
     crop[row[dots] - v0, col[dots] - u0] = colours
     return crop
@@ -422,7 +424,8 @@ def _class_colour(name: str) -> np.ndarray:
 
 
 def _top_view(xyz: np.ndarray, mine: np.ndarray, removed: np.ndarray) -> np.ndarray:
-    """A top view of the instance and its surroundings (for instances outside the image)."""
+    """A top view of the instance (`mine`: its point indices) and its surroundings, for
+    instances outside the image."""
     own = xyz[mine, :2]
     centre = (own.min(axis=0) + own.max(axis=0)) / 2
     half = max(float(np.ptp(own, axis=0).max()) / 2 + 2.0, 4.0)

@@ -278,12 +278,21 @@ def decide(
         ],
     )
     after = _states(session, survey_id, ids)
-    lost = [after[w.instance_id] for w in writes if after[w.instance_id].version != w.version + 1]
-    if lost or (conn.dialect.supports_sane_multi_rowcount and result.rowcount != len(writes)):
-        session.rollback()  # another writer got in between the check and the update
+    applied = all(
+        w.instance_id in after and after[w.instance_id].version == w.version + 1 for w in writes
+    )
+    if conn.dialect.supports_sane_multi_rowcount:
+        applied &= result.rowcount == len(writes)
+    if not applied:  # another writer got in between the check and the update: undo all
+        session.rollback()
+        now_states = _states(session, survey_id, ids)
         raise StaleWriteError(
             "clutter decisions were changed by someone else meanwhile; reload and retry",
-            current=[s.current() for s in lost],
+            current=[
+                now_states[w.instance_id].current()
+                for w in writes
+                if w.instance_id in now_states and now_states[w.instance_id].version != w.version
+            ],
         )
     conn.execute(
         sa.insert(_AUDIT),

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from sqlmodel import Session, select
 
-from app.core.errors import ConfigError
+from app.core.errors import ConfigError, StaleWriteError
 from app.core.settings import Settings
 from app.io import open_survey
 from app.jobs.clutter_tasks import frame_instances, recompute_clutter, run_clutter_task
@@ -22,6 +22,7 @@ from app.jobs.registry import JobContext, task_for
 from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.fusion import FrameEvidence
 from app.simulate.survey import SimulationConfig, simulate
+from app.store import clutter_review
 from app.store.clutter_review import (
     DecisionWrite,
     decide,
@@ -249,4 +250,44 @@ def test_rerun_replaces_the_instances(tmp_path: Path) -> None:
         assert len(decisions) == 3 and {d.decision for d in decisions} == {Decision.pending}
         assert [d[:3] for d in review_decisions(session, 1)][0][2] == Decision.pending
         assert instances[0].bbox == [1, 2, 3, 4]
+    engine.dispose()
+
+
+def test_a_decision_between_check_and_update_makes_the_batch_stale(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Another reviewer decides right after this batch's version check: the guarded update
+    notices, nothing of the batch is written, and 409's `current` shows the other decision."""
+    engine = make_engine(f"sqlite:///{tmp_path / 'db.sqlite3'}")
+    init_db(engine)
+    with Session(engine) as session:
+        session.add(Survey(id=1, name="s", format="sim", source_path="/nowhere"))
+        session.commit()
+        row = {"frame_id": "a", "class_name": "car", "point_count": 5}
+        replace_instances(session, 1, [{**row, "instance_index": i} for i in range(2)], None)
+        first, second = session.exec(select(ClutterInstance.id)).all()
+    check = clutter_review._states
+    raced: list[bool] = []
+
+    def check_then_race(session: Session, survey_id: int, ids: list[int]):
+        states = check(session, survey_id, ids)
+        if not raced:
+            raced.append(True)
+            with Session(engine) as other:
+                decide(other, 1, [DecisionWrite(first, 1, Decision.rejected)], None)
+        return states
+
+    monkeypatch.setattr(clutter_review, "_states", check_then_race)
+    writes = [DecisionWrite(i, 1, Decision.approved) for i in (first, second)]
+    with Session(engine) as session, pytest.raises(StaleWriteError) as stale:
+        decide(session, 1, writes, None)
+    assert [(c["instance_id"], c["decision"], c["version"]) for c in stale.value.current] == [
+        (first, "rejected", 2)
+    ]
+    with Session(engine) as session:
+        _, states = list_instances(session, 1)
+    assert [(s.decision, s.version) for s in states] == [
+        (Decision.rejected, 2),
+        (Decision.pending, 1),
+    ]
     engine.dispose()
