@@ -11,11 +11,23 @@ from sqlmodel import Session
 
 from app import __version__
 from app.api.errors import install_error_handlers
-from app.api.routes import auth, clutter, exports, guardrails, health, jobs, pillars, surveys, users
+from app.api.routes import (
+    auth,
+    clutter,
+    exports,
+    guardrails,
+    health,
+    jobs,
+    models,
+    pillars,
+    surveys,
+    users,
+)
 from app.api.sample import load_sample_on_first_start
 from app.core.security import TokenSigner
 from app.core.settings import Settings, get_settings
 from app.jobs.pool import WorkerPool
+from app.jobs.retraining import RetrainingTrigger
 from app.store.db import init_db, make_engine
 from app.store.users import ensure_first_admin
 
@@ -37,6 +49,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.engine = engine
         app.state.token_signer = TokenSigner.for_data_dir(settings.data_dir)
         app.state.worker_pool = WorkerPool(settings, engine).start()  # after init_db
+        app.state.retraining_trigger = RetrainingTrigger(engine, settings)
         yield
         app.state.worker_pool.stop()
         engine.dispose()
@@ -49,12 +62,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.settings = settings
     install_error_handlers(app)
-    for router in (health.router, auth.router, users.router):
-        app.include_router(router)
-    app.include_router(pillars.router)
-    app.include_router(jobs.router)
-    app.include_router(surveys.router)
+    for module in (health, auth, users, surveys, jobs, pillars, clutter, guardrails, models):
+        app.include_router(module.router)
     app.include_router(exports.router)
-    app.include_router(guardrails.router)
-    app.include_router(clutter.router)
     return app

@@ -4,8 +4,10 @@ unless one is already waiting or running."""
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
+from sqlalchemy.engine import Engine
 from sqlmodel import Session, select
 
 from app.core.settings import Settings
@@ -47,4 +49,19 @@ def maybe_queue_retraining(session: Session, settings: Settings) -> Job | None:
         return None
     if state.new_labels < state.threshold:
         return None
-    return enqueue(session, TRAIN_PHANTOM, {"trigger": "labels"}, None, None)
+    return enqueue(session, TRAIN_PHANTOM, {"trigger": "labels"}, None, None, settings)
+
+
+class RetrainingTrigger:
+    """Checks the trigger after label writes, off the request path (FastAPI background task),
+    one check at a time so two writes finishing together cannot queue two jobs."""
+
+    def __init__(self, engine: Engine, settings: Settings):
+        self.engine, self.settings = engine, settings
+        self._lock = threading.Lock()
+
+    def __call__(self) -> Job | None:
+        if not self.settings.retrain_every:
+            return None
+        with self._lock, Session(self.engine) as session:
+            return maybe_queue_retraining(session, self.settings)

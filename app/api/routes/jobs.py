@@ -12,7 +12,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Query, Response
 from fastapi.responses import FileResponse, PlainTextResponse
 from pydantic import BaseModel, Field
 from sqlmodel import select
@@ -154,8 +154,11 @@ def read_job(job_id: int, _: CurrentUser, session: SessionDep) -> JobPublic:
 
 @router.get(
     "/{job_id}/log",
-    response_class=PlainTextResponse,
-    responses={**errors(404, 422), 200: {"content": {"text/plain": {}}}},
+    response_class=Response,  # errors stay JSON; the log itself is text/plain
+    responses={
+        **errors(404, 422),
+        200: {"content": {"text/plain": {"schema": {"type": "string"}}}, "description": "log"},
+    },
 )
 def read_log(
     job_id: int,

@@ -88,10 +88,12 @@ def promote(model_id: int, admin: Admin, session: SessionDep) -> ModelVersionPub
 
 
 @router.post("/retrain", response_model=JobRef, status_code=202, responses=errors(403, 422))
-def retrain(body: RetrainRequest, admin: Admin, session: SessionDep) -> JobRef:
+def retrain(
+    body: RetrainRequest, admin: Admin, session: SessionDep, settings: SettingsDep
+) -> JobRef:
     """Queue a training job on the reviewed labels now (admin)."""
     kind = TRAINABLE.get(body.pipeline)
     if kind is None:
         raise ConfigError("pipeline", f"{body.pipeline.value} has no trainable model")
-    job = enqueue(session, kind, body.config, None, admin.id)
+    job = enqueue(session, kind, body.config, None, admin.id, settings)
     return JobRef(job_id=job.id, kind=job.kind, status=job.status.value)

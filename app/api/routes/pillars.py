@@ -9,7 +9,7 @@ from __future__ import annotations
 from typing import Annotated
 
 import numpy as np
-from fastapi import APIRouter, Query, Request, Response
+from fastapi import APIRouter, BackgroundTasks, Query, Request, Response
 from pydantic import BaseModel, Field, model_validator
 
 from app.api.deps import Annotator, CurrentUser, SessionDep
@@ -113,16 +113,21 @@ def _write_out(result: LabelWrite) -> LabelWriteOut:
     )
 
 
-def _after_write(request: Request, session, user_id: int) -> None:
-    """Reviewed labels count towards the retraining trigger."""
+def _after_write(request: Request, background: BackgroundTasks) -> None:
+    """Reviewed labels count towards the retraining trigger, checked after the answer is sent."""
     trigger = getattr(request.app.state, "retraining_trigger", None)
     if trigger is not None:
-        trigger(session, user_id)
+        background.add_task(trigger)
 
 
 @router.put("/labels", response_model=LabelWriteOut, responses=errors(403, 409, 422))
 def put_labels(
-    survey_id: int, batch: LabelBatch, user: Annotator, session: SessionDep, request: Request
+    survey_id: int,
+    batch: LabelBatch,
+    user: Annotator,
+    session: SessionDep,
+    request: Request,
+    background: BackgroundTasks,
 ) -> LabelWriteOut:
     """Write a batch of human labels in one transaction (one undoable action). Pillars may be
     addressed by cell id or by a world position; a stale `version` rejects the whole batch with
@@ -139,7 +144,7 @@ def put_labels(
     versions = [i.version for i in items]
     checked = versions if any(v is not None for v in versions) else None
     result = write_labels(session, survey_id, user.id, cell_ids, labels, checked)
-    _after_write(request, session, user.id)
+    _after_write(request, background)
     return _write_out(result)
 
 
