@@ -159,7 +159,16 @@ def model_records(
     return out
 
 
-@task("run:guardrail")
+def check_run_config(config: dict[str, Any], settings: Settings) -> None:
+    """Refuse a bad `run:guardrail` config when the job is queued (422), not in the worker."""
+    guardrail_options(config, settings)
+
+
+def check_rebuild_config(config: dict[str, Any], settings: Settings) -> None:
+    _validated(dict(config or {}), REBUILD_FIELDS)
+
+
+@task("run:guardrail", check=check_run_config)
 def run_guardrail(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
     cfg, model_path = guardrail_options(config, context.settings)
     survey_id = _survey_id(context)
@@ -247,7 +256,7 @@ def _stage_rows(saved: ReconstructionInput, component: np.ndarray, index: np.nda
     return at
 
 
-@task("guardrail:rebuild")
+@task("guardrail:rebuild", check=check_rebuild_config)
 def rebuild_guardrail_models(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
     survey_id = _survey_id(context)
     _validated(dict(config or {}), REBUILD_FIELDS)

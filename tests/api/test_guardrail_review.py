@@ -9,6 +9,7 @@ import io
 import json
 import logging
 import sqlite3
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -22,7 +23,7 @@ from app.core.settings import Settings
 from app.jobs.guardrail_tasks import run_guardrail
 from app.jobs.registry import JobContext
 from app.store.db import make_engine
-from app.store.models import Job
+from app.store.models import Job, JobStatus
 from tests.api.server import Server
 
 BASE = "/surveys/1/guardrails"
@@ -46,7 +47,10 @@ def review(sample_server: Server) -> Iterator[Review]:
     settings = Settings(data_dir=sample_server.data_dir, sample_dir=None)
     engine = make_engine(f"sqlite:///{sample_server.data_dir / 'mmsclean.sqlite3'}")
     with Session(engine) as session:
-        job = Job(kind="run:guardrail", survey_id=1, config={"head": "geometry"})
+        # claimed by this test (running), so that the server's workers leave it alone
+        job = Job(
+            kind="run:guardrail", survey_id=1, config={"head": "geometry"}, status=JobStatus.running
+        )
         session.add(job)
         session.commit()
         job_id = job.id
@@ -58,6 +62,10 @@ def review(sample_server: Server) -> Iterator[Review]:
         report_progress=lambda fraction, message: False,
     )  # fmt: skip
     result = run_guardrail(context, {"head": "geometry"})
+    with Session(engine) as session:
+        job = session.get(Job, job_id)
+        job.status, job.progress, job.result = JobStatus.succeeded, 1.0, result
+        session.commit()
     engine.dispose()
     clients = (
         sample_server.client(),
@@ -274,3 +282,21 @@ def test_rebuild_is_for_reviewers(review: Review) -> None:
     bad = review.reviewer.post(f"{BASE}/rebuild", json={"join_gap": -1})
     assert bad.status_code == 422 and "join_gap" in bad.json()["detail"]
     assert review.reviewer.post("/surveys/999/guardrails/rebuild").status_code == 404
+    # the server's workers run it: decided models whose slices did not change keep their
+    # decision, every other model is rebuilt and pending
+    deadline = time.monotonic() + 300
+    status = "queued"
+    while status in ("queued", "running") and time.monotonic() < deadline:
+        time.sleep(0.5)
+        with review.db() as db:
+            status, result, message = db.execute(
+                "SELECT status, result, message FROM job WHERE id = ?", (job["job_id"],)
+            ).fetchone()
+    assert status == "succeeded", (status, message)
+    counts = json.loads(result)["counts"]
+    models = review.reviewer.get(f"{BASE}/models").json()
+    assert len(models) == counts["models"] == counts["kept"] + counts["new"] > 0
+    assert sum(m["status"] != "pending" for m in models) == counts["kept"]
+    with review.db() as db:
+        events = db.execute("SELECT COUNT(*) FROM audit_event WHERE action = 'guardrail.rebuild'")
+        assert events.fetchone()[0] == 1

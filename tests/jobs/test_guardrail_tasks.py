@@ -20,7 +20,7 @@ from app.jobs.guardrail_tasks import (
     rebuild_guardrail_models,
     run_guardrail,
 )
-from app.jobs.registry import JobContext, task_for
+from app.jobs.registry import JobContext, check_config, task_for
 from app.simulate.survey import SimulationConfig, simulate
 from app.store.db import init_db, make_engine
 from app.store.guardrail_review import (
@@ -34,6 +34,7 @@ from app.store.models import (
     AuditEvent,
     GuardrailSlice,
     Job,
+    JobStatus,
     ModelStatus,
     Role,
     Survey,
@@ -71,7 +72,12 @@ class Jobs:
 
     def context(self, kind: str) -> JobContext:
         with Session(self.engine) as session:
-            job = Job(kind=kind, survey_id=self.survey_id, created_by=self.reviewer.id)
+            job = Job(
+                kind=kind,
+                survey_id=self.survey_id,
+                created_by=self.reviewer.id,
+                status=JobStatus.running,
+            )
             session.add(job)
             session.commit()
             job_id = job.id
@@ -253,6 +259,9 @@ def test_bad_config_names_the_field(jobs: Jobs, tmp_path: Path) -> None:
         with pytest.raises(ConfigError) as err:
             run_guardrail(jobs.context("run:guardrail"), config)
         assert err.value.field == field
+    with pytest.raises(ConfigError) as err:  # refused when queued, too
+        check_config("run:guardrail", {"spacing": 0}, jobs.settings)
+    assert err.value.field == "config.spacing"
     with pytest.raises(ConflictError, match="no guardrail run"):
         rebuild_guardrail_models(jobs.context("guardrail:rebuild"), {})
     with pytest.raises(ConfigError) as err:

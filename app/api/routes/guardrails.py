@@ -19,6 +19,7 @@ from app.api.deps import Annotator, CurrentUser, Reviewer, SessionDep
 from app.api.errors import errors
 from app.core.errors import ConflictError, NotFoundError
 from app.jobs.guardrail_tasks import preview_correction, slice_position
+from app.jobs.queue import enqueue
 from app.store.guardrail_review import (
     MAX_LABELS_PER_WRITE,
     GuardrailModelPublic,
@@ -224,8 +225,6 @@ def post_rebuild(
 ) -> JobRef:
     """Queue `guardrail:rebuild`: the guardrails again from the corrected slice labels
     (reviewer). Decided models whose slices did not change keep their decision."""
-    from app.jobs.queue import enqueue
-
     survey_or_404(session, survey_id)
     if latest_run(session, survey_id) is None:
         raise ConflictError(f"survey {survey_id} has no guardrail run yet; run run:guardrail")
