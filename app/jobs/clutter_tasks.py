@@ -105,7 +105,8 @@ def run_clutter_task(context: JobContext, config: dict[str, Any]) -> dict[str, A
     (each pending) in the store in place of the previous run's."""
     cfg = clutter_config(config)
     survey = _open_survey(context)
-    segmenter = ESPNetv2Segmenter(context.settings.weights_dir) if survey.cameras else None
+    camera = ClutterPipeline(cfg).camera(survey)  # None: no images to segment
+    segmenter = None if camera is None else ESPNetv2Segmenter(context.settings.weights_dir)
     result, cached, segmentation_s = run_clutter(
         survey,
         cfg,
@@ -117,7 +118,6 @@ def run_clutter_task(context: JobContext, config: dict[str, Any]) -> dict[str, A
     out = context.workdir
     report = write_clutter_outputs(survey, out, cfg, result, cached, segmentation_s)
     context.progress(0.8, "instances for review")
-    camera = ClutterPipeline(cfg).camera(survey)
     rows = write_review_units(survey, result, cfg, camera, cached, out / "instances", context)
     with Session(context.engine) as session:
         clutter_review.replace_instances(

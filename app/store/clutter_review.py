@@ -21,7 +21,7 @@ from typing import Any
 import sqlalchemy as sa
 from sqlmodel import Session, col, select
 
-from app.core.errors import ConfigError, NotFoundError, StaleWriteError
+from app.core.errors import ConfigError, ConflictError, NotFoundError, StaleWriteError
 from app.store.db import commit
 from app.store.models import (
     AuditEvent,
@@ -418,7 +418,7 @@ def run_folder_of(mask_paths: Sequence[str | None]) -> Path | None:
     them all), so one folder is expected; more is an inconsistent store."""
     folders = {Path(p).parent.parent.parent for p in mask_paths if p}
     if len(folders) > 1:
-        raise ConfigError("mask_path", f"instances of one survey point at {len(folders)} runs")
+        raise ConflictError(f"the survey's clutter instances come from {len(folders)} runs")
     return folders.pop() if folders else None
 
 
