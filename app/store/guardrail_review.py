@@ -454,42 +454,33 @@ def replace_guardrail_run(
         label[at[ok]] = o[ok, 3].astype(np.int64)
         by[at[ok]] = o[ok, 4].astype(np.int64)
         kept = int(ok.sum())
+    first_slice, first_model = _next_id(session, GuardrailSlice), _next_id(session, GuardrailModel)
     connection = session.connection()
     connection.execute(sa.delete(GuardrailSlice).where(GuardrailSlice.survey_id == survey_id))
     connection.execute(sa.delete(GuardrailModel).where(GuardrailModel.survey_id == survey_id))
     now = utcnow()
     probability = np.clip(np.asarray(slices.probability, dtype=np.float64), 0.0, 1.0)
+    columns = {
+        "id": np.arange(first_slice, first_slice + len(slices)),
+        "slice_index": slices.slice_index,
+        "component_id": slices.component,
+        "station_m": slices.station,
+        "predicted_label": slices.predicted,
+        "probability": probability,
+        "corrected_label": slices.corrected,
+        "label": label,
+    }
+    plain = {k: np.asarray(v).tolist() for k, v in columns.items()}  # Python ints and floats
+    labelled_by = [None if u < 0 else u for u in by.tolist()]
+    fixed = {"survey_id": survey_id, "version": 1, "created_at": now, "updated_at": now}
     rows = [
-        {
-            "survey_id": survey_id,
-            "slice_index": int(i),
-            "component_id": int(c),
-            "station_m": float(s),
-            "predicted_label": int(p),
-            "probability": float(q),
-            "corrected_label": int(k),
-            "label": int(lab),
-            "labelled_by": None if u < 0 else int(u),
-            "version": 1,
-            "created_at": now,
-            "updated_at": now,
-        }  # fmt: skip
-        for c, i, s, p, q, k, lab, u in zip(
-            slices.component,
-            slices.slice_index,
-            slices.station,
-            slices.predicted,
-            probability,
-            slices.corrected,
-            label,
-            by,
-            strict=True,
-        )  # fmt: skip
+        {**fixed, **dict(zip(plain, values, strict=True)), "labelled_by": user}
+        for *values, user in zip(*plain.values(), labelled_by, strict=True)
     ]
     if rows:
         connection.execute(sa.insert(GuardrailSlice.__table__), rows)
     for index, record in enumerate(models):
-        session.add(_model_row(survey_id, index, record))
+        session.add(_model_row(survey_id, index, record, first_model + index))
     audit(
         session, user_id, INGEST_ACTION, "survey", survey_id, job_id=job_id, stage=stage_path,
         config=config, slices=len(slices), human_labels_kept=kept,
@@ -504,10 +495,17 @@ def replace_guardrail_run(
     }
 
 
-def _model_row(survey_id: int, index: int, record: ModelRecord) -> GuardrailModel:
+def _next_id(session: Session, table: type[GuardrailSlice] | type[GuardrailModel]) -> int:
+    """Above every id in the table before a replacement: SQLite would hand a replaced row's id
+    to a new row, and a client holding the old id and version 1 would then write to it."""
+    return int(session.exec(select(func.max(table.id))).one() or 0) + 1
+
+
+def _model_row(survey_id: int, index: int, record: ModelRecord, id: int) -> GuardrailModel:
     params = dict(record.params)
     params["slices"] = [[int(c), int(i)] for c, i in record.slices]
     return GuardrailModel(
+        id=id,
         survey_id=survey_id,
         guardrail_index=index,
         kind=GuardrailKind(record.kind),
@@ -553,13 +551,14 @@ def replace_guardrail_models(
         else:
             keep[same.id] = same
     gone = [r for r in existing if r.id not in keep]
+    first = _next_id(session, GuardrailModel)
     for r in gone:
         session.delete(r)
     session.flush()  # free the guardrail indices before reusing them
     taken = {r.guardrail_index for r in keep.values()}
     free = (i for i in range(len(existing) + len(models) + 1) if i not in taken)
-    for record in new:
-        session.add(_model_row(survey_id, next(free), record))
+    for n, record in enumerate(new):
+        session.add(_model_row(survey_id, next(free), record, first + n))
     audit(
         session, user_id, "guardrail.rebuild", "survey", survey_id, job_id=job_id,
         run_event=run.event_id, kept=sorted(keep), removed=[r.id for r in gone],

@@ -12,7 +12,7 @@ import pytest
 import trimesh
 from sqlmodel import Session, select
 
-from app.core.errors import ConfigError, ConflictError
+from app.core.errors import ConfigError, ConflictError, NotFoundError
 from app.core.settings import Settings
 from app.jobs.guardrail_tasks import (
     STAGE_FILE,
@@ -167,6 +167,12 @@ def test_human_labels_survive_a_rerun(jobs: Jobs) -> None:
             select(GuardrailSlice).where(GuardrailSlice.survey_id == jobs.survey_id)
         ).all()
     assert len(after) == len(rows)  # the same survey gives the same slices
+    # new ids: a client still holding an old id and version gets 404, never another slice
+    assert min(r.id for r in after) > max(r.id for r in rows)
+    with jobs.session() as session, pytest.raises(NotFoundError):
+        put_slice_labels(
+            session, jobs.survey_id, [SliceLabelEdit(rows[1].id, 1, 1)], jobs.annotator
+        )
     for r in after:
         key = (r.component_id, r.slice_index)
         if key in human:
@@ -230,6 +236,7 @@ def test_rebuild_with_unchanged_labels_reproduces_the_run(jobs: Jobs) -> None:
     assert set(after) == set(before)
     for kind, m in after.items():  # pending ones are replaced by identical reconstructions
         assert m.mesh_path != before[kind].mesh_path  # written by the rebuild job
+        assert m.id > max(b.id for b in before.values())  # ids are never handed out twice
         assert m.params["poles"] == before[kind].params["poles"]
         assert m.params["slices"] == before[kind].params["slices"]
 
