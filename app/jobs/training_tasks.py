@@ -15,6 +15,7 @@ from sqlalchemy import text
 from sqlmodel import Session
 
 from app.core.errors import ConfigError, NotFoundError
+from app.core.settings import Settings
 from app.io import open_survey
 from app.jobs.registry import JobContext, task
 from app.pipelines.phantom.config import PhantomConfig
@@ -88,7 +89,11 @@ def _base_model(session: Session) -> tuple[Path, int | None]:
     return Path(version.checkpoint_path), version.id
 
 
-@task("train:phantom")
+def check_phantom_config(config: dict[str, Any], _settings: Settings) -> None:
+    parse_config(PhantomRetrainConfig, config)
+
+
+@task("train:phantom", check=check_phantom_config)
 def train_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
     cfg = parse_config(PhantomRetrainConfig, config)
     phantom = PhantomConfig()
