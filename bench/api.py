@@ -238,7 +238,8 @@ def main() -> None:
     args = parser.parse_args()
 
     with tempfile.TemporaryDirectory(prefix="mmsclean-bench-api-") as tmp:
-        server = Server(Path(tmp) / "var", env={"MMSCLEAN_SAMPLE_DIR": "", "MMSCLEAN_WORKERS": "1"})
+        env = {"MMSCLEAN_SAMPLE_DIR": "", "MMSCLEAN_WORKERS": "1", "MMSCLEAN_RETRAIN_EVERY": "0"}
+        server = Server(Path(tmp) / "var", env=env)
         server.start()
         try:
             upsert = bench_upsert(server, args.batches)
