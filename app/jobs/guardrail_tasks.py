@@ -25,13 +25,16 @@ from app.io import open_survey
 from app.jobs.registry import JobContext, task
 from app.pipelines.guardrail.correction import correct_labels
 from app.pipelines.guardrail.pipeline import (
+    DEFAULT_MODEL,
     GuardrailConfig,
     GuardrailInstance,
     GuardrailPipeline,
+    GuardrailResult,
     ReconstructionInput,
     rebuild_guardrails,
 )
 from app.pipelines.guardrail.run import write_guardrail_folder
+from app.pipelines.guardrail.train import load_heads
 from app.pipelines.outputs import write_report
 from app.store.guardrail_review import (
     GuardrailRun,
@@ -45,9 +48,11 @@ from app.store.guardrail_review import (
     survey_or_404,
     trajectory_position,
 )
-from app.store.models import GuardrailKind, GuardrailSlice
+from app.store.model_versions import ensure_shipped_version, promoted_version
+from app.store.models import GuardrailKind, GuardrailSlice, Pipeline
 
 STAGE_FILE = "guardrail_slices.npz"
+FEATURES_FILE = "slice_features.npz"  # classifier inputs per slice: what retraining reads
 MODELS_DIR = Path(__file__).resolve().parents[2] / "models"
 REBUILD_FIELDS = ("min_guardrail_length", "join_gap", "join_lateral", "ground_clearance")
 
@@ -93,6 +98,35 @@ def allowed_model_path(value: object, settings: Settings) -> Path | None:
         raise ConfigError("config.model_path", f"{value} is outside {where}")
     if not path.is_file():
         raise ConfigError("config.model_path", f"{path} does not exist")
+    return path
+
+
+def promoted_classifier(session: Session) -> Path:
+    """The promoted guardrail classifier (retrained from reviewed slices), else the shipped one."""
+    version = promoted_version(session, Pipeline.guardrail)
+    if version is not None and Path(version.checkpoint_path).is_file():
+        return Path(version.checkpoint_path)
+    _, card = load_heads(DEFAULT_MODEL)
+    return Path(
+        ensure_shipped_version(session, Pipeline.guardrail, DEFAULT_MODEL, card).checkpoint_path
+    )
+
+
+def save_slice_features(path: Path, result: GuardrailResult) -> Path:
+    """Per slice: its key (component, slice index), the classifier's inputs (image embedding
+    as float16, geometric features) and whether a camera crop showed it."""
+    stage = result.stage
+    partial = path.with_suffix(".partial.npz")
+    np.savez(
+        partial,
+        component=stage.slices.component,
+        slice_index=stage.slices.station_index,
+        embedding=stage.embedding.astype(np.float16),
+        geometry=stage.geometry.astype(np.float32),
+        geometry_names=np.array(stage.geometry_names),
+        has_crop=stage.has_crop,
+    )
+    partial.replace(path)
     return path
 
 
@@ -175,6 +209,7 @@ def run_guardrail(context: JobContext, config: dict[str, Any]) -> dict[str, Any]
     with Session(context.engine) as session:
         record = survey_or_404(session, survey_id)
         source, fmt = record.source_path, record.format
+        model_path = model_path or promoted_classifier(session)
     started = time.perf_counter()
     survey = open_survey(source, fmt)
     context.progress(0.0, "loading the slice classifier")
@@ -185,6 +220,7 @@ def run_guardrail(context: JobContext, config: dict[str, Any]) -> dict[str, Any]
     report = write_guardrail_folder(survey, pipeline, result, out, started)
     saved = ReconstructionInput.of(result.stage, pipeline.config)
     stage_path = saved.save(out / STAGE_FILE)
+    save_slice_features(out / FEATURES_FILE, result)
     entries = {e["id"]: e for e in report["guardrails"]}
     files = [
         {k: str(out / v) for k, v in entries[g.id]["files"].items()}

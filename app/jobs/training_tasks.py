@@ -1,7 +1,7 @@
 """Retraining from reviewed labels: `train:phantom` fine-tunes the promoted phantom CNN on the
-human pillar labels in the store, scores the new and the current network on labels held out of
-training, and promotes the new version only when it is not worse (an admin may promote any
-version by hand)."""
+human pillar labels in the store, `train:guardrail` the slice classifier's heads on the slices
+people labelled; both score the new and the current model on labels held out of training and
+promote the new version only when it is not worse (an admin may promote any version by hand)."""
 
 from __future__ import annotations
 
@@ -17,19 +17,20 @@ from sqlmodel import Session
 from app.core.errors import ConfigError, NotFoundError
 from app.core.settings import Settings
 from app.io import open_survey
+from app.jobs.guardrail_tasks import FEATURES_FILE, promoted_classifier
 from app.jobs.registry import JobContext, task
+from app.metrics.classification import binary_scores
+from app.metrics.splits import held_out_blocks
+from app.pipelines.guardrail.classifier import SliceHead, predict
+from app.pipelines.guardrail.dataset import SliceSamples
+from app.pipelines.guardrail.train import fit_head, load_heads, save_heads
 from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.dataset import concatenate
-from app.pipelines.phantom.finetune import (
-    LabelledPillars,
-    finetune,
-    held_out_blocks,
-    labelled_samples,
-    score,
-)
+from app.pipelines.phantom.finetune import LabelledPillars, finetune, labelled_samples, score
 from app.pipelines.phantom.model import DEFAULT_MODEL, load_model, save_model
 from app.pipelines.phantom.pipeline import accumulate
 from app.pipelines.phantom.train import TrainConfig
+from app.store.guardrail_review import latest_run, match_slices
 from app.store.model_versions import ensure_shipped_version, promoted_version, register_version
 from app.store.models import Pipeline, Survey
 from app.store.pillar_labels import STORE_GRID
@@ -123,7 +124,8 @@ def train_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]
         name, source, fmt = surveys[survey_id]
         xyz = accumulate(open_survey(source, fmt), with_reference=False).xyz
         pillars = np.stack(STORE_GRID.decode(cells), axis=1)
-        held = held_out_blocks(pillars, phantom.cell_size, cfg.block_size, cfg.holdout, cfg.seed)
+        centres = (pillars + 0.5) * phantom.cell_size
+        held = held_out_blocks(centres, cfg.block_size, cfg.holdout, cfg.seed)
         context_branch = base_net.context > 0
         for part, mask, rotations in ((train_parts, ~held, cfg.rotations), (val_parts, held, 1)):
             if mask.any():
@@ -194,3 +196,179 @@ def train_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]
         "validation_macro_f1": new_scores.macro.f1,
         "baseline_macro_f1": base_scores.macro.f1,
     }
+
+
+# --- guardrail ----------------------------------------------------------------------------
+
+
+class GuardrailRetrainConfig(BaseModel):
+    survey_ids: list[int] | None = Field(None, description="surveys whose slices to use; all")
+    holdout: float = Field(0.25, gt=0, lt=1, description="share of road blocks held out")
+    block_size: float = Field(20.0, gt=0, description="metres of road kept whole by the split")
+    epochs: int = Field(30, ge=1, le=500)
+    lr: float = Field(3e-4, gt=0, description="fine-tuning Adam rate (training: 1e-3)")
+    seed: int = Field(0, ge=0)
+    min_labels: int = Field(20, ge=1, description="fewer reviewed slices: refuse to train")
+    trigger: Literal["on demand", "labels"] = "on demand"
+
+
+def check_guardrail_config(config: dict[str, Any], _settings: Settings) -> None:
+    parse_config(GuardrailRetrainConfig, config)
+
+
+def reviewed_slices(session: Session, survey_ids: list[int] | None) -> dict[int, np.ndarray]:
+    """survey id -> (S, 4) float64 [component, slice index, station, label] of the slices a
+    person labelled."""
+    rows = (
+        session.connection()
+        .execute(
+            text(
+                "SELECT survey_id, component_id, slice_index, station_m, label "
+                "FROM guardrail_slice WHERE labelled_by IS NOT NULL"
+            )
+        )
+        .all()
+    )
+    by_survey: dict[int, list] = {}
+    for survey, *rest in rows:
+        if survey_ids is None or survey in survey_ids:
+            by_survey.setdefault(int(survey), []).append(rest)
+    return {s: np.array(r, dtype=np.float64) for s, r in by_survey.items()}
+
+
+def _slice_samples(
+    features: Path, reviewed: np.ndarray, survey_id: int
+) -> tuple[SliceSamples, np.ndarray, np.ndarray]:
+    """The reviewed slices' classifier inputs from a run's saved features, with whether a
+    camera crop showed each and its station (slices missing from the run are left out)."""
+    with np.load(features) as f:
+        at = match_slices(
+            reviewed[:, 0].astype(np.int64), reviewed[:, 1].astype(np.int64),
+            f["component"], f["slice_index"],
+        )  # fmt: skip
+        found = at >= 0
+        rows = at[found]
+        return (
+            SliceSamples(
+                embedding=f["embedding"][rows].astype(np.float32),
+                geometry=f["geometry"][rows].astype(np.float32),
+                label=reviewed[found, 3].astype(np.int64),
+                group=np.full(int(found.sum()), survey_id, dtype=np.int64),
+                geometry_names=[str(n) for n in f["geometry_names"]],
+            ),
+            f["has_crop"][rows],
+            reviewed[found, 2],
+        )
+
+
+def pipeline_scores(heads: dict[str, SliceHead], samples: SliceSamples, has_crop: np.ndarray):
+    """Guardrail-slice scores as the pipeline predicts: the image+geometry head where a camera
+    crop shows the slice, the geometry head elsewhere."""
+    guess = np.zeros(len(samples.label), dtype=bool)
+    for name, where in (("image+geometry", has_crop), ("geometry", ~has_crop)):
+        if where.any():
+            probability = predict(heads[name], samples.embedding[where], samples.geometry[where])
+            guess[where] = probability[:, 1] >= 0.5
+    scores = binary_scores(samples.label == 1, guess)
+    accuracy = 100.0 * float((guess == (samples.label == 1)).mean()) if len(guess) else 0.0
+    return {**scores.as_dict(), "accuracy": accuracy}
+
+
+@task("train:guardrail", check=check_guardrail_config)
+def train_guardrail(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
+    """Fine-tune the promoted slice classifier's heads on the slices people labelled (the
+    frozen image encoder's embeddings saved by each run), score new and current heads on
+    held-out road blocks, promote when not worse."""
+    cfg = parse_config(GuardrailRetrainConfig, config)
+    with Session(context.engine) as session:
+        reviewed = reviewed_slices(session, cfg.survey_ids)
+        total = sum(len(r) for r in reviewed.values())
+        if total < cfg.min_labels:
+            raise ConfigError(
+                "labels", f"{total} reviewed guardrail slices; retraining needs {cfg.min_labels}"
+            )
+        runs = {s: latest_run(session, s) for s in reviewed}
+        base_path = promoted_classifier(session)
+        base = promoted_version(session, Pipeline.guardrail)
+    heads, base_card = load_heads(base_path)
+    train_parts, val_parts = [], []
+    for k, (survey_id, rows) in enumerate(reviewed.items()):
+        context.progress(0.2 * k / len(reviewed), f"slices of survey {survey_id}")
+        run = runs[survey_id]
+        features = None if run is None else Path(run.stage_path).with_name(FEATURES_FILE)
+        if features is None or not features.is_file():
+            context.log.warning("survey %d: no slice features of its last run; skipped", survey_id)
+            continue
+        samples, has_crop, station = _slice_samples(features, rows, survey_id)
+        held = held_out_blocks(station[:, None], cfg.block_size, cfg.holdout, cfg.seed)
+        train_parts.append((samples.subset(~held), has_crop[~held]))
+        val_parts.append((samples.subset(held), has_crop[held]))
+    if not train_parts:
+        raise ConfigError("labels", "no reviewed slice has the features of its run; rerun it")
+    train_set, train_crop = _concatenate(train_parts)
+    val_set, val_crop = _concatenate(val_parts)
+    new_heads = {}
+    for i, (name, head) in enumerate(heads.items()):
+        context.progress(0.2 + 0.7 * i / len(heads), f"fine-tuning the {name} head")
+        subset = train_set.subset(train_crop) if "image" in name else train_set
+        if len(subset.label) == 0:
+            new_heads[name] = head
+            continue
+        new_heads[name] = fit_head(
+            subset, name, epochs=cfg.epochs, lr=cfg.lr, seed=cfg.seed, initial=head
+        )
+    new_scores = pipeline_scores(new_heads, val_set, val_crop)
+    base_scores = pipeline_scores(heads, val_set, val_crop)
+    promote = (new_scores["f1"], new_scores["accuracy"]) >= (
+        base_scores["f1"],
+        base_scores["accuracy"],
+    )
+    name = f"guardrail-job{context.job_id}-{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}"
+    checkpoint = context.settings.data_dir / "models" / "guardrail" / f"{name}.pt"
+    card = {
+        **{k: v for k, v in base_card.items() if k != "created"},
+        "fine_tuned_from": str(base_path),
+        "fine_tuning": {
+            "reviewed_slices": total,
+            "train_slices": int(len(train_set.label)),
+            "validation_slices": int(len(val_set.label)),
+            "config": cfg.model_dump(),
+        },
+        "held_out_validation": new_scores,
+        "base_on_held_out": base_scores,
+    }
+    save_heads(checkpoint, new_heads, card)
+    metrics = {
+        "validation": new_scores,
+        "baseline": base_scores,
+        "base_version_id": None if base is None else base.id,
+        "validation_slices": int(len(val_set.label)),
+    }
+    trained_on = {"surveys": sorted(reviewed), "reviewed_slices": total, "config": cfg.model_dump()}
+    with Session(context.engine) as session:
+        version = register_version(
+            session, Pipeline.guardrail, name, checkpoint, metrics, trained_on,
+            context.job_id, promote,
+        )  # fmt: skip
+    context.progress(1.0, "promoted" if promote else "kept the current version (new one worse)")
+    return {
+        "files": {"checkpoint": str(checkpoint)},
+        "model_version_id": version.id,
+        "promoted": promote,
+        "validation_f1": new_scores["f1"],
+        "baseline_f1": base_scores["f1"],
+    }
+
+
+def _concatenate(parts: list[tuple[SliceSamples, np.ndarray]]) -> tuple[SliceSamples, np.ndarray]:
+    samples = [p[0] for p in parts]
+    return (
+        SliceSamples(
+            embedding=np.concatenate([s.embedding for s in samples]),
+            geometry=np.concatenate([s.geometry for s in samples]),
+            label=np.concatenate([s.label for s in samples]),
+            group=np.concatenate([s.group for s in samples]),
+            geometry_names=samples[0].geometry_names,
+        ),
+        np.concatenate([p[1] for p in parts]),
+    )

@@ -36,6 +36,7 @@ from app.store.models import (
     Job,
     JobStatus,
     ModelStatus,
+    ModelVersion,
     Role,
     Survey,
     User,
@@ -274,3 +275,29 @@ def test_bad_config_names_the_field(jobs: Jobs, tmp_path: Path) -> None:
     with pytest.raises(ConfigError) as err:
         rebuild_guardrail_models(jobs.context("guardrail:rebuild"), {"threshold": 0.7})
     assert err.value.field == "config.threshold"
+
+
+def test_retraining_on_reviewed_slices_registers_a_scored_version(jobs: Jobs) -> None:
+    jobs.run()
+    with jobs.session() as session:  # a reviewer confirmed every slice
+        slices = session.exec(select(GuardrailSlice)).all()
+        for s in slices:
+            s.labelled_by = jobs.annotator.id
+            session.add(s)
+        session.commit()
+    context = jobs.context("train:guardrail")
+    result = task_for("train:guardrail")(context, {"epochs": 3, "block_size": 5.0})
+    assert Path(result["files"]["checkpoint"]).is_file()
+    with jobs.session() as session:
+        versions = session.exec(select(ModelVersion).order_by(ModelVersion.id)).all()
+    shipped, new = versions
+    assert shipped.name == "shipped:slice_classifier.pt" and new.job_id == context.job_id
+    assert new.metrics["validation_slices"] > 0
+    not_worse = (new.metrics["validation"]["f1"], new.metrics["validation"]["accuracy"]) >= (
+        new.metrics["baseline"]["f1"],
+        new.metrics["baseline"]["accuracy"],
+    )
+    assert new.is_promoted == not_worse == result["promoted"]
+    assert new.trained_on["reviewed_slices"] == len(slices)
+    with pytest.raises(ConfigError, match="config.epochs"):
+        check_config("train:guardrail", {"epochs": 0}, jobs.settings)

@@ -37,14 +37,21 @@ def fit_head(
     weight_decay: float = 1e-4,
     batch_size: int = 256,
     seed: int = 0,
+    initial: SliceHead | None = None,
 ) -> SliceHead:
-    """Adam on the class-weighted cross entropy; returns the head in eval mode."""
+    """Adam on the class-weighted cross entropy; returns the head in eval mode. With `initial`
+    it fine-tunes a copy of that head (keeping its feature standardisation) instead of
+    starting from random weights."""
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
-    head = SliceHead(inputs, samples.geometry.shape[1])
     geometry = torch.from_numpy(samples.geometry).float()
-    head.geometry_mean.copy_(geometry.mean(dim=0))
-    head.geometry_std.copy_(geometry.std(dim=0).clamp_min(1e-6))
+    if initial is not None:
+        head = SliceHead(initial.inputs, initial.n_geometry)
+        head.load_state_dict(initial.state_dict())
+    else:
+        head = SliceHead(inputs, samples.geometry.shape[1])
+        head.geometry_mean.copy_(geometry.mean(dim=0))
+        head.geometry_std.copy_(geometry.std(dim=0).clamp_min(1e-6))
     embedding = torch.from_numpy(samples.embedding).float()
     label = torch.from_numpy(samples.label).long()
     counts = np.bincount(samples.label, minlength=2).astype(np.float64)

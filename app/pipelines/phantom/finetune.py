@@ -8,8 +8,9 @@ hand-labelled pillars): the labels come as pillar indices on the world grid of `
   unrotated.
 - Validation on labels the network did not train on: map blocks (`block_size` metres, whole
   blocks only, so neighbouring pillars that share most of their window never straddle the
-  split) are held out at random; both the new and the base network are scored on them, so a
-  new version is promoted only when it is not worse than the one it would replace.
+  split; `app.metrics.splits`) are held out at random; both the new and the base network are
+  scored on them, so a new version is promoted only when it is not worse than the one it
+  would replace.
 """
 
 from __future__ import annotations
@@ -104,22 +105,6 @@ def labelled_samples(
     samples = concatenate(parts)
     samples.sources = parts[0].sources
     return samples
-
-
-def held_out_blocks(
-    pillars: np.ndarray, cell_size: float, block_size: float, fraction: float, seed: int
-) -> np.ndarray:
-    """(L,) True for labels in the map blocks held out for validation (about `fraction` of the
-    blocks, at random but reproducibly; at least one block, never all when there are two)."""
-    block = np.floor((pillars + 0.5) * cell_size / block_size).astype(np.int64)
-    keys, inverse = np.unique(block, axis=0, return_inverse=True)
-    inverse = inverse.ravel()
-    rng = np.random.default_rng(seed)
-    count = int(round(fraction * len(keys)))
-    count = min(max(count, 1), max(len(keys) - 1, 1))
-    chosen = np.zeros(len(keys), dtype=bool)
-    chosen[rng.choice(len(keys), size=count, replace=False)] = True
-    return chosen[inverse]
 
 
 @torch.no_grad()
