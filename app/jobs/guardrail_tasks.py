@@ -16,13 +16,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pydantic import ValidationError
 from sqlmodel import Session
 
 from app.core.errors import ConfigError, ConflictError, NotFoundError
 from app.core.settings import Settings
 from app.io import open_survey
 from app.jobs.registry import JobContext, task
+from app.jobs.task_config import allowed_model_path, validated
 from app.pipelines.guardrail.correction import correct_labels
 from app.pipelines.guardrail.pipeline import (
     DEFAULT_MODEL,
@@ -53,7 +53,6 @@ from app.store.models import GuardrailKind, GuardrailSlice, Pipeline
 
 STAGE_FILE = "guardrail_slices.npz"
 FEATURES_FILE = "slice_features.npz"  # classifier inputs per slice: what retraining reads
-MODELS_DIR = Path(__file__).resolve().parents[2] / "models"
 REBUILD_FIELDS = ("min_guardrail_length", "join_gap", "join_lateral", "ground_clearance")
 
 
@@ -64,12 +63,7 @@ def _validated(values: dict[str, Any], known: tuple[str, ...]) -> GuardrailConfi
     unknown = sorted(set(values) - set(known))
     if unknown:
         raise ConfigError(f"config.{unknown[0]}", f"unknown field; known: {', '.join(known)}")
-    try:
-        return GuardrailConfig.model_validate(values)
-    except ValidationError as exc:
-        first = exc.errors()[0]
-        name = ".".join(str(p) for p in first["loc"]) or "config"
-        raise ConfigError(f"config.{name}", first["msg"]) from None
+    return validated(GuardrailConfig, values)
 
 
 def guardrail_options(
@@ -80,25 +74,6 @@ def guardrail_options(
     model_path = values.pop("model_path", None)
     cfg = _validated(values, (*GuardrailConfig.model_fields, "model_path"))
     return cfg, allowed_model_path(model_path, settings)
-
-
-def allowed_model_path(value: object, settings: Settings) -> Path | None:
-    """A classifier checkpoint inside the repository's models/ or the data directory (a job
-    must not load arbitrary files of the server); a relative path is taken from the
-    repository root (models/...)."""
-    if value is None:
-        return None
-    if not isinstance(value, str) or not value.strip():
-        raise ConfigError("config.model_path", "must be a non-empty path")
-    path = Path(value)
-    path = (path if path.is_absolute() else MODELS_DIR.parent / path).resolve()
-    roots = (MODELS_DIR.resolve(), settings.data_dir.resolve())
-    if not any(path.is_relative_to(root) for root in roots):
-        where = " or ".join(str(r) for r in roots)
-        raise ConfigError("config.model_path", f"{value} is outside {where}")
-    if not path.is_file():
-        raise ConfigError("config.model_path", f"{path} does not exist")
-    return path
 
 
 def promoted_classifier(session: Session) -> Path:

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict
 from sqlalchemy.engine import Engine
 from sqlmodel import Session, select
 
@@ -23,6 +23,7 @@ from app.core.errors import ConfigError, ConflictError, NotFoundError
 from app.core.settings import Settings
 from app.io import open_survey
 from app.jobs.registry import JobContext, task
+from app.jobs.task_config import allowed_model_path, validated
 from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.model import DEFAULT_MODEL
 from app.pipelines.phantom.run import run_phantom_to_folder
@@ -32,7 +33,6 @@ from app.store.models import LabelSource, ModelVersion, Pipeline, Survey, utcnow
 from app.store.pillar_labels import STORE_GRID
 
 KIND = "run:phantom"
-MODELS_DIR = Path(__file__).resolve().parents[2] / "models"
 # overall progress reached at the start and end of each pipeline stage; the rest is ingestion
 STAGES = {"accumulate": (0.02, 0.15), "classify": (0.15, 0.8), "done": (0.85, 0.85)}
 INGEST_AT = 0.9
@@ -57,35 +57,12 @@ class PhantomJobConfig(BaseModel):
 def parse_config(
     config: dict[str, Any], settings: Settings
 ) -> tuple[PhantomJobConfig, Path | None]:
-    try:
-        options = PhantomJobConfig.model_validate(config)
-    except ValidationError as exc:
-        first = exc.errors()[0]
-        field = ".".join(str(p) for p in first["loc"]) or "config"
-        raise ConfigError(f"config.{field}", first["msg"]) from None
+    options = validated(PhantomJobConfig, config)
     return options, allowed_model_path(options.model_path, settings)
 
 
 def check_config(config: dict[str, Any], settings: Settings) -> None:
     parse_config(config, settings)
-
-
-def allowed_model_path(value: str | None, settings: Settings) -> Path | None:
-    """A checkpoint inside the repository's models/ or the data dir (a job must not load any
-    file of the server); relative paths are taken from the repository root."""
-    if value is None:
-        return None
-    if not value.strip():
-        raise ConfigError("config.model_path", "must be a non-empty path")
-    path = Path(value)
-    path = (path if path.is_absolute() else MODELS_DIR.parent / path).resolve()
-    roots = (MODELS_DIR.resolve(), settings.data_dir.resolve())
-    if not any(path.is_relative_to(root) for root in roots):
-        where = " or ".join(str(r) for r in roots)
-        raise ConfigError("config.model_path", f"{value} is outside {where}")
-    if not path.is_file():
-        raise ConfigError("config.model_path", f"{path} does not exist")
-    return path
 
 
 def _card(checkpoint: Path) -> dict[str, Any]:

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, Field, ValidationError
+from pydantic import BaseModel, Field
 from sqlalchemy import text
 from sqlmodel import Session
 
@@ -19,6 +19,7 @@ from app.core.settings import Settings
 from app.io import open_survey
 from app.jobs.guardrail_tasks import FEATURES_FILE, promoted_classifier
 from app.jobs.registry import JobContext, task
+from app.jobs.task_config import validated
 from app.metrics.classification import binary_scores
 from app.metrics.splits import held_out_blocks
 from app.pipelines.guardrail.classifier import SliceHead, predict
@@ -52,15 +53,6 @@ class PhantomRetrainConfig(BaseModel):
     )
 
 
-def parse_config(model: type[BaseModel], config: dict[str, Any]) -> BaseModel:
-    try:
-        return model.model_validate(config)
-    except ValidationError as exc:
-        first = exc.errors()[0]
-        field = ".".join(str(p) for p in first["loc"]) or "config"
-        raise ConfigError(f"config.{field}", first["msg"]) from None
-
-
 def human_pillar_labels(
     session: Session, survey_ids: list[int] | None
 ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
@@ -91,12 +83,12 @@ def _base_model(session: Session) -> tuple[Path, int | None]:
 
 
 def check_phantom_config(config: dict[str, Any], _settings: Settings) -> None:
-    parse_config(PhantomRetrainConfig, config)
+    validated(PhantomRetrainConfig, config)
 
 
 @task("train:phantom", check=check_phantom_config)
 def train_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
-    cfg = parse_config(PhantomRetrainConfig, config)
+    cfg = validated(PhantomRetrainConfig, config)
     phantom = PhantomConfig()
     with Session(context.engine) as session:
         labels = human_pillar_labels(session, cfg.survey_ids)
@@ -213,7 +205,7 @@ class GuardrailRetrainConfig(BaseModel):
 
 
 def check_guardrail_config(config: dict[str, Any], _settings: Settings) -> None:
-    parse_config(GuardrailRetrainConfig, config)
+    validated(GuardrailRetrainConfig, config)
 
 
 def reviewed_slices(session: Session, survey_ids: list[int] | None) -> dict[int, np.ndarray]:
@@ -279,7 +271,7 @@ def train_guardrail(context: JobContext, config: dict[str, Any]) -> dict[str, An
     """Fine-tune the promoted slice classifier's heads on the slices people labelled (the
     frozen image encoder's embeddings saved by each run), score new and current heads on
     held-out road blocks, promote when not worse."""
-    cfg = parse_config(GuardrailRetrainConfig, config)
+    cfg = validated(GuardrailRetrainConfig, config)
     with Session(context.engine) as session:
         reviewed = reviewed_slices(session, cfg.survey_ids)
         total = sum(len(r) for r in reviewed.values())

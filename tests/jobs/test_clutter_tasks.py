@@ -4,7 +4,6 @@ the real ESPNetv2 weights)."""
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -18,7 +17,7 @@ from app.core.errors import ConfigError, StaleWriteError
 from app.core.settings import Settings
 from app.io import open_survey
 from app.jobs.clutter_tasks import frame_instances, recompute_clutter, run_clutter_task
-from app.jobs.registry import JobContext, task_for
+from app.jobs.registry import task_for
 from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.fusion import FrameEvidence
 from app.simulate.survey import SimulationConfig, simulate
@@ -33,22 +32,8 @@ from app.store.clutter_review import (
 from app.store.db import init_db, make_engine
 from app.store.models import AuditEvent, ClutterDecision, ClutterInstance, Decision, Survey
 from app.store.surveys import register_opened_survey
+from tests.jobs.conftest import job_context
 from tests.pipelines.clutter.conftest import weights_dir  # noqa: F401  (the fixture)
-
-
-def make_context(settings: Settings, engine, survey_id: int | None, job_id: int) -> JobContext:
-    workdir = settings.jobs_dir / str(job_id)
-    workdir.mkdir(parents=True)
-    return JobContext(
-        job_id=job_id,
-        survey_id=survey_id,
-        user_id=None,
-        engine=engine,
-        settings=settings,
-        workdir=workdir,
-        log=logging.getLogger("test-clutter-job"),
-        report_progress=lambda fraction, message: False,
-    )
 
 
 @pytest.fixture(scope="module")
@@ -64,7 +49,7 @@ def ran(tmp_path_factory: pytest.TempPathFactory, weights_dir: Path) -> Iterator
         record = register_opened_survey(
             session, survey, format="sim", source_path=(root / "sim").resolve()
         )
-    context = make_context(settings, engine, record.id, 1)
+    context = job_context(settings, engine, 1, record.id)
     result = task_for("run:clutter")(context, {"threads": 2})
     yield {"context": context, "result": result, "survey": survey, "settings": settings}
     engine.dispose()
@@ -144,7 +129,7 @@ def test_recompute_applies_approvals_and_rejections(ran: dict) -> None:
             None,
         )
     assert split(approve)[1] > 0 and split(reject)[0] > 0  # both decisions change the map
-    out = recompute_clutter(make_context(settings, engine, context.survey_id, 2), {})
+    out = recompute_clutter(job_context(settings, engine, 2, context.survey_id), {})
     cleaned_before = map_points(result["files"]["cleaned"])
     expected = cleaned_before - split(approve)[1] + split(reject)[0]
     assert map_points(out["files"]["cleaned"]) == expected
@@ -169,14 +154,14 @@ def test_recompute_applies_approvals_and_rejections(ran: dict) -> None:
             ],
             None,
         )
-    again = recompute_clutter(make_context(settings, engine, context.survey_id, 3), {})
+    again = recompute_clutter(job_context(settings, engine, 3, context.survey_id), {})
     assert map_points(again["files"]["cleaned"]) == cleaned_before
     assert again["metrics"] is not None  # the simulator's reference labels: the paper's metrics
 
 
 def test_bad_config_names_the_field(tmp_path: Path) -> None:
     settings = Settings(data_dir=tmp_path / "var")
-    context = make_context(settings, None, 1, 1)
+    context = job_context(settings, None, 1, 1)
     with pytest.raises(ConfigError, match="^config.mode:"):
         run_clutter_task(context, {"mode": "everything"})
     with pytest.raises(ConfigError, match="^config.padding:"):

@@ -4,8 +4,6 @@ through the API in tests/api/test_jobs.py)."""
 
 from __future__ import annotations
 
-import logging
-from collections.abc import Iterator
 from datetime import timedelta
 from pathlib import Path
 
@@ -26,24 +24,10 @@ from app.jobs.phantom_tasks import (
     stage_progress,
     store_model_labels,
 )
-from app.jobs.registry import JobContext
 from app.pipelines.phantom.model import DEFAULT_MODEL, PAPER_MODEL
-from app.store.db import init_db, make_engine
 from app.store.models import AuditEvent, PillarLabel, Pipeline, Survey, utcnow
 from app.store.pillar_labels import STORE_GRID
-
-
-@pytest.fixture
-def settings(tmp_path: Path) -> Settings:
-    return Settings(data_dir=tmp_path / "var", sample_dir=None)
-
-
-@pytest.fixture
-def engine(settings: Settings) -> Iterator[Engine]:
-    engine = make_engine(settings.database_url)
-    init_db(engine)
-    yield engine
-    engine.dispose()
+from tests.jobs.conftest import job_context
 
 
 @pytest.fixture
@@ -192,16 +176,7 @@ def test_stage_progress_rises_through_the_pipeline() -> None:
 
 
 def test_a_run_needs_a_survey(engine: Engine, settings: Settings, tmp_path: Path) -> None:
-    context = JobContext(
-        job_id=1,
-        survey_id=None,
-        user_id=None,
-        engine=engine,
-        settings=settings,
-        workdir=tmp_path,
-        log=logging.getLogger("test"),
-        report_progress=lambda f, m: False,
-    )
+    context = job_context(settings, engine, 1, None)
     with pytest.raises(ConfigError) as caught:
         run_phantom(context, {})
     assert caught.value.field == "survey_id"

@@ -6,7 +6,6 @@ import multiprocessing
 import threading
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
-from pathlib import Path
 
 import pytest
 from sqlalchemy.engine import Engine
@@ -25,21 +24,8 @@ from app.jobs.queue import (
     requeue,
     resume,
 )
-from app.store.db import init_db, make_engine
+from app.store.db import make_engine
 from app.store.models import AuditEvent, Job, JobStatus, Survey
-
-
-@pytest.fixture
-def settings(tmp_path: Path) -> Settings:
-    return Settings(data_dir=tmp_path / "var", sample_dir=None)
-
-
-@pytest.fixture
-def engine(settings: Settings) -> Iterator[Engine]:
-    engine = make_engine(settings.database_url)
-    init_db(engine)
-    yield engine
-    engine.dispose()
 
 
 @pytest.fixture

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 
 import numpy as np
 import pytest
 from sqlalchemy import text
+from sqlalchemy.engine import Engine
 from sqlmodel import Session, select
 
 from app.api.sample import load_sample_on_first_start
@@ -18,33 +18,20 @@ from app.jobs.registry import JobContext
 from app.jobs.training_tasks import train_phantom
 from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.dataset import labelled_map_from_survey, labelled_pillars
-from app.store.db import init_db, make_engine
 from app.store.models import Job, ModelVersion, Survey
 from app.store.pillar_labels import STORE_GRID
+from tests.jobs.conftest import job_context
 
 
 @pytest.fixture
-def context(tmp_path: Path) -> JobContext:
-    settings = Settings(data_dir=tmp_path / "var")
-    engine = make_engine(settings.database_url)
-    init_db(engine)
+def context(engine: Engine) -> JobContext:
+    """A train:phantom job's context on a store holding the sample survey."""
+    settings = Settings(data_dir=Path(engine.url.database).parent)
     survey_id = load_sample_on_first_start(engine, settings.sample_dir)
     with Session(engine) as session:
         session.add(Job(id=1, kind="train:phantom", survey_id=None))
         session.commit()
-    workdir = settings.jobs_dir / "1"
-    workdir.mkdir(parents=True)
-    progress: list[float] = []
-    return JobContext(
-        job_id=1,
-        survey_id=survey_id,
-        user_id=None,
-        engine=engine,
-        settings=settings,
-        workdir=workdir,
-        log=logging.getLogger("test-job"),
-        report_progress=lambda f, m: progress.append(f) or False,
-    )
+    return job_context(settings, engine, 1, survey_id)
 
 
 def label_from_reference(context: JobContext, per_class: int) -> int:
