@@ -22,6 +22,7 @@ from app.api.routes import (
     pillars,
     surveys,
     users,
+    viewer,
 )
 from app.api.sample import load_sample_on_first_start
 from app.core.security import TokenSigner
@@ -30,6 +31,7 @@ from app.jobs.pool import WorkerPool
 from app.jobs.retraining import RetrainingTrigger
 from app.store.db import init_db, make_engine
 from app.store.users import ensure_first_admin
+from app.viewer.server import ViewerServer
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +52,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.token_signer = TokenSigner.for_data_dir(settings.data_dir)
         app.state.worker_pool = WorkerPool(settings, engine).start()  # after init_db
         app.state.retraining_trigger = RetrainingTrigger(engine, settings)
+        app.state.viewer = ViewerServer(settings, engine).start()  # viser on 127.0.0.1 only
         yield
+        app.state.viewer.stop()
         app.state.worker_pool.stop()
         engine.dispose()
 
@@ -65,4 +69,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     for module in (health, auth, users, surveys, jobs, pillars, clutter, guardrails, models):
         app.include_router(module.router)
     app.include_router(exports.router)
+    app.include_router(viewer.router)
     return app

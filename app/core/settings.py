@@ -21,6 +21,12 @@ class Settings(BaseSettings):
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=0, le=65535, description="web app (API, dashboard, viewer)")
     viewer_port: int = Field(0, ge=0, le=65535, description="loopback viser port; 0 = free port")
+    viewer_overview_points: int = Field(
+        500_000, ge=1000, description="most points of the viewer's downsampled map overview"
+    )
+    viewer_tile_points: int = Field(
+        1_000_000, ge=1000, description="most points of the full-resolution tile in focus"
+    )
     admin_password: str | None = None
     import_root: Path | None = Field(
         None, description="surveys may be imported from paths inside it; empty = data_dir"

@@ -1,0 +1,146 @@
+"""`/viewer`: viser's client page and its websocket relay, for logged-in users only.
+
+viser listens on 127.0.0.1 (see `app.viewer.server`); the browser reaches it only through here.
+`GET /viewer` serves viser's single-file client page (from the installed viser package) pointed
+at our relay: viser's client connects to the URL in its `?websocket=` query parameter (else to
+the page's own URL), so the page is served at `/viewer?websocket=ws(s)://<host>/viewer/ws?survey=N`
+and a bare `/viewer` redirects there. `WebSocket /viewer/ws` checks the login (cookie, bearer
+header or `token` query parameter) and the Origin BEFORE accepting, files a ticket naming the
+user and relays frames to viser with the `viser-v<version>` subprotocol the browser offered.
+"""
+
+from __future__ import annotations
+
+from functools import cache
+from pathlib import Path
+from typing import Annotated
+from urllib.parse import quote, urlsplit
+
+import viser
+from fastapi import APIRouter, HTTPException, Query, Request, WebSocket, status
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import HTMLResponse, RedirectResponse, Response
+from sqlmodel import Session
+
+from app.api.deps import TOKEN_COOKIE, SessionDep, token_of, user_from_token
+from app.api.errors import errors
+from app.core.errors import NotFoundError
+from app.store.models import Survey, User
+from app.viewer.relay import relay
+
+router = APIRouter(tags=["viewer"])
+
+WS_PATH = "/viewer/ws"
+LOGIN_PAGE = "/"
+POLICY_VIOLATION = 1008  # websocket close code; before accept the client sees HTTP 403
+
+
+@cache
+def client_page() -> bytes:
+    """viser's built client page (one self-contained HTML file)."""
+    return (Path(viser.__file__).parent / "client" / "build" / "index.html").read_bytes()
+
+
+def relay_url(request: Request, survey: int | None) -> str:
+    """ws(s)://<the host the browser used>/viewer/ws[?survey=N]."""
+    scheme = "wss" if request.url.scheme == "https" else "ws"
+    host = request.headers.get("host") or request.url.netloc
+    query = f"?survey={survey}" if survey is not None else ""
+    return f"{scheme}://{host}{WS_PATH}{query}"
+
+
+def _survey_in(websocket_url: str) -> int | None:
+    query = urlsplit(websocket_url).query
+    value = query.removeprefix("survey=") if query.startswith("survey=") else ""
+    return int(value) if value.isdigit() else None
+
+
+@router.get(
+    "/viewer",
+    response_class=HTMLResponse,
+    responses={
+        200: {"description": "viser's client page", "content": {"text/html": {}}},
+        303: {"description": "to the page pointed at the relay; to the login page (browsers)"},
+        **errors(401, 404),
+    },
+)
+def viewer_page(
+    request: Request,
+    session: SessionDep,
+    survey: Annotated[int | None, Query(ge=1, description="survey to open")] = None,
+    websocket: Annotated[str | None, Query(description="set by the redirect")] = None,
+) -> Response:
+    """The 3D viewer (viser's client page) for the logged-in user; it connects to
+    `/viewer/ws`. Browsers without a login are sent to the login page."""
+    user = user_from_token(session, request.app.state.token_signer, token_of(request))
+    if user is None:
+        if "text/html" in request.headers.get("accept", ""):
+            query = f"?{request.url.query}" if request.url.query else ""
+            back = quote(f"{request.url.path}{query}", safe="")
+            return RedirectResponse(f"{LOGIN_PAGE}?next={back}", status.HTTP_303_SEE_OTHER)
+        raise HTTPException(
+            status.HTTP_401_UNAUTHORIZED,
+            detail="not logged in: log in on the dashboard first",
+            headers={"WWW-Authenticate": "Bearer"},
+        )
+    if websocket is not None and survey is None:
+        survey = _survey_in(websocket)
+    if survey is not None and session.get(Survey, survey) is None:
+        raise NotFoundError(f"survey {survey} not found")
+    expected = relay_url(request, survey)
+    if websocket != expected:  # only ever point the page at our own relay
+        return RedirectResponse(
+            f"/viewer?websocket={quote(expected, safe='')}", status.HTTP_303_SEE_OTHER
+        )
+    return HTMLResponse(client_page(), headers={"Cache-Control": "no-store"})
+
+
+def _same_origin(websocket: WebSocket) -> bool:
+    """A browser page from another origin (another port on this host counts) may not use the
+    cookie to reach the viewer; clients that send no Origin are not browsers."""
+    origin = websocket.headers.get("origin")
+    if origin is None:
+        return True
+    return urlsplit(origin).netloc == websocket.headers.get("host")
+
+
+def _token(websocket: WebSocket, query_token: str | None) -> str | None:
+    """The `token` query parameter, a bearer header, or the login cookie."""
+    scheme, _, value = websocket.headers.get("authorization", "").partition(" ")
+    bearer = value.strip() if scheme.lower() == "bearer" else ""
+    return query_token or bearer or websocket.cookies.get(TOKEN_COOKIE)
+
+
+def _user(websocket: WebSocket, query_token: str | None) -> User | None:
+    """The logged-in user, when the survey asked for (if any) exists too."""
+    app = websocket.app
+    token = _token(websocket, query_token)
+    with Session(app.state.engine, expire_on_commit=False) as session:
+        user = user_from_token(session, app.state.token_signer, token)
+        if user is None:
+            return None
+        survey = websocket.query_params.get("survey")
+        if survey is None:
+            return user
+        exists = survey.isdigit() and session.get(Survey, int(survey)) is not None
+        return user if exists else None
+
+
+@router.websocket(WS_PATH)
+async def viewer_socket(websocket: WebSocket, token: str | None = None) -> None:
+    """Relay to the loopback viser server, for a valid login only (refused before accept)."""
+    viewer = getattr(websocket.app.state, "viewer", None)
+    offered = [p for p in websocket.scope.get("subprotocols", []) if p.startswith("viser-v")]
+    if viewer is None or not offered or not _same_origin(websocket):
+        await websocket.close(code=POLICY_VIOLATION)
+        return
+    user = await run_in_threadpool(_user, websocket, token)
+    if user is None:
+        await websocket.close(code=POLICY_VIOLATION)
+        return
+    survey = websocket.query_params.get("survey")
+    nonce = viewer.issue_ticket(user.id, user.username, int(survey) if survey else None)
+    try:
+        await relay(websocket, f"{viewer.upstream_url}?session={nonce}", offered[0])
+    finally:
+        viewer.tickets.revoke(nonce)

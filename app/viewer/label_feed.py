@@ -1,0 +1,124 @@
+"""Which pillar labels changed, whoever changed them: a tail of the audit log.
+
+Every label write in the store leaves an audit row in the same transaction (`pillar.label`,
+`pillar.undo`, `pillar.redo` name an edit batch, whose edits list the pillars;
+`pillar.model_labels` names a survey whose model pre-labels a job replaced). Following the
+audit log by id therefore sees writes from the REST API, from viewer clients, from job worker
+processes and from other server processes alike, in commit order (SQLite has one writer at a
+time, so ids are handed out in commit order), and costs one index range read per poll.
+
+The feed polls every `interval` seconds; `wake()` makes it poll now, which the API calls after
+a label write so open viewers recolour within milliseconds instead of at the next poll.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from sqlalchemy import text
+from sqlalchemy.engine import Engine
+from sqlmodel import Session
+
+log = logging.getLogger(__name__)
+
+BATCH_ACTIONS = ("pillar.label", "pillar.undo", "pillar.redo")
+MODEL_ACTION = "pillar.model_labels"
+
+_NEW_EVENTS = text(
+    "SELECT id, action, entity_id FROM audit_event WHERE id > :last "
+    "AND action IN ('pillar.label', 'pillar.undo', 'pillar.redo', 'pillar.model_labels') "
+    "ORDER BY id"
+)
+_BATCH_CELLS = text(
+    "SELECT b.survey_id, json_group_array(e.cell_id) FROM pillar_edit AS e "
+    "JOIN pillar_edit_batch AS b ON b.id = e.batch_id "
+    "WHERE e.batch_id IN (SELECT value FROM json_each(:ids)) GROUP BY b.survey_id"
+)
+
+
+@dataclass
+class LabelChange:
+    survey_id: int
+    human_cells: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    model_replaced: bool = False  # a job replaced the survey's model pre-labels
+
+
+def read_changes(session: Session, after_id: int) -> tuple[int, list[LabelChange]]:
+    """(newest audit id seen, label changes per survey) since audit id `after_id`."""
+    conn = session.connection()
+    events = conn.execute(_NEW_EVENTS, {"last": after_id}).all()
+    if not events:
+        return after_id, []
+    changes: dict[int, LabelChange] = {}
+    batches = [int(e[2]) for e in events if e[1] in BATCH_ACTIONS and e[2] is not None]
+    if batches:
+        for survey_id, cells in conn.execute(_BATCH_CELLS, {"ids": json.dumps(batches)}).all():
+            changes[int(survey_id)] = LabelChange(
+                int(survey_id), np.unique(np.array(json.loads(cells), dtype=np.int64))
+            )
+    for event in events:
+        if event[1] == MODEL_ACTION and event[2] is not None:
+            survey_id = int(event[2])
+            changes.setdefault(survey_id, LabelChange(survey_id)).model_replaced = True
+    return int(events[-1][0]), list(changes.values())
+
+
+def newest_audit_id(session: Session) -> int:
+    value = session.connection().execute(text("SELECT max(id) FROM audit_event")).scalar()
+    return int(value or 0)
+
+
+class LabelFeed:
+    """A thread that reports label changes to `on_changes`, oldest first."""
+
+    def __init__(
+        self,
+        engine: Engine,
+        on_changes: Callable[[list[LabelChange]], None],
+        interval: float = 0.5,
+    ):
+        self.engine = engine
+        self.on_changes = on_changes
+        self.interval = interval
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.last_id = 0
+
+    def start(self) -> LabelFeed:
+        with Session(self.engine) as session:
+            self.last_id = newest_audit_id(session)
+        self._thread = threading.Thread(target=self._run, name="viewer-label-feed", daemon=True)
+        self._thread.start()
+        return self
+
+    def wake(self) -> None:
+        self._wake.set()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+
+    def poll(self) -> None:
+        with Session(self.engine) as session:
+            self.last_id, changes = read_changes(session, self.last_id)
+        if changes:
+            self.on_changes(changes)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self._wake.wait(self.interval)
+            self._wake.clear()
+            if self._stop.is_set():
+                break
+            try:
+                self.poll()
+            except Exception:  # a locked or closing database: try again next tick
+                log.exception("viewer label feed: poll failed")

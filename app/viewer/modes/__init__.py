@@ -1,0 +1,9 @@
+"""Viewer modes, one module each; `MODES` is the order of the session's "Mode" dropdown (the
+first is the default). A new mode is a `Mode` subclass (see `base`) added here."""
+
+from app.viewer.modes.base import Mode
+from app.viewer.modes.pillars import PillarMode
+
+MODES: tuple[type[Mode], ...] = (PillarMode,)
+
+__all__ = ["MODES", "Mode", "PillarMode"]

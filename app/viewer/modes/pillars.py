@@ -1,0 +1,266 @@
+"""Pillar labelling: paint the phantom paper's four pillar classes onto the map.
+
+The map is shown as two float32 point clouds re-centred on the survey origin: a voxel-downsampled
+overview of the whole survey and the full-resolution points of the 50 m tile in focus (where the
+camera looks or the last brush stroke landed; loaded when the focus moves to another tile).
+Points are coloured by their pillar's label: human labels in full colour, model pre-labels
+lighter, unlabelled grey. A label change anywhere resends colours only.
+
+Tools: a class palette (hotkeys 1-4, 0 erases); the brush (click: the ray meets the local ground,
+every pillar within the radius is labelled, one undoable batch); the rectangle (shift-drag: the
+pillars of every shown point inside it); undo / redo (Ctrl+Z / Ctrl+Y, the user's own batches
+in the store); hiding classes; point size; "next uncertain area" (N) flies the camera to the
+area whose unreviewed model pre-labels are least confident.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from app.store.models import PillarClass
+from app.store.pillar_labels import NO_LABEL, uncertain_areas
+from app.viewer.modes.base import Mode
+from app.viewer.picking import in_screen_rect, pillars_in_disc, ray_ground_hit
+from app.viewer.pillar_colors import CLASS_NAMES, DISPLAY_CLASSES, DISPLAY_NAMES, swatch_html
+
+if TYPE_CHECKING:
+    from viser import CameraHandle, SceneClickEvent, SceneRectSelectEvent
+
+    from app.viewer.session import ViewerSession
+
+ERASE = "Erase"
+CHOICES = {**{name: int(c) for c, name in CLASS_NAMES.items()}, ERASE: NO_LABEL}
+HOTKEYS = {"1": "Ground", "2": "High object", "3": "Short object", "4": "Phantom", "0": ERASE}
+UNCERTAIN_VIEW_DISTANCE = 25.0  # metres from the camera to an uncertain area
+
+
+class PillarMode(Mode):
+    name = "Pillar labelling"
+    key = "pillars"
+
+    def enter(self, session: ViewerSession) -> None:
+        self.session = session
+        self.view = session.view
+        self.map = self.view.map
+        self.tile_cap = session.viewer.settings.viewer_tile_points
+        self.hidden: set[int] = set()
+        self.tile_id: int | None = None
+        self.tile_points = np.zeros(0, dtype=np.int64)
+        self.shown_overview = np.zeros(0, dtype=np.int64)
+        self.shown_tile = np.zeros(0, dtype=np.int64)
+        self.clouds: dict[str, Any] = {}
+        self.visited: set[tuple[float, float]] = set()
+        self.commands: list[Any] = []
+        self._build_gui()
+        self._draw("overview", self.map.overview)
+        self._focus(session.client.camera.look_at)
+
+    def leave(self) -> None:
+        for command in self.commands:
+            command.remove()
+        self.commands = []
+        for cloud in self.clouds.values():
+            cloud.remove()
+        self.clouds = {}
+
+    # --- GUI ----------------------------------------------------------------------------------
+
+    def _build_gui(self) -> None:
+        session = self.session
+        gui = session.client.gui
+        with session.mode_folder:
+            legend = "".join(
+                f"<div>{swatch_html(k)}{DISPLAY_NAMES[k]}</div>" for k in DISPLAY_CLASSES
+            )
+            gui.add_html(
+                f'<div style="font-size:0.8em;padding:0 0.5em">{legend}'
+                "<div>lighter: model pre-label (paler = less sure)</div></div>"
+            )
+            self.klass = gui.add_dropdown("Class", tuple(CHOICES), initial_value="Ground")
+            self.radius = gui.add_slider(
+                "Brush radius (m)", min=0.2, max=10.0, step=0.2, initial_value=1.0
+            )
+            undo = gui.add_button("Undo", hint="Ctrl+Z: revert your last labelling action")
+            redo = gui.add_button("Redo", hint="Ctrl+Y: re-apply what you undid")
+            jump = gui.add_button("Next uncertain area", hint="N: least confident model labels")
+            self.status = gui.add_markdown("Click: brush. Shift-drag: rectangle.")
+            with gui.add_folder("Display", expand_by_default=False):
+                self.point_size = gui.add_slider(
+                    "Point size", min=0.01, max=0.5, step=0.01, initial_value=0.06
+                )
+                self.hide = {
+                    k: gui.add_checkbox(f"Hide {DISPLAY_NAMES[k].lower()}", initial_value=False)
+                    for k in DISPLAY_CLASSES
+                }
+        submit = session.submit
+        undo.on_click(lambda _: submit(self.undo))
+        redo.on_click(lambda _: submit(self.redo))
+        jump.on_click(lambda _: submit(self.next_uncertain_area))
+        self.point_size.on_update(lambda _: submit(self._resize_points))
+        for checkbox in self.hide.values():
+            checkbox.on_update(lambda _: submit(self._apply_hidden))
+        for key, choice in HOTKEYS.items():
+            self._command(f"Class: {choice}", key, None, lambda c=choice: self._pick(c))
+        self._command("Undo", "Z", "cmd/ctrl", lambda: submit(self.undo))
+        self._command("Redo", "Y", "cmd/ctrl", lambda: submit(self.redo))
+        self._command("Next uncertain area", "N", None, lambda: submit(self.next_uncertain_area))
+
+    def _command(self, label: str, hotkey: str, modifier: str | None, action: Any) -> None:
+        command = self.session.client.gui.add_command(label, hotkey=hotkey, modifier=modifier)
+        command.on_trigger(lambda _: action())
+        self.commands.append(command)
+
+    def _pick(self, choice: str) -> None:
+        self.klass.value = choice
+
+    @property
+    def label_value(self) -> int:
+        return CHOICES[self.klass.value]
+
+    # --- drawing ------------------------------------------------------------------------------
+
+    def _visible(self, points: np.ndarray) -> np.ndarray:
+        if not self.hidden or not len(points):
+            return points
+        return points[~np.isin(self.view.point_classes(points), list(self.hidden))]
+
+    def _draw(self, name: str, points: np.ndarray) -> None:
+        """(Re)send one cloud (positions and colours) with the points of `points` not hidden."""
+        shown = self._visible(points)
+        setattr(self, f"shown_{name}", shown)
+        old = self.clouds.pop(name, None)
+        if old is not None:
+            old.remove()
+        if len(shown):
+            self.clouds[name] = self.session.client.scene.add_point_cloud(
+                f"/{self.key}/{name}",
+                points=self.map.xyz[shown],
+                colors=self.view.point_colors(shown),
+                point_size=self.point_size.value,
+                precision="float32",
+                point_shading="flat",
+            )
+
+    def _focus(self, xy_local: np.ndarray) -> None:
+        """Show the full-resolution points of the tile holding xy (when it is another tile)."""
+        if not len(self.map):
+            return
+        tile = self.map.tile_id_at(np.asarray(xy_local)[:2])
+        if tile == self.tile_id:
+            return
+        self.tile_id = tile
+        points = self.map.tile_points(tile)
+        if len(points) > self.tile_cap:  # evenly spread subset, the same every time
+            points = points[np.linspace(0, len(points) - 1, self.tile_cap).astype(np.int64)]
+        self.tile_points = points
+        self._draw("tile", points)
+        self.session.client.flush()
+
+    def _resize_points(self) -> None:
+        for cloud in self.clouds.values():
+            cloud.point_size = self.point_size.value
+
+    def _apply_hidden(self) -> None:
+        hidden = {k for k, box in self.hide.items() if box.value}
+        if hidden == self.hidden:
+            return
+        self.hidden = hidden
+        self._draw("overview", self.map.overview)
+        self._draw("tile", self.tile_points)
+
+    def on_labels_changed(self, changed: np.ndarray) -> None:
+        """Resend the colours of the clouds holding changed pillars (with classes hidden, a
+        relabelled pillar may appear or vanish: that cloud is resent whole)."""
+        mark = np.zeros(len(self.map.cells), dtype=bool)
+        mark[changed] = True
+        for name, source in (("overview", self.map.overview), ("tile", self.tile_points)):
+            shown = getattr(self, f"shown_{name}")
+            if self.hidden:
+                visible = self._visible(source)
+                if not np.array_equal(visible, shown):
+                    self._draw(name, source)
+                    continue
+            cloud = self.clouds.get(name)
+            if cloud is not None and mark[self.map.cell[shown]].any():
+                cloud.colors = self.view.point_colors(shown)
+
+    # --- tools --------------------------------------------------------------------------------
+
+    def on_camera(self, camera: CameraHandle) -> None:
+        self._focus(camera.look_at)
+
+    def on_click(self, event: SceneClickEvent) -> None:
+        """Brush: the pillars within the radius of where the click ray meets the ground."""
+        hit = ray_ground_hit(self.map.ground, event.ray_origin, event.ray_direction)
+        if hit is None:
+            self.session.notify("Brush", "The click did not reach the ground.")
+            return
+        world = hit[:2] + self.map.origin[:2]
+        cells = pillars_in_disc(world, float(self.radius.value))
+        cells = cells[self.map.cell_index(cells)[1]]  # pillars that hold points
+        if not len(cells):
+            self.session.notify("Brush", "No points under the brush.")
+            return
+        self._label(cells, f"brush r = {self.radius.value:.1f} m")
+        self._focus(hit)
+
+    def on_rect_select(self, event: SceneRectSelectEvent) -> None:
+        """Rectangle: the pillars of every shown point inside it."""
+        camera = event.client.camera
+        shown = np.concatenate([self.shown_overview, self.shown_tile])
+        inside = in_screen_rect(
+            self.map.xyz[shown],
+            camera.wxyz,
+            camera.position,
+            camera.fov,
+            camera.aspect,
+            event.screen_min,
+            event.screen_max,
+        )
+        cells = self.map.cells[np.unique(self.map.cell[shown[inside]])]
+        if not len(cells):
+            self.session.notify("Rectangle", "No points inside the rectangle.")
+            return
+        self._label(cells, "rectangle")
+
+    def _label(self, cells: np.ndarray, how: str) -> None:
+        value = self.label_value
+        result = self.session.write_pillar_labels(cells, np.full(len(cells), value))
+        what = ERASE.lower() + "d" if value == NO_LABEL else CLASS_NAMES[PillarClass(value)]
+        self.status.content = f"{len(cells):,} pillars: {what} ({how}, batch {result.batch_id})"
+
+    def undo(self) -> None:
+        result = self.session.undo_pillars()
+        self.status.content = f"Undid batch {result.batch_id} ({len(result.cell_ids):,} pillars)"
+
+    def redo(self) -> None:
+        result = self.session.redo_pillars()
+        self.status.content = f"Redid batch {result.batch_id} ({len(result.cell_ids):,} pillars)"
+
+    def next_uncertain_area(self) -> None:
+        """Fly to the most doubtful area not visited yet in this session (then start over)."""
+        with self.session.db() as db:
+            areas = uncertain_areas(db, self.view.survey_id, limit=100)
+        if not areas:
+            self.status.content = "No uncertain area: every doubtful model label is reviewed."
+            return
+        fresh = [a for a in areas if (a.x, a.y) not in self.visited]
+        if not fresh:
+            self.visited.clear()
+            fresh = areas
+        area = fresh[0]
+        self.visited.add((area.x, area.y))
+        xy = np.array([area.x, area.y]) - self.map.origin[:2]
+        look_at = np.array([xy[0], xy[1], float(self.map.ground.height(xy[None])[0])])
+        camera = self.session.client.camera
+        offset = np.asarray(camera.position) - np.asarray(camera.look_at)
+        norm = float(np.linalg.norm(offset))
+        offset = offset / norm * UNCERTAIN_VIEW_DISTANCE if norm > 0 else np.array([0, -18, 18])
+        self.session.move_camera(look_at, offset)
+        self._focus(look_at)
+        self.status.content = (
+            f"Uncertain area: {area.pillars} pillars, mean confidence "
+            f"{area.mean_confidence:.2f} ({len(fresh) - 1} more to visit)"
+        )

@@ -1,0 +1,275 @@
+"""One connected browser tab: its user, its survey, its own scene and GUI, its current mode.
+
+viser gives every client its own `client.scene` and `client.gui`, so two operators on the same
+survey never see each other's selection or tool state, only each other's labels (through the
+store and the label feed). Everything a session does runs on its own worker thread, one call at
+a time: viser's callbacks and the label feed only queue work here, so a slow store write never
+stalls viser's event loop and a mode never needs a lock.
+
+Label writes go through `app.store.pillar_labels` (the same versioned, undoable batches the REST
+API writes) with a fresh database session per action, attributed to the session's user.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from sqlmodel import Session, select
+from viser import CameraHandle, ClientHandle, SceneClickEvent, SceneRectSelectEvent
+
+from app.core.errors import MmscleanError, NotFoundError, PermissionDeniedError
+from app.store import pillar_labels
+from app.store.models import Role, Survey, User
+from app.store.users import has_role
+from app.viewer.modes import MODES
+from app.viewer.modes.base import Mode
+from app.viewer.tickets import Ticket
+
+if TYPE_CHECKING:
+    from app.viewer.server import ViewerServer
+    from app.viewer.survey_view import SurveyView
+
+log = logging.getLogger(__name__)
+
+CAMERA_OFFSET = np.array([-0.45, -0.55, 0.7])  # initial view: from behind-left, above
+CAMERA_DISTANCE = (20.0, 150.0)  # metres, clamped from the map's size
+
+
+class ViewerSession:
+    def __init__(self, viewer: ViewerServer, client: ClientHandle, ticket: Ticket):
+        self.viewer = viewer
+        self.client = client
+        self.user_id = ticket.user_id
+        self.username = ticket.username
+        self.requested_survey = ticket.survey_id
+        self.view: SurveyView | None = None
+        self.mode: Mode | None = None
+        self.mode_folder: Any = None
+        self.closed = False
+        self._executor = ThreadPoolExecutor(1, thread_name_prefix=f"viewer-{client.client_id}")
+        self._camera_pending = threading.Event()
+        self._gui: list[Any] = []
+        self._survey_ids: dict[str, int] = {}
+
+    # --- running work ----------------------------------------------------------------------
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> Future | None:
+        """Run fn(*args) on this session's worker thread; errors become a notification."""
+        if self.closed:
+            return None
+        try:
+            return self._executor.submit(self._guarded, fn, *args)
+        except RuntimeError:  # shut down meanwhile
+            return None
+
+    def _guarded(self, fn: Callable[..., Any], *args: Any) -> Any:
+        if self.closed:
+            return None
+        try:
+            return fn(*args)
+        except MmscleanError as exc:
+            self.notify("Not done", exc.message, error=True)
+        except Exception as exc:
+            log.exception("viewer client %s: %s failed", self.client.client_id, fn)
+            self.notify("Error", f"{type(exc).__name__}: {exc}", error=True)
+        return None
+
+    def notify(self, title: str, body: str, error: bool = False) -> None:
+        if self.closed:
+            return
+        try:
+            self.client.add_notification(
+                title, body, auto_close_seconds=6.0, color="red" if error else None
+            )
+        except Exception:  # the client went away meanwhile
+            log.debug("viewer client %s: notification dropped", self.client.client_id)
+
+    def db(self) -> Session:
+        return Session(self.viewer.engine, expire_on_commit=False)
+
+    # --- lifecycle --------------------------------------------------------------------------
+
+    def start(self) -> None:
+        self.submit(self._start)
+
+    def _start(self) -> None:
+        gui = self.client.gui
+        with self.db() as session:
+            surveys = list(session.exec(select(Survey).order_by(Survey.id)).all())
+        self._survey_ids = {f"{s.id}: {s.name}": int(s.id) for s in surveys}
+        self._gui.append(gui.add_markdown(f"Logged in as **{self.username}**"))
+        if not surveys:
+            self._gui.append(gui.add_markdown("No survey yet: import one from the dashboard."))
+            return
+        survey_id = self.requested_survey or int(surveys[0].id)
+        if survey_id not in self._survey_ids.values():
+            raise NotFoundError(f"survey {survey_id} not found")
+        label_of = {v: k for k, v in self._survey_ids.items()}
+        survey_menu = gui.add_dropdown(
+            "Survey", tuple(self._survey_ids), initial_value=label_of[survey_id]
+        )
+        mode_menu = gui.add_dropdown("Mode", tuple(m.name for m in MODES))
+        self._gui += [survey_menu, mode_menu]
+
+        @survey_menu.on_update
+        def _(_: Any) -> None:
+            self.submit(self.open_survey, self._survey_ids[survey_menu.value])
+
+        @mode_menu.on_update
+        def _(_: Any) -> None:
+            self.submit(self.switch_mode, mode_menu.value)
+
+        self.client.scene.set_up_direction("+z")
+        self.client.scene.on_click()(lambda event: self.submit(self._click, event))
+        self.client.scene.on_rect_select(modifier="shift")(
+            lambda event: self.submit(self._rect_select, event)
+        )
+        self.client.camera.on_update(self._camera_moved)
+        self.open_survey(survey_id, mode_name=mode_menu.value)
+
+    def open_survey(self, survey_id: int, mode_name: str | None = None) -> None:
+        """Show another survey (or the first one): the current mode is rebuilt on it."""
+        mode_name = mode_name or (self.mode.name if self.mode else MODES[0].name)
+        if self.view is not None and self.view.survey_id == survey_id:
+            return
+        self._leave_mode()
+        if self.view is not None:
+            self.view.unsubscribe(self._labels_changed)
+            self.viewer.views.release(self.view)
+            self.view = None
+        loading = self.client.add_notification(
+            "Loading", "Opening the survey's map...", loading=True, with_close_button=False
+        )
+        try:
+            self.view = self.viewer.views.acquire(survey_id)
+        finally:
+            loading.remove()
+        self.view.subscribe(self._labels_changed)
+        self._place_camera()
+        self.switch_mode(mode_name)
+
+    def _place_camera(self) -> None:
+        """Look at the middle of the map from behind-left and above."""
+        survey_map = self.view.map
+        lo, hi = survey_map.bounds()
+        centre = (lo[:2].astype(np.float64) + hi[:2]) / 2.0
+        ground = float(survey_map.ground.height(centre[None])[0]) if len(survey_map) else 0.0
+        look_at = np.array([centre[0], centre[1], ground])
+        distance = float(np.clip(0.6 * float(np.max(hi[:2] - lo[:2])), *CAMERA_DISTANCE))
+        offset = CAMERA_OFFSET / np.linalg.norm(CAMERA_OFFSET) * distance
+        self.move_camera(look_at, offset)
+
+    def move_camera(self, look_at: np.ndarray, offset: np.ndarray) -> None:
+        camera = self.client.camera
+        camera.up_direction = (0.0, 0.0, 1.0)
+        camera.position = look_at + offset  # moves look_at along ...
+        camera.look_at = look_at  # ... so set it after the position
+
+    def switch_mode(self, name: str) -> None:
+        if self.mode is not None and self.mode.name == name:
+            return
+        self._leave_mode()
+        if self.view is None:
+            return
+        mode_class = next(m for m in MODES if m.name == name)
+        self.mode_folder = self.client.gui.add_folder(name)
+        self.mode = mode_class()
+        self.mode.enter(self)
+        self.client.flush()
+
+    def _leave_mode(self) -> None:
+        if self.mode is not None:
+            try:
+                self.mode.leave()
+            finally:
+                self.mode = None
+                if self.mode_folder is not None:
+                    self.mode_folder.remove()
+                    self.mode_folder = None
+
+    def close(self) -> None:
+        """The client disconnected: leave the mode and give the survey back (off its thread)."""
+        self._executor.submit(self._close)
+        self._executor.shutdown(wait=False)
+
+    def _close(self) -> None:
+        self.closed = True
+        try:
+            self._leave_mode()
+        except Exception:  # the client's scene is gone; only our bookkeeping matters now
+            log.debug("viewer client %s: leave after disconnect failed", self.client.client_id)
+        self.mode = None
+        if self.view is not None:
+            self.view.unsubscribe(self._labels_changed)
+            self.viewer.views.release(self.view)
+            self.view = None
+
+    # --- events routed to the mode ------------------------------------------------------------
+
+    def _click(self, event: SceneClickEvent) -> None:
+        if self.mode is not None:
+            self.mode.on_click(event)
+
+    def _rect_select(self, event: SceneRectSelectEvent) -> None:
+        if self.mode is not None:
+            self.mode.on_rect_select(event)
+
+    def _camera_moved(self, camera: CameraHandle) -> None:
+        """Viser's pool thread, many times a second while orbiting: queue at most one call."""
+        if not self._camera_pending.is_set():
+            self._camera_pending.set()
+            self.submit(self._camera_settled, camera)
+
+    def _camera_settled(self, camera: CameraHandle) -> None:
+        self._camera_pending.clear()
+        if self.mode is not None:
+            self.mode.on_camera(camera)
+
+    def _labels_changed(self, changed: np.ndarray) -> None:
+        """From the label feed's thread: recolour on ours."""
+        self.submit(self._recolor, changed)
+
+    def _recolor(self, changed: np.ndarray) -> None:
+        if self.mode is not None:
+            self.mode.on_labels_changed(changed)
+            self.client.flush()
+
+    # --- label writes (the store's batches, attributed to this user) ---------------------------
+
+    def _check_user(self, session: Session) -> None:
+        user = session.get(User, self.user_id)
+        if user is None or not user.is_active:
+            raise PermissionDeniedError(f"user {self.username!r} is no longer active")
+        if not has_role(user, Role.annotator):
+            raise PermissionDeniedError(f"user {self.username!r} may not label")
+
+    def write_pillar_labels(
+        self, cell_ids: np.ndarray, labels: np.ndarray
+    ) -> pillar_labels.LabelWrite:
+        """One labelling action (store cell ids; NO_LABEL erases) as one undoable batch."""
+        with self.db() as session:
+            self._check_user(session)
+            result = pillar_labels.write_labels(
+                session, self.view.survey_id, self.user_id, cell_ids, labels
+            )
+        self.viewer.labels_written()
+        return result
+
+    def undo_pillars(self) -> pillar_labels.LabelWrite:
+        with self.db() as session:
+            self._check_user(session)
+            result = pillar_labels.undo(session, self.view.survey_id, self.user_id)
+        self.viewer.labels_written()
+        return result
+
+    def redo_pillars(self) -> pillar_labels.LabelWrite:
+        with self.db() as session:
+            self._check_user(session)
+            result = pillar_labels.redo(session, self.view.survey_id, self.user_id)
+        self.viewer.labels_written()
+        return result

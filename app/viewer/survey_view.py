@@ -1,0 +1,212 @@
+"""One open survey, shared by every viewer client looking at it: its map and the current label
+of each of its pillars, kept in step with the store.
+
+Labels are read from the store once when the first client opens the survey, then patched: the
+label feed reports which pillars changed (whoever changed them: this viewer, the REST API, a
+job, another process) and the view re-reads just those and tells its listeners which pillars
+now look different, so each client resends colours, never positions.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from sqlalchemy import text
+from sqlalchemy.engine import Engine
+from sqlmodel import Session
+
+from app.core.errors import NotFoundError
+from app.store.models import Survey
+from app.store.pillar_labels import current_human
+from app.viewer.pillar_colors import display_class, pillar_colors
+from app.viewer.survey_map import MapSource, SurveyMap, load_map
+
+log = logging.getLogger(__name__)
+
+# All labels of a survey as one row of JSON arrays (no Python object per label), read from the
+# covering index ix_pillar_label_tile.
+_ALL_LABELS = (
+    "SELECT json_group_array(cell_id), json_group_array(source = 'human'), "
+    "json_group_array(label), json_group_array(confidence) FROM pillar_label "
+    "WHERE survey_id = :s"
+)
+
+Listener = Callable[[np.ndarray], None]  # gets the indices (into map.cells) that changed
+
+
+class SurveyView:
+    def __init__(self, engine: Engine, survey_id: int, name: str, survey_map: SurveyMap):
+        self.engine = engine
+        self.survey_id = survey_id
+        self.name = name
+        self.map = survey_map
+        m = len(survey_map.cells)
+        self.human = np.full(m, -1, dtype=np.int8)
+        self.model = np.full(m, -1, dtype=np.int8)
+        self.confidence = np.full(m, np.nan, dtype=np.float32)
+        self.rgb = pillar_colors(self.human, self.model, self.confidence)
+        self.klass = display_class(self.human, self.model)
+        self.lock = threading.Lock()  # guards the label arrays; held briefly
+        self._listeners: list[Listener] = []
+
+    # --- listeners ---------------------------------------------------------------------------
+
+    def subscribe(self, listener: Listener) -> None:
+        with self.lock:
+            self._listeners.append(listener)
+
+    def unsubscribe(self, listener: Listener) -> None:
+        with self.lock:
+            if listener in self._listeners:
+                self._listeners.remove(listener)
+
+    def _announce(self, changed: np.ndarray) -> None:
+        if not len(changed):
+            return
+        with self.lock:
+            listeners = tuple(self._listeners)
+        for listener in listeners:
+            try:
+                listener(changed)
+            except Exception:
+                log.exception("viewer listener failed on survey %s", self.survey_id)
+
+    # --- reading the store -------------------------------------------------------------------
+
+    def load_all(self) -> np.ndarray:
+        """Re-read every label of the survey; returns the pillars whose colour changed."""
+        with Session(self.engine) as session:
+            row = session.connection().execute(text(_ALL_LABELS), {"s": self.survey_id}).one()
+        cell_ids = np.array(json.loads(row[0]), dtype=np.int64)
+        is_human = np.array(json.loads(row[1]), dtype=bool)
+        labels = np.array(json.loads(row[2]), dtype=np.int8)
+        confidence = np.array(
+            [np.nan if c is None else c for c in json.loads(row[3])], dtype=np.float32
+        )
+        k, found = self.map.cell_index(cell_ids)
+        human = np.full(len(self.map.cells), -1, dtype=np.int8)
+        model = np.full(len(self.map.cells), -1, dtype=np.int8)
+        conf = np.full(len(self.map.cells), np.nan, dtype=np.float32)
+        h, m = found & is_human, found & ~is_human
+        human[k[h]] = labels[h]
+        model[k[m]] = labels[m]
+        conf[k[m]] = confidence[m]
+        with self.lock:
+            self.human, self.model, self.confidence = human, model, conf
+            changed = self._recolor(np.arange(len(self.map.cells)))
+        self._announce(changed)
+        return changed
+
+    def refresh_human(self, cell_ids: np.ndarray) -> np.ndarray:
+        """Re-read the human labels of these pillars (store cell ids); returns those that now
+        look different (already announced)."""
+        k, found = self.map.cell_index(cell_ids)
+        k = np.unique(k[found])
+        if not len(k):
+            return k
+        with Session(self.engine) as session:
+            current = current_human(session, self.survey_id, self.map.cells[k])
+        labels = np.array(
+            [current[c][0] if c in current else -1 for c in self.map.cells[k].tolist()],
+            dtype=np.int8,
+        )
+        with self.lock:
+            self.human[k] = labels
+            changed = self._recolor(k)
+        self._announce(changed)
+        return changed
+
+    def _recolor(self, k: np.ndarray) -> np.ndarray:
+        """Recompute the colour and class of pillars k (lock held); the ones that changed."""
+        rgb = pillar_colors(self.human[k], self.model[k], self.confidence[k])
+        klass = display_class(self.human[k], self.model[k])
+        changed = (rgb != self.rgb[k]).any(axis=1) | (klass != self.klass[k])
+        self.rgb[k] = rgb
+        self.klass[k] = klass
+        return k[changed]
+
+    # --- what clients read ---------------------------------------------------------------------
+
+    def point_colors(self, points: np.ndarray) -> np.ndarray:
+        """(n, 3) uint8 colours of map points `points`."""
+        cells = self.map.cell[points]
+        with self.lock:
+            return self.rgb[cells]
+
+    def point_classes(self, points: np.ndarray) -> np.ndarray:
+        cells = self.map.cell[points]
+        with self.lock:
+            return self.klass[cells]
+
+
+class SurveyViews:
+    """Open surveys by id, loaded once and shared; dropped when their last client leaves."""
+
+    def __init__(self, engine: Engine, cache_dir: Path, overview_points: int):
+        self.engine = engine
+        self.cache_dir = cache_dir
+        self.overview_points = overview_points
+        self._views: dict[int, SurveyView] = {}
+        self._users: dict[int, int] = {}
+        self._loading: dict[int, threading.Lock] = {}
+        self._lock = threading.Lock()
+
+    def acquire(self, survey_id: int) -> SurveyView:
+        """The view of a survey (loading its map and labels when nobody has it open)."""
+        with self._lock:
+            gate = self._loading.setdefault(survey_id, threading.Lock())
+        with gate:  # one load per survey, however many clients open it at once
+            with self._lock:
+                view = self._views.get(survey_id)
+                if view is not None:
+                    self._users[survey_id] += 1
+                    return view
+            view = self._open(survey_id)
+            with self._lock:  # registered first, so the feed reports changes from now on
+                self._views[survey_id] = view
+                self._users[survey_id] = 1
+            try:
+                view.load_all()
+            except BaseException:
+                self.release(view)
+                raise
+            return view
+
+    def release(self, view: SurveyView) -> None:
+        with self._lock:
+            left = self._users.get(view.survey_id, 0) - 1
+            if left > 0:
+                self._users[view.survey_id] = left
+                return
+            self._users.pop(view.survey_id, None)
+            self._views.pop(view.survey_id, None)
+
+    def get(self, survey_id: int) -> SurveyView | None:
+        with self._lock:
+            return self._views.get(survey_id)
+
+    def open_ids(self) -> list[int]:
+        with self._lock:
+            return list(self._views)
+
+    def _open(self, survey_id: int) -> SurveyView:
+        with Session(self.engine) as session:
+            record = session.get(Survey, survey_id)
+            if record is None:
+                raise NotFoundError(f"survey {survey_id} not found")
+            source = MapSource(
+                survey_id=survey_id,
+                source_path=record.source_path,
+                format=record.format,
+                origin=(record.origin_x, record.origin_y, record.origin_z),
+                point_count=record.point_count,
+                frame_count=record.frame_count,
+            )
+            name = record.name
+        survey_map = load_map(source, self.cache_dir, self.overview_points)
+        return SurveyView(self.engine, survey_id, name, survey_map)
