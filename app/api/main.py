@@ -14,6 +14,7 @@ from app.api.errors import install_error_handlers
 from app.api.routes import (
     auth,
     clutter,
+    dashboard,
     exports,
     guardrails,
     health,
@@ -70,4 +71,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.include_router(module.router)
     app.include_router(exports.router)
     app.include_router(viewer.router)
+    app.include_router(dashboard.router)
     return app
