@@ -153,11 +153,11 @@ export function table(headers, rows, attrs = {}) {
   );
 }
 
-/** Two-column facts list: [[label, value], ...]. */
-export function facts(pairs) {
+/** A facts list: [[label, value], ...]; `wide` flows the pairs into columns. */
+export function facts(pairs, { wide = false } = {}) {
   return h(
     "dl",
-    { class: "facts" },
+    { class: wide ? "facts wide" : "facts" },
     pairs.map(([k, v]) => [h("dt", {}, k), h("dd", {}, v)]),
   );
 }

@@ -97,7 +97,7 @@ export function bars(groups, { series, title, max = 100, unit = "%", seriesLabel
   const barW = 18;
   const gap = 4;
   const groupW = series.length * (barW + gap) + 26;
-  const left = 40;
+  const left = 22 + 7 * num(max).length; // room for the widest tick label
   const top = 30;
   const plotH = 150;
   const legendH = 22;

@@ -131,10 +131,8 @@ function jobRow(ctx, job, lookups, refresh) {
     const key = `${j.status}/${j.cancel_requested}`;
     if (key !== actionKey) {
       actionKey = key;
-      actions.replaceChildren(
-        ...jobActions(ctx, j, refresh),
-        j.status === "succeeded" ? h("a", { href: `#/jobs/${j.id}`, class: "button small" }, "Results") : null,
-      );
+      const results = h("a", { href: `#/jobs/${j.id}`, class: "button small" }, "Results");
+      actions.replaceChildren(...jobActions(ctx, j, refresh), ...(j.status === "succeeded" ? [results] : []));
     }
   };
   update(job);
@@ -316,18 +314,17 @@ export async function jobView(ctx, root, id) {
     bar.set(j);
     status.replaceChildren(statusBadge(j.status));
     message.textContent = j.message;
-    details.replaceChildren(
-      facts([
-        ["survey", surveyLink(lookups.surveys, j.survey_id)],
-        ["started by", who(ctx, lookups.users, j.created_by)],
-        ["created", when(j.created_at)],
-        ["started", when(j.started_at)],
-        ["finished", when(j.finished_at)],
-        ["run time", duration(j.seconds)],
-        ["attempts", num(j.attempts)],
-        ["config", h("code", {}, JSON.stringify(j.config))],
-      ]),
-    );
+    const rows = [
+      ["survey", surveyLink(lookups.surveys, j.survey_id)],
+      ["started by", who(ctx, lookups.users, j.created_by)],
+      ["created", when(j.created_at)],
+      ["started", when(j.started_at)],
+      ["finished", when(j.finished_at)],
+      ["run time", duration(j.seconds)],
+      ["attempts", num(j.attempts)],
+      ["config", h("code", {}, JSON.stringify(j.config))],
+    ];
+    details.replaceChildren(facts(rows, { wide: true }));
     const key = `${j.status}/${j.cancel_requested}`;
     if (key !== actionKey) {
       actionKey = key;

@@ -14,7 +14,6 @@ export async function loginView(ctx, root) {
     id: "login-username",
     autocomplete: "username",
     required: true,
-    autofocus: true,
   });
   const password = h("input", {
     name: "password",

@@ -99,7 +99,7 @@ function pageHead(survey, tab) {
 
 function surveyFacts(sv) {
   const f = sv.frames || {};
-  return facts([
+  const rows = [
     ["format", sv.format],
     ["frames", num(sv.frame_count)],
     ["points", num(sv.point_count)],
@@ -107,9 +107,10 @@ function surveyFacts(sv) {
     ["trajectory", f.trajectory_length_m !== undefined ? `${num(f.trajectory_length_m, 1)} m` : ""],
     ["reference labels", sv.has_reference_labels ? "yes" : "no"],
     ["poses", sv.poses_estimated ? "estimated (LiDAR odometry)" : "from the survey"],
-    ["source", h("code", {}, sv.source_path)],
     ["registered", when(sv.created_at)],
-  ]);
+    ["source", h("code", {}, sv.source_path)],
+  ];
+  return facts(rows, { wide: true });
 }
 
 // --- pipelines ------------------------------------------------------------------------------
