@@ -1,0 +1,356 @@
+"""The dashboard (`/`, `frontend_assets/`) against a real `mmsclean serve` with the sample survey.
+
+Plain tests check that the page and every asset it loads are served, and that nothing refers to
+another host (no CDN: the app must work offline). Browser tests drive Debian's Chromium with
+Playwright: log in, find the sample survey, start `run:phantom` from the survey page and watch
+its progress bar reach 100 %, open its metrics (heat map cells = the job's confusion matrix),
+cancel a running `run:guardrail` from the jobs page, upload and delete a survey, check what an
+annotator is not shown, log out.
+
+Screenshots go to the test's tmp dir; `MMSCLEAN_UPDATE_SCREENSHOTS=1` (or a missing file) also
+writes `docs/dashboard.png`, so ordinary runs leave the checkout clean.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+from app.io.las import write_laz
+from tests.api.server import ADMIN_PASSWORD, Server
+
+ROOT = Path(__file__).resolve().parents[2]
+ASSETS = ROOT / "frontend_assets"
+DOCS_SCREENSHOT = ROOT / "docs" / "dashboard.png"
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader"]
+VIEWPORT = {"width": 1280, "height": 800}
+# the only absolute URL the assets may hold: the SVG namespace, an identifier never fetched
+ALLOWED_URLS = {"http://www.w3.org/2000/svg"}
+JOB_TIMEOUT_S = 300  # run:phantom takes seconds alone, minutes on two busy cores
+
+
+@pytest.fixture(scope="module")
+def dashboard_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+    """A server with the sample survey and one worker (the tests share two cores)."""
+    data_dir = tmp_path_factory.mktemp("dashboard") / "var"
+    running = Server(data_dir, env={"MMSCLEAN_WORKERS": "1"}).start()
+    yield running
+    running.stop()
+
+
+# --- served files, no external URLs ---------------------------------------------------------
+
+
+def module_imports(source: str) -> list[str]:
+    """Relative module paths a JS file imports (static `import ... from "./x.js"`)."""
+    return re.findall(r"""(?:import|from)\s*["'](\.{1,2}/[^"']+)["']""", source)
+
+
+def served_assets(server: Server) -> dict[str, httpx.Response]:
+    """Every file the page loads, following <script>/<link> tags and JS imports from `/`."""
+    responses: dict[str, httpx.Response] = {}
+    with httpx.Client(base_url=server.url) as client:
+        index = client.get("/")
+        responses["/"] = index
+        todo = re.findall(r"""(?:src|href)=["'](/assets/[^"']+)["']""", index.text)
+        while todo:
+            url = todo.pop()
+            if url in responses:
+                continue
+            response = client.get(url)
+            responses[url] = response
+            if url.endswith(".js") and response.status_code == 200:
+                folder = url.rsplit("/", 1)[0]
+                for rel in module_imports(response.text):
+                    parts = f"{folder}/{rel}".split("/")
+                    resolved: list[str] = []
+                    for part in parts:
+                        if part == "..":
+                            resolved.pop()
+                        elif part != ".":
+                            resolved.append(part)
+                    todo.append("/".join(resolved))
+    return responses
+
+
+def test_page_and_every_asset_it_loads_are_served(dashboard_server: Server) -> None:
+    responses = served_assets(dashboard_server)
+    index = responses["/"]
+    assert index.status_code == 200
+    assert index.headers["content-type"].startswith("text/html")
+    csp = index.headers["content-security-policy"]
+    assert "default-src 'self'" in csp and "script-src 'self'" in csp
+    failed = {url: r.status_code for url, r in responses.items() if r.status_code != 200}
+    assert not failed
+    types = {url: r.headers["content-type"] for url, r in responses.items()}
+    assert all(t.startswith("text/javascript") for u, t in types.items() if u.endswith(".js"))
+    assert all(t.startswith("text/css") for u, t in types.items() if u.endswith(".css"))
+    # every file in frontend_assets is reachable from the page (no dead files, no missing ones)
+    on_disk = {
+        f"/assets/{p.relative_to(ASSETS).as_posix()}"
+        for p in ASSETS.rglob("*")
+        if p.is_file() and not p.name.startswith(".")
+    }
+    assert on_disk - {"/assets/index.html"} == set(responses) - {"/"}
+    for url in responses:
+        if url != "/":
+            body = (ASSETS / url.removeprefix("/assets/")).read_bytes()
+            assert responses[url].content == body, url
+
+
+def test_assets_do_not_leave_their_folder(dashboard_server: Server) -> None:
+    with httpx.Client(base_url=dashboard_server.url) as client:
+        for url in ("/assets/../pyproject.toml", "/assets/%2e%2e/pyproject.toml", "/assets/x.js"):
+            response = client.get(url)
+            assert response.status_code == 404, url
+            assert "pyproject" not in response.text or "detail" in response.json()
+
+
+def test_no_external_urls_in_the_page(dashboard_server: Server) -> None:
+    responses = served_assets(dashboard_server)
+    texts = {url: r.text for url, r in responses.items()}
+    absolute = {
+        match for text in texts.values() for match in re.findall(r"""https?://[^\s"'`)<>]+""", text)
+    }
+    assert absolute <= ALLOWED_URLS, absolute - ALLOWED_URLS
+    # protocol-relative URLs (//cdn.example/x.js) in attributes, imports or CSS url()
+    relative_to_host = [
+        (url, m)
+        for url, text in texts.items()
+        for m in re.findall(r"""(?:src=|href=|url\(|from\s|import\s)\s*["']?//[^"'\s)]+""", text)
+    ]
+    assert not relative_to_host
+    # what the page references is this server's own /assets/ or a route of the page itself
+    index = texts["/"]
+    refs = re.findall(r"""(?:src|href)=["']([^"']+)["']""", index)
+    assert refs and all(r.startswith(("/assets/", "#/")) for r in refs), refs
+
+
+def test_dashboard_routes_stay_out_of_the_api_schema(dashboard_server: Server) -> None:
+    paths = httpx.get(f"{dashboard_server.url}/openapi.json").json()["paths"]
+    assert "/" not in paths
+    assert not [p for p in paths if p.startswith("/assets")]
+
+
+# --- in the browser -------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def chromium() -> Iterator[object]:
+    if not CHROMIUM.is_file():
+        pytest.skip(
+            f"Debian's Chromium is not installed at {CHROMIUM} (make system-deps installs it); "
+            "browser tests need it and never download a browser"
+        )
+    sync_api = pytest.importorskip("playwright.sync_api", reason="the playwright package")
+    with sync_api.sync_playwright() as playwright:
+        browser = playwright.chromium.launch(
+            executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_ARGS
+        )
+        yield browser
+        browser.close()
+
+
+@pytest.fixture
+def page(chromium, dashboard_server: Server, tmp_path: Path):
+    """A fresh browser context (no cookie, empty sessionStorage) on the dashboard; any
+    JavaScript error on the page fails the test."""
+    context = chromium.new_context(viewport=VIEWPORT, base_url=dashboard_server.url)
+    context.set_default_timeout(30_000)
+    tab = context.new_page()
+    errors: list[str] = []
+    tab.on("pageerror", lambda exc: errors.append(str(exc)))
+    tab.goto("/")
+    yield tab
+    tab.screenshot(path=str(tmp_path / "last-page.png"), full_page=True)
+    context.close()
+    assert not errors, errors
+
+
+def log_in(page, username: str = "admin", password: str = ADMIN_PASSWORD) -> None:
+    page.fill("#login-username", username)
+    page.fill("#login-password", password)
+    page.click("#login-form button[type=submit]")
+    page.wait_for_selector("#surveys")
+
+
+def bar_state(page, selector: str) -> tuple[str | None, float | None]:
+    bar = page.locator(selector)
+    if not bar.count():
+        return None, None
+    value = bar.first.get_attribute("aria-valuenow")
+    return bar.first.get_attribute("data-status"), None if value is None else float(value)
+
+
+def watch_bar(page, selector: str, until: set[str], timeout: float) -> list[tuple]:
+    """(status, percent) of the progress bar, sampled until its status is in UNTIL."""
+    seen: list[tuple] = []
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        state = bar_state(page, selector)
+        if state != (None, None) and (not seen or seen[-1] != state):
+            seen.append(state)
+        if state[0] in until:
+            return seen
+        page.wait_for_timeout(100)
+    raise AssertionError(f"{selector} did not reach {until} in {timeout} s: {seen}")
+
+
+def save_screenshot(page, tmp_path: Path, name: str, docs: bool = False) -> None:
+    page.screenshot(path=str(tmp_path / f"{name}.png"), full_page=True)
+    if docs and (os.environ.get("MMSCLEAN_UPDATE_SCREENSHOTS") or not DOCS_SCREENSHOT.exists()):
+        DOCS_SCREENSHOT.parent.mkdir(exist_ok=True)
+        page.screenshot(path=str(DOCS_SCREENSHOT))
+
+
+@pytest.mark.e2e
+def test_wrong_password_shows_the_api_detail(page) -> None:
+    page.fill("#login-username", "admin")
+    page.fill("#login-password", "not-the-password")
+    page.click("#login-form button[type=submit]")
+    error = page.locator("#login-error")
+    error.wait_for(state="visible")
+    assert error.inner_text() == "wrong username or password"
+    assert page.locator("#topbar").is_hidden()
+
+
+@pytest.mark.e2e
+def test_run_phantom_from_the_survey_page_and_read_its_metrics(
+    page, dashboard_server: Server, tmp_path: Path
+) -> None:
+    log_in(page)
+    row = page.locator("#surveys tr[data-survey]", has_text="sim-urban-60m")
+    assert row.count() == 1
+    assert "1,381,077" in row.inner_text()  # points of the sample survey
+    save_screenshot(page, tmp_path, "surveys")
+    row.locator("a.survey-link").click()
+    page.wait_for_selector("form.pipeline[data-pipeline='run:phantom']")
+    survey_id = int(page.url.rsplit("/", 1)[1])
+
+    page.click("button[data-start='run:phantom']")
+    bar = ".latest[data-kind='run:phantom'] .progress"
+    page.wait_for_selector(bar)
+    seen = watch_bar(page, bar, {"succeeded", "failed", "cancelled"}, JOB_TIMEOUT_S)
+    assert seen[-1] == ("succeeded", 100.0), seen
+    assert any(value < 100 for _, value in seen), f"the bar never moved: {seen}"
+    with dashboard_server.client() as api:
+        jobs = api.get("/jobs", params={"kind": "run:phantom", "survey_id": survey_id}).json()
+    job = jobs[0]
+    assert job["status"] == "succeeded" and job["created_by"] == 1  # started as admin
+    # the review state below refreshes when the job ends: the model pre-labels are counted
+    with dashboard_server.client() as api:
+        model_labels = sum(api.get(f"/surveys/{survey_id}/pillars/stats").json()["model"])
+    assert model_labels > 0
+    total = page.locator("#pillar-stats tbody tr:last-child td:nth-child(3)")
+    page.wait_for_function(
+        "([el, want]) => el.textContent === want", arg=[total.element_handle(), f"{model_labels:,}"]
+    )
+    save_screenshot(page, tmp_path, "survey", docs=True)
+
+    # the job's metrics: confusion heat map cells hold the job's confusion matrix
+    page.locator(".latest[data-kind='run:phantom'] a", has_text="results & metrics").click()
+    page.wait_for_selector("#job-metrics [data-metric='phantom-pillar'] svg.heatmap")
+    confusion = job["result"]["metrics"]["pillar"]["confusion"]
+    counts = page.locator(
+        "#job-metrics [data-metric='phantom-pillar'] svg.heatmap .cell-count"
+    ).all_text_contents()  # SVG text has no innerText
+    assert [int(c.replace(",", "")) for c in counts] == [v for row in confusion for v in row]
+    phantom_f = job["result"]["metrics"]["pillar"]["classes"]["phantom"]["f1"]
+    table = page.locator("#job-metrics [data-metric='phantom-pillar'] table").inner_text()
+    assert f"{phantom_f:.1f}" in table
+    assert page.locator("#job-files a", has_text="report.json").count() == 1
+    page.wait_for_function("() => document.querySelector('#job-log').innerText.includes('job')")
+    save_screenshot(page, tmp_path, "job")
+
+    # the survey's metrics tab shows the same run
+    page.goto(f"/#/surveys/{survey_id}/metrics")
+    section = page.locator("[data-metrics='phantom']")
+    section.locator("svg.heatmap").first.wait_for()
+    assert f"job {job['id']}" in section.inner_text()
+    save_screenshot(page, tmp_path, "metrics")
+
+
+@pytest.mark.e2e
+def test_cancel_a_running_job_from_the_jobs_page(
+    page, dashboard_server: Server, tmp_path: Path
+) -> None:
+    log_in(page)
+    page.locator("#surveys a.survey-link").first.click()
+    page.click("button[data-start='run:guardrail']")
+    page.wait_for_selector(".latest[data-kind='run:guardrail'] .progress")
+    page.click("nav [data-nav='jobs']")
+    row = page.locator("#jobs tr[data-job]", has_text="run:guardrail").first
+    row.wait_for()
+    job_id = int(row.get_attribute("data-job"))
+    bar = f"#jobs tr[data-job='{job_id}'] .progress"
+    # wait until a worker runs it and reports progress, so the cancel reaches a running job
+    deadline = time.monotonic() + JOB_TIMEOUT_S
+    while bar_state(page, bar)[0] != "running" or not bar_state(page, bar)[1]:
+        assert time.monotonic() < deadline, bar_state(page, bar)
+        page.wait_for_timeout(200)
+    save_screenshot(page, tmp_path, "jobs-running")
+    row.locator("button[data-action='cancel']").click()
+    seen = watch_bar(page, bar, {"cancelled", "succeeded", "failed"}, JOB_TIMEOUT_S)
+    assert seen[-1][0] == "cancelled", seen
+    row.locator("button[data-action='resume']").wait_for()  # a cancelled job may be resumed
+    with dashboard_server.client() as api:
+        job = api.get(f"/jobs/{job_id}").json()
+    assert job["status"] == "cancelled" and job["cancel_requested"]
+
+
+@pytest.mark.e2e
+def test_upload_a_survey_with_progress_then_delete_it(page, tmp_path: Path) -> None:
+    rng = np.random.default_rng(3)
+    xyz = rng.uniform([0, 0, 0], [40, 20, 3], size=(20_000, 3)) + [512_000.0, 5_400_000.0, 300]
+    laz = write_laz(tmp_path / "street-upload.laz", xyz)
+    log_in(page)
+    page.set_input_files("#upload-file", str(laz))
+    page.fill("#upload-name", "uploaded street")
+    page.click("#upload-form button[type=submit]")
+    row = page.locator("#surveys tr[data-survey]", has_text="uploaded street")
+    row.wait_for()
+    progress = page.locator("#upload-progress")
+    assert progress.get_attribute("data-status") == "succeeded"
+    assert progress.get_attribute("aria-valuenow") == "100"
+    assert "20,000" in row.inner_text()
+
+    page.once("dialog", lambda dialog: dialog.accept())  # the delete confirmation
+    row.locator("button[data-action='delete']").click()
+    row.wait_for(state="detached")
+    assert page.locator("#surveys tr[data-survey]", has_text="sim-urban-60m").count() == 1
+
+
+@pytest.mark.e2e
+def test_an_annotator_sees_only_what_the_role_allows(page, dashboard_server: Server) -> None:
+    dashboard_server.add_user("annie", "annotator", password="annotator-pass-1")
+    log_in(page, "annie", "annotator-pass-1")
+    assert page.locator("#who-role").inner_text() == "annotator"
+    assert page.locator("button[data-action='delete']").count() == 0  # deleting: reviewers
+    page.locator("#surveys a.survey-link").first.click()
+    page.wait_for_selector("button[data-start='run:phantom']")  # annotators run pipelines
+    assert page.locator("#exports").count() == 0  # exports: reviewers
+    assert page.locator("a[data-mode='pillars']").get_attribute("href").startswith("/viewer?")
+    page.click("nav [data-nav='models']")
+    page.wait_for_selector("#models")
+    assert page.locator("[data-retrain]").count() == 0  # retraining: admins
+    assert page.locator("button[data-action='promote']").count() == 0
+
+
+@pytest.mark.e2e
+def test_log_out_ends_the_session(page) -> None:
+    log_in(page)
+    page.click("#logout")
+    page.wait_for_selector("#login-form")
+    assert page.evaluate("() => sessionStorage.length") == 0
+    # the HttpOnly cookie went too: reads on the cookie alone are refused
+    assert page.evaluate("async () => (await fetch('/auth/me')).status") == 401
+    page.goto("/#/jobs")
+    page.wait_for_selector("#login-form")  # every page needs a login again
