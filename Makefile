@@ -18,12 +18,17 @@ $(STAMP): pyproject.toml requirements.lock
 	$(PY) -m pip install --quiet --disable-pip-version-check -c requirements.lock -e '.[dev]'
 	@touch $(STAMP)
 
-# open3d-cpu links libusb-1.0, which slim Debian images lack.
+# open3d-cpu links libusb-1.0, which slim Debian images lack; the browser tests (tests/e2e)
+# drive Debian's Chromium (Playwright never downloads a browser here).
 system-deps:
 	@ldconfig -p | grep -q 'libusb-1.0.so.0' || { \
 	  echo "installing libusb-1.0-0 (needed by open3d)"; \
 	  apt-get install -y -q libusb-1.0-0 >/dev/null 2>&1 || \
 	  { apt-get update -q >/dev/null && apt-get install -y -q libusb-1.0-0 >/dev/null; }; }
+	@test -x /usr/bin/chromium || { \
+	  echo "installing chromium (needed by the browser tests)"; \
+	  apt-get install -y -q chromium >/dev/null 2>&1 || \
+	  { apt-get update -q >/dev/null && apt-get install -y -q chromium >/dev/null; }; }
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check app tests bench
