@@ -47,10 +47,24 @@ class PageContext {
   }
 
   /** Run STEP now and again after the delay (ms) it returns, until the page is left or it
-   * returns nothing; a failing step is reported and retried after 5 s. */
+   * returns nothing; a failing step is reported and retried after 5 s. Returns `{now()}`:
+   * run it at once (after a click changed something) instead of waiting for the timer. */
   poll(step) {
+    let timer = null;
+    let running = false;
+    let again = false;
+    const stopTimer = () => {
+      clearTimeout(timer);
+      this.timers.delete(timer);
+      timer = null;
+    };
     const loop = async () => {
       if (this.left) return;
+      if (running) {
+        again = true; // one run at a time; run once more when this one ends
+        return;
+      }
+      running = true;
       let delay;
       try {
         delay = await step();
@@ -58,15 +72,26 @@ class PageContext {
         this.error(error);
         delay = error instanceof ApiError && error.status === 401 ? null : 5000;
       }
-      if (!this.left && delay) {
-        const timer = setTimeout(() => {
-          this.timers.delete(timer);
+      running = false;
+      if (this.left) return;
+      if (again) {
+        again = false;
+        loop();
+      } else if (delay) {
+        timer = setTimeout(() => {
+          stopTimer();
           loop();
         }, delay);
         this.timers.add(timer);
       }
     };
     loop();
+    return {
+      now: () => {
+        stopTimer();
+        loop();
+      },
+    };
   }
 
   error(error) {
@@ -179,8 +204,8 @@ async function start() {
   if (session.token) {
     try {
       session.setUser(await api("/auth/me")); // the role may have changed since login
-    } catch {
-      session.clear();
+    } catch (error) {
+      if (error.status === 401) session.clear(); // a server that is down ends no session
     }
   }
   route();

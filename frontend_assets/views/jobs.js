@@ -195,6 +195,8 @@ export async function jobsView(ctx, root) {
 
   const rows = new Map();
   const lookups = { surveys, users };
+  let poller = null;
+  const changed = async () => poller?.now();
   async function refresh() {
     const params = new URLSearchParams({ limit: 100 });
     if (statusFilter.value) params.set("status", statusFilter.value);
@@ -207,7 +209,7 @@ export async function jobsView(ctx, root) {
       let row = rows.get(job.id);
       if (!row) {
         if (job.survey_id !== null && !surveys.has(job.survey_id)) surveys.set(job.survey_id, null);
-        row = jobRow(ctx, job, lookups, refresh);
+        row = jobRow(ctx, job, lookups, changed);
         rows.set(job.id, row);
       } else {
         row.update(job);
@@ -226,11 +228,11 @@ export async function jobsView(ctx, root) {
   const refilter = () => {
     for (const row of rows.values()) row.el.remove();
     rows.clear();
-    refresh().catch((e) => ctx.error(e));
+    poller.now();
   };
   statusFilter.addEventListener("change", refilter);
   kindFilter.addEventListener("change", refilter);
-  ctx.poll(refresh);
+  poller = ctx.poll(refresh);
 }
 
 // --- one job --------------------------------------------------------------------------------
@@ -331,7 +333,7 @@ export async function jobView(ctx, root, id) {
       actions.replaceChildren(
         ...jobActions(ctx, j, async (answer) => {
           if (answer.id !== j.id) location.hash = `#/jobs/${answer.id}`;
-          else await refresh();
+          else poller.now();
         }),
       );
     }
@@ -371,5 +373,5 @@ export async function jobView(ctx, root, id) {
     if (atBottom) log.scrollTop = log.scrollHeight; // follow the tail unless the user scrolled up
     return ACTIVE.has(j.status) ? 1000 : 5000; // slowly after the end: it may be resumed
   }
-  ctx.poll(refresh);
+  const poller = ctx.poll(refresh);
 }

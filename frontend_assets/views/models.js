@@ -175,6 +175,8 @@ export async function modelsView(ctx, root) {
   // panel and table redraw separately, so a moving training bar keeps open details open
   let shownPanel = "";
   let shownModels = "";
+  let poller = null;
+  const changed = async () => poller?.now();
   async function refresh() {
     const [models, state, phantomJobs, guardrailJobs] = await Promise.all([
       api("/models"),
@@ -186,14 +188,14 @@ export async function modelsView(ctx, root) {
     const panelSignature = JSON.stringify([state, jobs]);
     if (panelSignature !== shownPanel) {
       shownPanel = panelSignature;
-      panel.replaceChildren(...retrainingPanel(ctx, state, jobs, refresh));
+      panel.replaceChildren(...retrainingPanel(ctx, state, jobs, changed));
     }
     const modelsSignature = JSON.stringify(models);
     if (modelsSignature !== shownModels) {
       shownModels = modelsSignature;
-      tableBox.replaceChildren(modelsTable(ctx, models, refresh));
+      tableBox.replaceChildren(modelsTable(ctx, models, changed));
     }
     return jobs.some((j) => ACTIVE.has(j.status)) ? 1000 : 5000;
   }
-  ctx.poll(refresh);
+  poller = ctx.poll(refresh);
 }

@@ -401,16 +401,15 @@ export async function surveyView(ctx, root, id) {
     return Object.values(jobs).some((j) => ACTIVE.has(j.status)) ? 1000 : 5000;
   }
 
+  let poller = null;
   for (const form of PIPELINE_FORMS) {
-    cards[form.kind] = pipelineCard(ctx, survey, form, async () => {
-      await refresh();
-    });
+    cards[form.kind] = pipelineCard(ctx, survey, form, async () => poller?.now());
     pipelines.append(cards[form.kind].el);
   }
   for (const form of PIPELINE_FORMS) cards[form.kind].show(survey.latest_jobs?.[form.kind]);
   lastJobs = survey.latest_jobs || {};
   await loadReview();
-  ctx.poll(refresh);
+  poller = ctx.poll(refresh);
 }
 
 export async function surveyMetricsView(ctx, root, id) {
