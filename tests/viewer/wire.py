@@ -77,6 +77,29 @@ def camera_message(
     )
 
 
+def click_message(
+    origin: tuple[float, float, float], direction: tuple[float, float, float]
+) -> bytes:
+    """A plain left click whose camera ray is origin + t * direction (scene coordinates)."""
+    return msgspec.msgpack.encode(
+        {
+            "type": "ScenePointerMessage",
+            "event_type": "click",
+            "ray_origin": origin,
+            "ray_direction": direction,
+            "screen_pos": [(0.5, 0.5)],
+            "modifier": None,
+        }
+    )
+
+
+def button_press(uuid: str) -> bytes:
+    """What the browser sends when a GUI button is pressed."""
+    return msgspec.msgpack.encode(
+        {"type": "GuiUpdateMessage", "uuid": uuid, "updates": {"value": True}}
+    )
+
+
 def is_point_cloud(message: dict[str, Any]) -> bool:
     return message.get("type") == "PointCloudMessage"
 
@@ -93,6 +116,7 @@ class WireClient:
     def __init__(self, connection: ClientConnection):
         self.connection = connection
         self.received: list[tuple[float, dict[str, Any]]] = []  # (perf_counter, message)
+        self._cursor = 0  # received[:_cursor] were looked at by wait_for
 
     @classmethod
     async def open(cls, url: str, token: str | None = None, **kwargs: Any) -> WireClient:
@@ -109,21 +133,31 @@ class WireClient:
     async def wait_for(
         self, predicate: Callable[[dict[str, Any]], bool], timeout: float
     ) -> tuple[float, dict[str, Any]]:
-        """(arrival time, message) of the first new message matching `predicate`."""
+        """(arrival time, message) of the first message after the last one returned that
+        matches `predicate` (one frame may carry several messages)."""
         deadline = time.monotonic() + timeout
         while True:
+            while self._cursor < len(self.received):
+                arrived, message = self.received[self._cursor]
+                self._cursor += 1
+                if predicate(message):
+                    return arrived, message
             left = deadline - time.monotonic()
             if left <= 0:
                 raise TimeoutError("no matching viser message in time")
             frame = await asyncio.wait_for(self.connection.recv(), left)
             arrived = time.perf_counter()
-            found = None
-            for message in decode_frame(frame):
-                self.received.append((arrived, message))
-                if found is None and predicate(message):
-                    found = (arrived, message)
-            if found is not None:
-                return found
+            self.received.extend((arrived, message) for message in decode_frame(frame))
+
+    async def send(self, frame: bytes) -> None:
+        await self.connection.send(frame)
+
+    def button_uuid(self, label: str) -> str:
+        """The uuid of a GUI button this client was sent."""
+        for _, message in self.received:
+            if message.get("type") == "GuiButtonMessage" and message["props"]["label"] == label:
+                return message["uuid"]
+        raise KeyError(f"no button {label!r} received")
 
     async def close(self) -> None:
         await self.connection.close()

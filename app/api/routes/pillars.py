@@ -113,6 +113,14 @@ def _write_out(result: LabelWrite) -> LabelWriteOut:
     )
 
 
+def _wake_viewer(request: Request) -> None:
+    """Viewer hook: open viewers recolour the written pillars now, not at the next poll of
+    their label feed (`app.viewer.label_feed`, which also sees writes from other processes)."""
+    viewer = getattr(request.app.state, "viewer", None)
+    if viewer is not None:
+        viewer.labels_written()
+
+
 def _after_write(request: Request, background: BackgroundTasks) -> None:
     """Reviewed labels count towards the retraining trigger, checked after the answer is sent."""
     trigger = getattr(request.app.state, "retraining_trigger", None)
@@ -144,6 +152,7 @@ def put_labels(
     versions = [i.version for i in items]
     checked = versions if any(v is not None for v in versions) else None
     result = write_labels(session, survey_id, user.id, cell_ids, labels, checked)
+    _wake_viewer(request)
     _after_write(request, background)
     return _write_out(result)
 
@@ -171,18 +180,26 @@ def get_labels(
 
 
 @router.post("/undo", response_model=LabelWriteOut, responses=errors(403, 409))
-def undo_labels(survey_id: int, user: Annotator, session: SessionDep) -> LabelWriteOut:
+def undo_labels(
+    survey_id: int, user: Annotator, session: SessionDep, request: Request
+) -> LabelWriteOut:
     """Revert this user's newest labelling action on the survey (409 when there is none, or
     when someone changed those pillars since)."""
     survey_or_404(session, survey_id)
-    return _write_out(undo(session, survey_id, user.id))
+    result = undo(session, survey_id, user.id)
+    _wake_viewer(request)
+    return _write_out(result)
 
 
 @router.post("/redo", response_model=LabelWriteOut, responses=errors(403, 409))
-def redo_labels(survey_id: int, user: Annotator, session: SessionDep) -> LabelWriteOut:
+def redo_labels(
+    survey_id: int, user: Annotator, session: SessionDep, request: Request
+) -> LabelWriteOut:
     """Re-apply this user's most recently undone action (gone once they label anew)."""
     survey_or_404(session, survey_id)
-    return _write_out(redo(session, survey_id, user.id))
+    result = redo(session, survey_id, user.id)
+    _wake_viewer(request)
+    return _write_out(result)
 
 
 @router.get("/uncertain", response_model=list[UncertainAreaOut], responses=errors(422))

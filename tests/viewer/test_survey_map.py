@@ -1,0 +1,81 @@
+"""The viewer's map: re-centred float32, exact pillars, tiles as slices, overview cap, cache."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app.store.models import Survey
+from app.store.pillar_labels import STORE_GRID
+from app.viewer import survey_map as survey_map_module
+from app.viewer.survey_map import TILE_GRID, MapSource, load_map
+from tests.viewer.conftest import street_points
+
+
+def source_of(record: Survey) -> MapSource:
+    return MapSource(
+        survey_id=record.id,
+        source_path=record.source_path,
+        format=record.format,
+        origin=(record.origin_x, record.origin_y, record.origin_z),
+        point_count=record.point_count,
+        frame_count=record.frame_count,
+    )
+
+
+def test_map_is_recentred_float32_with_exact_pillars(ply_survey: Survey, tmp_path: Path) -> None:
+    m = load_map(source_of(ply_survey), tmp_path / "cache", overview_points=10_000)
+    world = street_points()
+    assert m.xyz.dtype == np.float32 and len(m) == len(world)
+    assert np.abs(m.xyz).max() < 200  # local: near the origin, not 5e6
+    np.testing.assert_allclose(m.origin, np.floor(world.min(axis=0)))
+    # same multiset of points back in world coordinates (to float32 precision, ~1e-5 m here)
+    back = np.sort(m.xyz.astype(np.float64)[:, 0] + m.origin[0])
+    np.testing.assert_allclose(back, np.sort(world[:, 0]), atol=1e-4)
+    # each point's pillar is the store-grid cell of its world xy
+    rebuilt = m.xyz.astype(np.float64)[:, :2] + m.origin[:2]
+    inside = (np.abs(np.modf(rebuilt / STORE_GRID.cell_size)[0] - 0.5) < 0.49).all(axis=1)
+    expected = STORE_GRID.point_cell_ids(rebuilt[inside])
+    np.testing.assert_array_equal(m.cells[m.cell[inside]], expected)
+
+
+def test_tiles_are_contiguous_slices_and_overview_is_capped(
+    ply_survey: Survey, tmp_path: Path
+) -> None:
+    m = load_map(source_of(ply_survey), tmp_path / "cache", overview_points=10_000)
+    assert len(m.tile_ids) == 3  # 120 m x 30 m at 50 m tiles
+    total = 0
+    for tile in m.tile_ids:
+        points = m.tile_points(int(tile))
+        ids = TILE_GRID.point_cell_ids(m.xyz[points, :2])
+        assert (ids == tile).all()
+        total += len(points)
+    assert total == len(m)
+    assert len(m.tile_points(int(m.tile_ids.max()) + 12345)) == 0
+    assert len(m.overview) == 10_000 and np.all(np.diff(m.overview) > 0)
+    # the ground under the box is found, not the box top (the street rises 2 % along x)
+    np.testing.assert_allclose(m.ground.height(np.array([[21.0, 11.0]])), 0.42, atol=0.1)
+
+
+def test_second_open_reads_the_cache(
+    ply_survey: Survey, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    first = load_map(source_of(ply_survey), tmp_path / "cache", overview_points=10_000)
+    assert len(list((tmp_path / "cache" / "viewer").glob("survey-*.npz"))) == 1
+
+    def no_build(*_: object) -> None:
+        raise AssertionError("the map was rebuilt although it is cached")
+
+    monkeypatch.setattr(survey_map_module, "build_map", no_build)
+    second = load_map(source_of(ply_survey), tmp_path / "cache", overview_points=10_000)
+    np.testing.assert_array_equal(first.xyz, second.xyz)
+    np.testing.assert_array_equal(first.overview, second.overview)
+
+
+def test_another_overview_cap_rebuilds_and_replaces(ply_survey: Survey, tmp_path: Path) -> None:
+    load_map(source_of(ply_survey), tmp_path / "cache", overview_points=10_000)
+    smaller = load_map(source_of(ply_survey), tmp_path / "cache", overview_points=5_000)
+    assert len(smaller.overview) == 5_000
+    assert len(list((tmp_path / "cache" / "viewer").glob("survey-*.npz"))) == 1

@@ -1,0 +1,248 @@
+"""The viewer behind the login, on a real `mmsclean serve` with the sample survey: nothing of it
+without a login, viser on loopback only, and a logged-in websocket client gets the scene,
+labels with the brush as its own user, sees API writes recoloured and can undo."""
+
+from __future__ import annotations
+
+import asyncio
+import ipaddress
+import socket
+import subprocess
+import time
+from urllib.parse import unquote
+
+import httpx
+import numpy as np
+import pytest
+from websockets.asyncio.client import connect
+from websockets.exceptions import ConnectionClosed, InvalidStatus
+
+from app.store.pillar_labels import STORE_GRID
+from app.viewer.pillar_colors import PALETTE
+from tests.api.server import Server
+from tests.viewer.conftest import OVERVIEW_POINTS, TILE_POINTS, login_token
+from tests.viewer.wire import (
+    SUBPROTOCOL,
+    WireClient,
+    button_press,
+    camera_message,
+    click_message,
+    is_color_update,
+    is_point_cloud,
+)
+
+SCENE_TIMEOUT = 120.0  # the first open builds the sample's map (seconds on 2 shared cores)
+
+
+def ws_url(server: Server, query: str = "") -> str:
+    return f"ws://127.0.0.1:{server.port}/viewer/ws{query}"
+
+
+def viser_port(server: Server) -> int:
+    return int(server.env["MMSCLEAN_VIEWER_PORT"])
+
+
+def refused_status(url: str, **kwargs) -> int:
+    """The HTTP status a refused websocket handshake got."""
+
+    async def attempt() -> int:
+        try:
+            async with connect(url, subprotocols=[SUBPROTOCOL], **kwargs):
+                return 101
+        except InvalidStatus as exc:
+            return exc.response.status_code
+
+    return asyncio.run(attempt())
+
+
+# --- nothing without a login -----------------------------------------------------------------
+
+
+def test_relay_refuses_without_a_valid_token(viewer_server: Server) -> None:
+    assert refused_status(ws_url(viewer_server)) == 403
+    assert refused_status(ws_url(viewer_server, "?token=not-a-token")) == 403
+    forged = {"Cookie": "mmsclean_token=eyJhbGciOi.forged.token"}
+    assert refused_status(ws_url(viewer_server), additional_headers=forged) == 403
+
+
+def test_relay_refuses_other_origins_unknown_surveys_and_other_protocols(
+    viewer_server: Server,
+) -> None:
+    token = login_token(viewer_server)
+    cookie = {"Cookie": f"mmsclean_token={token}"}
+    evil = {**cookie, "Origin": "http://127.0.0.1:1"}  # another port is another origin
+    assert refused_status(ws_url(viewer_server), additional_headers=evil) == 403
+    assert refused_status(ws_url(viewer_server, "?survey=999"), additional_headers=cookie) == 403
+
+    async def no_viser_protocol() -> int:
+        try:
+            async with connect(ws_url(viewer_server), additional_headers=cookie):
+                return 101
+        except InvalidStatus as exc:
+            return exc.response.status_code
+
+    assert asyncio.run(no_viser_protocol()) == 403
+
+
+def test_viewer_page_needs_a_login(viewer_server: Server) -> None:
+    browser = httpx.get(f"{viewer_server.url}/viewer?survey=1", headers={"Accept": "text/html"})
+    assert browser.status_code == 303
+    assert browser.headers["location"] == "/?next=%2Fviewer%3Fsurvey%3D1"
+    assert "Viser" not in browser.text
+    script = httpx.get(f"{viewer_server.url}/viewer")
+    assert script.status_code == 401 and "not logged in" in script.json()["detail"]
+
+
+def test_viewer_page_points_viser_at_the_relay(viewer_server: Server) -> None:
+    token = login_token(viewer_server)
+    with httpx.Client(base_url=viewer_server.url, cookies={"mmsclean_token": token}) as client:
+        first = client.get("/viewer", params={"survey": 1})
+        assert first.status_code == 303
+        location = first.headers["location"]
+        relay = f"ws://127.0.0.1:{viewer_server.port}/viewer/ws?survey=1"
+        assert unquote(location) == f"/viewer?websocket={relay}"
+        page = client.get(location)
+        assert page.status_code == 200 and "<title>Viser</title>" in page.text
+        # the address bar form viser writes back (unescaped) is served as is
+        assert client.get(f"/viewer?websocket={relay}").status_code == 200
+        # a page pointed anywhere else is sent back to our relay
+        elsewhere = client.get("/viewer", params={"websocket": "ws://evil.example/ws"})
+        assert elsewhere.status_code == 303 and "evil" not in elsewhere.headers["location"]
+        assert client.get("/viewer", params={"survey": 999}).status_code == 404
+
+
+# --- viser listens on loopback only ----------------------------------------------------------
+
+
+def other_addresses() -> list[str]:
+    """This machine's addresses that are not loopback."""
+    found: set[str] = set()
+    try:
+        out = subprocess.run(["hostname", "-I"], capture_output=True, text=True, timeout=5)
+        found.update(out.stdout.split())
+    except (OSError, subprocess.SubprocessError):
+        pass
+    try:  # the address of the default route (no packet is sent)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+            probe.connect(("192.0.2.1", 9))
+            found.add(probe.getsockname()[0])
+    except OSError:
+        pass
+    return sorted(a for a in found if not ipaddress.ip_address(a.split("%")[0]).is_loopback)
+
+
+def answers(address: str, port: int) -> bool:
+    family = socket.AF_INET6 if ":" in address else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as probe:
+        probe.settimeout(2)
+        try:
+            probe.connect((address, port))
+            return True
+        except OSError:
+            return False
+
+
+def test_viser_answers_on_loopback_only(viewer_server: Server) -> None:
+    port = viser_port(viewer_server)
+    assert answers("127.0.0.1", port)
+    addresses = other_addresses()
+    if not addresses:
+        pytest.skip("this machine has no address other than loopback")
+    reachable = [a for a in addresses if answers(a, port)]
+    assert not reachable, f"viser answers on {reachable}"
+
+
+def test_direct_connection_to_viser_gets_no_scene(viewer_server: Server) -> None:
+    """Someone on the machine dialling the loopback port without a ticket is dropped."""
+
+    async def dial() -> tuple[int | None, list[str]]:
+        url = f"ws://127.0.0.1:{viser_port(viewer_server)}/?session=guessed"
+        client = await WireClient.open(url)
+        await client.send(camera_message())
+        with pytest.raises((ConnectionClosed, TimeoutError)):
+            await client.wait_for(is_point_cloud, 10)
+        return client.connection.close_code, [m.get("type") for _, m in client.received]
+
+    code, types = asyncio.run(dial())
+    assert code == 1008
+    assert "PointCloudMessage" not in types and "GuiMarkdownMessage" not in types
+
+
+# --- a logged-in client ----------------------------------------------------------------------
+
+
+def human_labels(api: httpx.Client, box: tuple[float, float, float, float]) -> dict:
+    x0, y0, x1, y1 = box
+    tile = api.get(
+        "/surveys/1/pillars/labels",
+        params={"x0": x0, "y0": y0, "x1": x1, "y1": y1, "source": "human"},
+    ).json()
+    rows = zip(tile["cell_id"], tile["label"], tile["user_id"], strict=True)
+    return {cell: (label, user) for cell, label, user in rows}
+
+
+def colors_with(rgb: np.ndarray, present: bool = True):
+    """Predicate: a colour update that does (or does not) hold this colour."""
+
+    def predicate(message: dict) -> bool:
+        if not is_color_update(message):
+            return False
+        colors = np.asarray(message["updates"]["colors"]).reshape(-1, 3)
+        return bool((colors == rgb).all(axis=1).any()) == present
+
+    return predicate
+
+
+def test_client_gets_the_scene_labels_as_its_user_sees_api_writes_and_undoes(
+    viewer_server: Server,
+) -> None:
+    painter = viewer_server.add_user("painter", "annotator")
+    painter_id = painter.get("/auth/me").json()["id"]
+    token = login_token(viewer_server, "painter", "password-123")
+    admin = viewer_server.client()
+    survey = admin.get("/surveys/1").json()
+    origin = np.array(survey["origin"])
+
+    async def session() -> None:
+        client = await WireClient.open(ws_url(viewer_server, "?survey=1"), token)
+        await client.hello()
+        _, overview = await client.wait_for(is_point_cloud, SCENE_TIMEOUT)
+        assert overview["name"] == "/pillars/overview"
+        points = overview["props"]["points"]
+        assert points.dtype == np.float32 and overview["props"]["precision"] == "float32"
+        assert 0 < len(points) // 3 <= OVERVIEW_POINTS
+        assert len(overview["props"]["colors"]) == len(points)  # one RGB per point
+        _, tile = await client.wait_for(is_point_cloud, 30)
+        assert tile["name"] == "/pillars/tile" and len(tile["props"]["points"]) // 3 <= TILE_POINTS
+
+        # brush: a click straight down at local (30, 0) paints the pillars within 1 m
+        await client.send(click_message((30.0, 0.0, 40.0), (0.0, 0.0, -1.0)))
+        await client.wait_for(colors_with(PALETTE[0]), 30)  # ground, full colour
+        world = origin[:2] + np.array([30.0, 0.0])
+        box = (world[0] - 2, world[1] - 2, world[0] + 2, world[1] + 2)
+        painted = human_labels(admin, box)
+        assert 50 <= len(painted) <= 80  # pi * 1 m^2 / 0.04 m^2 ~ 79 pillars, those with points
+        assert {v for v in painted.values()} == {(0, painter_id)}  # ground, by the painter
+        centres = STORE_GRID.cell_center(*STORE_GRID.decode(np.array(list(painted))))
+        assert np.hypot(*(centres - world).T).max() <= 1.0
+
+        # a write through the REST API by someone else shows up in this client's colours
+        cells = STORE_GRID.point_cell_ids(world + np.array([[5.0, 0.0], [5.2, 0.0]]))
+        started = time.perf_counter()
+        written = admin.put(
+            "/surveys/1/pillars/labels",
+            json={"labels": [{"cell_id": int(c), "label": 3} for c in cells]},
+        )
+        assert written.status_code == 200
+        arrived, _ = await client.wait_for(colors_with(PALETTE[3]), 10)  # phantom
+        assert arrived - started < 5.0
+
+        # undo (the GUI button) takes the painter's brush stroke back, not the admin's labels
+        await client.send(button_press(client.button_uuid("Undo")))
+        await client.wait_for(colors_with(PALETTE[0], present=False), 30)
+        assert human_labels(admin, box) == {}
+        beside = (world[0] + 4, world[1] - 1, world[0] + 6, world[1] + 1)
+        assert len(human_labels(admin, beside)) == 2
+        await client.close()
+
+    asyncio.run(session())
