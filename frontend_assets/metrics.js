@@ -29,7 +29,10 @@ function prfRow(name, s) {
 
 /** Per-class precision / recall / F table of a multi-class `Scores` dict, with the macro row. */
 export function scoresTable(scores) {
-  const names = scores.names || Object.keys(scores.classes || {});
+  const known = Object.keys(scores.classes || {});
+  // without `names`, the pillar classes in label order (the JSON keys may come sorted)
+  const names =
+    scores.names || (PILLAR_NAMES.every((n) => known.includes(n)) ? PILLAR_NAMES : known);
   const rows = names.filter((n) => scores.classes?.[n]).map((n) => prfRow(n, scores.classes[n]));
   if (scores.macro) {
     const over = (scores.macro_classes || []).join(", ") || "classes with support";
@@ -266,7 +269,7 @@ export function modelDetails(model) {
   if (!isObject(v)) return note("This version has no validation metrics.");
   if (isObject(v.classes)) {
     parts.push(scoresTable(v));
-    parts.push(scoresPlots(v, `held-out validation, ${model.name}`));
+    parts.push(scoresPlots(v, "held-out validation"));
   } else if (isObject(v.scores)) {
     const groups = Object.entries(v.scores).map(([head, sc]) => ({ label: head, values: sc }));
     parts.push(
