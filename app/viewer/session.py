@@ -36,7 +36,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-CAMERA_OFFSET = np.array([-0.45, -0.55, 0.7])  # initial view: from behind-left, above
+CAMERA_OFFSET = np.array([-0.3, -0.4, 1.0])  # initial view: from above, a little behind-left
 CAMERA_DISTANCE = (20.0, 150.0)  # metres, clamped from the map's size
 
 
@@ -154,13 +154,13 @@ class ViewerSession:
         self.switch_mode(mode_name)
 
     def _place_camera(self) -> None:
-        """Look at the middle of the map from behind-left and above."""
+        """Look down at the middle of the map, a little from behind-left."""
         survey_map = self.view.map
         lo, hi = survey_map.bounds()
         centre = (lo[:2].astype(np.float64) + hi[:2]) / 2.0
         ground = float(survey_map.ground.height(centre[None])[0]) if len(survey_map) else 0.0
         look_at = np.array([centre[0], centre[1], ground])
-        distance = float(np.clip(0.6 * float(np.max(hi[:2] - lo[:2])), *CAMERA_DISTANCE))
+        distance = float(np.clip(0.9 * float(np.max(hi[:2] - lo[:2])), *CAMERA_DISTANCE))
         offset = CAMERA_OFFSET / np.linalg.norm(CAMERA_OFFSET) * distance
         self.move_camera(look_at, offset)
 

@@ -1,0 +1,106 @@
+"""Pillar labelling in a real browser: log in (API login, cookie in the browser), open the
+viewer on the sample survey, pick a class by hotkey, brush with a click and label with a
+shift-drag rectangle, check through the REST API that the labels were stored for that user,
+then undo both actions (button and Ctrl+Z) and check they are gone."""
+
+from __future__ import annotations
+
+import time
+
+import httpx
+import pytest
+
+from tests.api.server import Server
+from tests.e2e.conftest import save_screenshot
+
+PASSWORD = "password-123"
+WAIT_S = 30.0
+
+
+def human_labels(api: httpx.Client) -> list[tuple[int, int, int]]:
+    """(cell id, label, user id) of every human label of the sample survey."""
+    tile = api.get(
+        "/surveys/1/pillars/labels",
+        params={"x0": -200, "y0": -200, "x1": 200, "y1": 200, "source": "human"},
+    ).json()
+    return list(zip(tile["cell_id"], tile["label"], tile["user_id"], strict=True))
+
+
+def wait_until(what: str, check, timeout: float = WAIT_S):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = check()
+        if value:
+            return value
+        time.sleep(0.2)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def canvas_box(page) -> dict:
+    box = page.locator("canvas").first.bounding_box()
+    assert box is not None and box["width"] > 400 and box["height"] > 300
+    return box
+
+
+@pytest.mark.e2e
+def test_label_pillars_with_brush_and_rectangle_then_undo(
+    open_viewer, viewer_server: Server, artefacts
+) -> None:
+    labeller = viewer_server.add_user("labeller", "annotator", PASSWORD)
+    labeller_id = labeller.get("/auth/me").json()["id"]
+    api = viewer_server.client()
+    assert human_labels(api) == []
+
+    page = open_viewer("labeller", PASSWORD, survey_id=1)
+    page.get_by_text("Click: brush. Shift-drag: rectangle.").wait_for()
+    page.wait_for_timeout(3000)  # let software WebGL draw the clouds
+    save_screenshot(page, artefacts, "1-opened")
+
+    # pick "High object" with its hotkey
+    page.keyboard.press("2")
+    wait_until("the class dropdown to show High object", lambda: _class_shown(page))
+
+    # brush: a click in the middle of the canvas (the camera looks at the map's centre)
+    box = canvas_box(page)
+    cx, cy = box["x"] + box["width"] * 0.45, box["y"] + box["height"] * 0.5
+    page.mouse.click(cx, cy)
+    brushed = wait_until("the brush stroke in the store", lambda: human_labels(api))
+    assert {(label, user) for _, label, user in brushed} == {(1, labeller_id)}
+    assert 20 <= len(brushed) <= 80  # a 1 m brush: ~79 pillars, those holding points
+    page.get_by_text("pillars: High object (brush").wait_for()
+
+    # rectangle: shift-drag beside the stroke
+    page.keyboard.down("Shift")
+    page.mouse.move(cx - 160, cy - 90)
+    page.mouse.down()
+    page.mouse.move(cx - 60, cy + 60, steps=12)
+    page.mouse.up()
+    page.keyboard.up("Shift")
+    both = wait_until(
+        "the rectangle in the store", lambda: (rows := human_labels(api)) != brushed and rows
+    )
+    assert len(both) > len(brushed)
+    assert {(label, user) for _, label, user in both} == {(1, labeller_id)}
+    page.get_by_text("pillars: High object (rectangle").wait_for()
+    page.wait_for_timeout(1500)  # the new colours drawn
+    save_screenshot(page, artefacts, "2-labelled", docs="viewer_pillars.png")
+
+    # undo the rectangle with the button, the brush stroke with Ctrl+Z
+    page.get_by_role("button", name="Undo").click()
+    assert sorted(wait_until("undoing the rectangle", lambda: _equal(api, brushed))) == sorted(
+        brushed
+    )
+    page.mouse.move(cx, cy)
+    page.keyboard.press("Control+z")
+    wait_until("undoing the brush stroke", lambda: human_labels(api) == [])
+    page.wait_for_timeout(1000)
+    save_screenshot(page, artefacts, "3-undone")
+
+
+def _class_shown(page) -> bool:
+    return page.locator("input[value='High object']").count() > 0
+
+
+def _equal(api: httpx.Client, expected: list) -> list | None:
+    rows = human_labels(api)
+    return rows if sorted(rows) == sorted(expected) else None
