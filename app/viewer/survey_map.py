@@ -8,7 +8,8 @@ world coordinates loses centimetres). Alongside the points the map keeps what se
   so a label change becomes a colour change by one fancy index;
 - points ordered by 50 m tile, so the full-resolution points of a tile are one slice;
 - `overview`: a 0.2 m voxel-downsampled subset (capped), shown for the whole map;
-- the local ground height (5th-percentile grid), which the brush intersects the click ray with.
+- the local ground height (5th-percentile grid of the overview), which the brush intersects the
+  click ray with.
 
 Building reads every frame (seconds for millions of points), so the arrays are saved as one .npz
 per survey under `<cache_dir>/viewer/`, named after everything that could change them; a second
@@ -31,7 +32,7 @@ from app.geometry.voxels import voxel_downsample
 from app.io import open_survey
 from app.store.pillar_labels import STORE_GRID
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2
 TILE_SIZE = 50.0  # metres: the full-resolution unit
 OVERVIEW_VOXEL = 0.2  # metres: one overview point per voxel
 GROUND_CELL = 1.0  # metres
@@ -142,8 +143,8 @@ def build_map(source: MapSource, overview_points: int) -> SurveyMap:
     if len(overview) > overview_points:
         rng = np.random.default_rng(0)
         overview = np.sort(rng.choice(overview, overview_points, replace=False))
-    if len(xyz):
-        ground = estimate_ground(xyz.astype(np.float64), cell=GROUND_CELL)
+    if len(xyz):  # from the overview: one point per 0.2 m voxel keeps every 1 m cell's floor
+        ground = estimate_ground(xyz[overview].astype(np.float64), cell=GROUND_CELL)
         ground_origin, heights = ground.origin, ground.heights.astype(np.float32)
     else:
         ground_origin, heights = np.zeros(2), np.zeros((1, 1), dtype=np.float32)
