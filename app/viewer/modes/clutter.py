@@ -1,0 +1,598 @@
+"""Clutter review: judge, frame by frame, the objects a clutter run removed.
+
+A `run:clutter` job leaves per frame the membership of its review units (`instances/<frame>.npz`
+in its folder: each point's instance and the pipeline's own removed flag) and one mask image per
+instance; the store holds each instance's decision and version. This mode shows one frame at a
+time: its LiDAR points re-centred on the survey origin and coloured by what the map will lose
+with the current decisions applied (approved -> removed, rejected -> kept, pending -> the
+pipeline's flag), the camera image with the instances' masks and points drawn over it, and the
+instance list with approve / reject per instance and for every pending one of the frame.
+
+Decisions go through `app.store.clutter_review.decide` (the API's own versioned batch, as this
+session's user); a stale version means someone else decided first: the frame is re-read and the
+reviewer told. "Recompute cleaned map" queues `clutter:recompute`.
+
+The helpers `checked_user` and `pick_on_ray` are shared by the other review modes.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import cv2
+import numpy as np
+
+from app.core.errors import ConflictError, PermissionDeniedError, StaleWriteError
+from app.geometry.projection import pixel_indices, project
+from app.io import open_survey
+from app.io.survey import Camera, Frame, Survey
+from app.jobs.queue import enqueue
+from app.store import clutter_review
+from app.store.clutter_review import DecisionWrite, FrameCount, InstanceState
+from app.store.models import Decision, Role, User
+from app.store.models import Survey as SurveyRecord
+from app.store.users import has_role
+from app.viewer.modes.base import Mode
+
+if TYPE_CHECKING:
+    from viser import SceneClickEvent
+
+    from app.viewer.session import ViewerSession
+
+IMAGE_WIDTH = 640  # px: the camera image as the GUI shows it (downscaled, sent as JPEG)
+CROP_PAD_PX = 16  # the run pads each mask image by this around its instance's bbox
+PICK_ANGLE = 0.01  # rad: a click selects points within this angle of its ray ...
+PICK_MIN_RADIUS = 0.15  # m: ... or this distance, whichever is larger
+FRAME_VIEW = (-12.0, 9.0)  # camera behind the sensor (m along its heading) and above it
+
+# point states in the 3D view and on the image
+KEPT, KEPT_PENDING, REMOVED_PENDING, APPROVED, REJECTED = range(5)
+STATE_RGB = np.array(
+    [
+        (150, 150, 150),  # kept: not part of any instance
+        (150, 150, 150),  # kept: an instance's point the pipeline keeps (pending)
+        (255, 150, 0),  # removed: pending, the pipeline's flag
+        (230, 30, 30),  # removed: approved
+        (40, 200, 80),  # kept: rejected
+    ],
+    dtype=np.uint8,
+)
+SELECTED_RGB = np.array((255, 235, 0), dtype=np.uint8)
+LEGEND = (
+    ("removed (pending: pipeline)", REMOVED_PENDING),
+    ("removed (approved)", APPROVED),
+    ("kept (rejected)", REJECTED),
+    ("kept", KEPT),
+)
+ACTIONS = {"Approve": Decision.approved, "Reject": Decision.rejected, "Reset": Decision.pending}
+
+
+# --- helpers shared by the review modes ----------------------------------------------------
+
+
+def checked_user(session: ViewerSession, role: Role, what: str) -> User:
+    """The session's user, re-read from the store, when still active with at least `role`."""
+    with session.db() as db:
+        user = db.get(User, session.user_id)
+    if user is None or not user.is_active:
+        raise PermissionDeniedError(f"user {session.username!r} is no longer active")
+    if not has_role(user, role):
+        raise PermissionDeniedError(
+            f"user {session.username!r} is {user.role.value}; {what} needs a {role.value}"
+        )
+    return user
+
+
+def may(session: ViewerSession, role: Role) -> bool:
+    """Whether the session's user has `role` now (to grey out buttons; writes check again)."""
+    with session.db() as db:
+        user = db.get(User, session.user_id)
+    return user is not None and user.is_active and has_role(user, role)
+
+
+def pick_on_ray(
+    points: np.ndarray,
+    origin: np.ndarray,
+    direction: np.ndarray,
+    angle: float = PICK_ANGLE,
+    min_radius: float = PICK_MIN_RADIUS,
+) -> int:
+    """Index of the nearest point (along the click ray) lying close to the ray, -1 for none:
+    point clouds have no per-point click events in viser, so picking happens here."""
+    if not len(points):
+        return -1
+    d = np.asarray(direction, dtype=np.float64)
+    norm = np.linalg.norm(d)
+    if not norm > 0:
+        return -1
+    d = d / norm
+    rel = np.asarray(points, dtype=np.float64) - np.asarray(origin, dtype=np.float64)
+    t = rel @ d
+    perp2 = np.einsum("ij,ij->i", rel, rel) - t * t
+    radius = np.maximum(min_radius, t * angle)
+    near = np.flatnonzero((t > 0) & (perp2 <= radius * radius))
+    if not len(near):
+        return -1
+    return int(near[np.argmin(t[near])])
+
+
+def evenly(indices: np.ndarray, cap: int) -> np.ndarray:
+    """At most `cap` of `indices`, evenly spread (the same subset every time)."""
+    if len(indices) <= cap:
+        return indices
+    return indices[np.linspace(0, len(indices) - 1, cap).astype(np.int64)]
+
+
+def swatch(rgb: Sequence[int]) -> str:
+    r, g, b = (int(v) for v in rgb)
+    return (
+        '<span style="display:inline-block;width:0.9em;height:0.9em;margin-right:0.4em;'
+        f'vertical-align:middle;background:rgb({r},{g},{b})"></span>'
+    )
+
+
+def legend_html(entries: Sequence[tuple[str, Sequence[int]]]) -> str:
+    rows = "".join(f"<div>{swatch(rgb)}{name}</div>" for name, rgb in entries)
+    return f'<div style="font-size:0.8em;padding:0 0.5em">{rows}</div>'
+
+
+# --- the review logic ----------------------------------------------------------------------
+
+
+def point_states(
+    owner: np.ndarray, flags: np.ndarray, index: np.ndarray, decision: Sequence[Decision]
+) -> np.ndarray:
+    """(N,) state of each point of a frame (KEPT ... REJECTED) with the decisions applied:
+    approved -> removed, rejected -> kept, pending -> the pipeline's flag (as recompute does)."""
+    verdict = np.array(
+        [{Decision.approved: 1, Decision.rejected: 0}.get(Decision(d), -1) for d in decision],
+        dtype=np.int8,
+    )
+    size = max(int(owner.max(initial=-1)), int(np.max(index, initial=-1))) + 1
+    table = np.full(size, -1, dtype=np.int8)
+    table[np.asarray(index, dtype=np.int64)] = verdict
+    flags = np.asarray(flags, dtype=bool)
+    state = np.where(flags, REMOVED_PENDING, KEPT).astype(np.int8)
+    owned = owner >= 0
+    choice = table[owner[owned]]
+    cases = [choice == 1, choice == 0, flags[owned]]
+    state[owned] = np.select(cases, [APPROVED, REJECTED, REMOVED_PENDING], KEPT_PENDING)
+    return state
+
+
+def state_colors(state: np.ndarray, z: np.ndarray, selected: np.ndarray | None) -> np.ndarray:
+    """(n, 3) uint8: state colours, kept points shaded by height, a selected instance yellow."""
+    rgb = STATE_RGB[state].astype(np.float32)
+    kept = (state == KEPT) | (state == KEPT_PENDING)
+    if kept.any() and len(z):
+        lo, hi = np.percentile(z, [2, 98])
+        shade = np.clip((z[kept] - lo) / max(hi - lo, 1e-3), 0.0, 1.0)
+        rgb[kept] *= (0.55 + 0.6 * shade)[:, None]
+    if selected is not None and selected.any():
+        rgb[selected] = 0.35 * rgb[selected] + 0.65 * SELECTED_RGB
+    return np.clip(rgb, 0, 255).astype(np.uint8)
+
+
+def run_folder(session: ViewerSession, survey_id: int) -> Path | None:
+    """The folder of the clutter run whose instances the store holds (None: no run yet)."""
+    with session.db() as db:
+        decisions = clutter_review.review_decisions(db, survey_id)
+        folder = clutter_review.run_folder_of([d[3] for d in decisions])
+        if folder is None:
+            job = clutter_review.latest_run(db, survey_id)
+            if job is not None and "instances" in (job.result or {}).get("files", {}):
+                folder = Path(job.result["files"]["instances"]).parent
+    return folder
+
+
+def frame_instances(session: ViewerSession, survey_id: int, frame_id: str) -> list[InstanceState]:
+    """Every instance of one frame with its decision and version (all pages)."""
+    out: list[InstanceState] = []
+    with session.db() as db:
+        while True:
+            total, page = clutter_review.list_instances(
+                db, survey_id, frame_id=frame_id, offset=len(out), limit=clutter_review.MAX_PAGE
+            )
+            out += page
+            if not page or len(out) >= total:
+                return out
+
+
+class ClutterMode(Mode):
+    name = "Clutter review"
+    key = "clutter"
+
+    def enter(self, session: ViewerSession) -> None:
+        self.session = session
+        self.survey_id = session.view.survey_id
+        self.origin = session.view.map.origin
+        self.cap = session.viewer.settings.viewer_tile_points
+        self.cloud: Any = None
+        self.rows: list[Any] = []
+        self.states: list[InstanceState] = []
+        self.selected: int | None = None  # instance index in the frame
+        self.frame_index = 0
+        gui = session.client.gui
+        self.folder = run_folder(session, self.survey_id)
+        if self.folder is None:
+            with session.mode_folder:
+                gui.add_markdown(
+                    "**No clutter run on this survey yet.** Start *run:clutter* from the "
+                    "dashboard; its instances show up here for review when it has finished."
+                )
+            return
+        with session.db() as db:
+            record = db.get(SurveyRecord, self.survey_id)
+            self.frames: list[FrameCount] = clutter_review.frame_counts(db, self.survey_id)
+        self.survey: Survey = open_survey(record.source_path, record.format)
+        self.by_id: dict[str, Frame] = {f.frame_id: f for f in self.survey.frames}
+        self.camera = self._camera()
+        self.reviewer = may(session, Role.reviewer)
+        self._build_gui()
+        start = next((i for i, f in enumerate(self.frames) if f.pending), None)
+        if start is None:
+            start = next((i for i, f in enumerate(self.frames) if f.instances), 0)
+        self.show_frame(start)
+
+    def leave(self) -> None:
+        if self.cloud is not None:
+            self.cloud.remove()
+            self.cloud = None
+
+    def _camera(self) -> Camera | None:
+        """The camera the run segmented (its report's config), else the survey's first."""
+        name = None
+        try:
+            config = json.loads((self.folder / "report.json").read_text()).get("config") or {}
+            name = config.get("camera") if config.get("use_camera", True) else None
+        except (OSError, ValueError):
+            pass
+        if name is None and self.survey.cameras:
+            name = next(iter(self.survey.cameras))
+        return self.survey.cameras.get(name) if name else None
+
+    # --- GUI ----------------------------------------------------------------------------------
+
+    def _build_gui(self) -> None:
+        session = self.session
+        gui = session.client.gui
+        submit = session.submit
+        with session.mode_folder:
+            self.heading = gui.add_markdown("")
+            nav = gui.add_button_group("Frame", ("Previous", "Next", "Next pending"))
+            self.image = gui.add_image(
+                np.zeros((8, IMAGE_WIDTH, 3), np.uint8), label="Camera", format="jpeg"
+            )
+            gui.add_html(legend_html([(n, STATE_RGB[s]) for n, s in LEGEND]))
+            self.all_pending = gui.add_button_group(
+                "All pending", ("Approve", "Reject"), visible=self.reviewer
+            )
+            self.instance_folder = gui.add_folder("Instances")
+            with gui.add_folder("Selected instance"):
+                self.selected_text = gui.add_markdown("Click a point of an instance.")
+                self.selected_image = gui.add_image(
+                    np.zeros((8, 8, 3), np.uint8), label="Mask", format="png", visible=False
+                )
+            recompute = gui.add_button(
+                "Recompute cleaned map",
+                hint="Queue clutter:recompute: the maps again from the decisions",
+                disabled=not self.reviewer,
+            )
+            self.point_size = gui.add_slider(
+                "Point size", min=0.01, max=0.3, step=0.01, initial_value=0.05
+            )
+            note = "" if self.reviewer else "Read only: deciding needs the reviewer role. "
+            self.status = gui.add_markdown(note + "Click a point to select its instance.")
+        nav.on_click(lambda event: submit(self._navigate, event.target.value))
+        self.all_pending.on_click(
+            lambda event: submit(self.decide_pending, ACTIONS[event.target.value])
+        )
+        recompute.on_click(lambda _: submit(self.recompute))
+        self.point_size.on_update(lambda _: submit(self._resize))
+
+    def _navigate(self, action: str) -> None:
+        n = len(self.frames)
+        if action == "Previous":
+            self.show_frame((self.frame_index - 1) % n)
+        elif action == "Next":
+            self.show_frame((self.frame_index + 1) % n)
+        else:
+            self.next_pending()
+
+    def _resize(self) -> None:
+        if self.cloud is not None:
+            self.cloud.point_size = self.point_size.value
+
+    # --- one frame ----------------------------------------------------------------------------
+
+    def show_frame(self, index: int, move_camera: bool = True) -> None:
+        """Load frame `index` (points, membership, decisions) and draw it."""
+        self.frame_index = index
+        self.selected = None
+        count = self.frames[index]
+        frame = self.by_id.get(count.frame_id)
+        if frame is None:
+            raise ConflictError(f"frame {count.frame_id} of the store is not in the survey source")
+        sensor = frame.points().xyz
+        self.sensor_xyz = sensor
+        self.xyz = (sensor @ frame.pose[:3, :3].T + frame.pose[:3, 3] - self.origin).astype(
+            np.float32
+        )
+        self.owner, self.flags = self._membership(count.frame_id, len(sensor))
+        # the budget: every instance point when they fit, and a third at least for the rest
+        others = np.flatnonzero(self.owner < 0)
+        rest = evenly(others, max(self.cap - int((self.owner >= 0).sum()), self.cap // 3))
+        owned = evenly(np.flatnonzero(self.owner >= 0), self.cap - len(rest))
+        self.shown = np.sort(np.concatenate([owned, rest]))
+        self.pixels = self._project(frame)
+        self._reload_states()
+        if self.cloud is not None:
+            self.cloud.remove()
+        self.cloud = self.session.client.scene.add_point_cloud(
+            f"/{self.key}/frame",
+            points=self.xyz[self.shown],
+            colors=self._colors(),
+            point_size=self.point_size.value,
+            precision="float32",
+            point_shading="flat",
+        )
+        self._draw_panel()
+        if move_camera:
+            self._look_at_frame(frame)
+        self.session.client.flush()
+
+    def _membership(self, frame_id: str, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """(instance per point, the pipeline's removed flag) from the run's npz."""
+        path = self.folder / "instances" / f"{frame_id}.npz"
+        if not path.is_file():
+            return np.full(n, -1, np.int32), np.zeros(n, bool)
+        with np.load(path) as data:
+            owner, flags = data["instance"], data["removed"].astype(bool)
+        if len(owner) != n:
+            raise ConflictError(
+                f"{path}: {len(owner)} points, frame {frame_id} has {n}; run clutter again"
+            )
+        return owner, flags
+
+    def _project(self, frame: Frame) -> tuple[np.ndarray, np.ndarray] | None:
+        """(row, col) pixel of each point in the camera image (-1 outside), or None."""
+        camera = self.camera
+        if camera is None or camera.name not in frame.image_paths:
+            return None
+        proj = project(self.sensor_xyz, camera.P, camera.T_cam_sensor, camera.width, camera.height)
+        row = np.full(len(self.sensor_xyz), -1, dtype=np.int64)
+        col = np.full(len(self.sensor_xyz), -1, dtype=np.int64)
+        row[proj.in_image], col[proj.in_image] = pixel_indices(proj)
+        return row, col
+
+    def _reload_states(self) -> None:
+        frame_id = self.frames[self.frame_index].frame_id
+        self.states = frame_instances(self.session, self.survey_id, frame_id)
+        self.by_index = {s.instance_index: s for s in self.states}
+        self.state = point_states(
+            self.owner,
+            self.flags,
+            np.array([s.instance_index for s in self.states], dtype=np.int64),
+            [s.decision for s in self.states],
+        )
+        pending = sum(s.decision == Decision.pending for s in self.states)
+        self.frames[self.frame_index] = FrameCount(frame_id, len(self.states), pending)
+
+    def _colors(self) -> np.ndarray:
+        shown = self.shown
+        selected = None if self.selected is None else self.owner[shown] == self.selected
+        return state_colors(self.state[shown], self.xyz[shown, 2], selected)
+
+    def _look_at_frame(self, frame: Frame) -> None:
+        sensor = frame.pose[:3, 3] - self.origin
+        heading = frame.pose[:3, 0].copy()
+        heading[2] = 0.0
+        norm = np.linalg.norm(heading)
+        heading = heading / norm if norm > 0 else np.array([1.0, 0.0, 0.0])
+        look_at = sensor + 6.0 * heading
+        offset = FRAME_VIEW[0] * heading + np.array([0.0, 0.0, FRAME_VIEW[1]])
+        self.session.move_camera(look_at, offset)
+
+    def _draw_panel(self) -> None:
+        """Heading, camera image, instance list and selection for the current state."""
+        count = self.frames[self.frame_index]
+        self.heading.content = (
+            f"**Frame {self.frame_index + 1} / {len(self.frames)}** `{count.frame_id}`: "
+            f"{count.instances} instances, {count.pending} pending"
+        )
+        self.image.image = self._overlay()
+        self.image.visible = self.pixels is not None
+        self._draw_list()
+        self._draw_selected()
+
+    def _overlay(self) -> np.ndarray:
+        """The frame's camera image (downscaled) with each instance's mask image pasted where
+        it differs from the photo (the tinted mask), its points dotted by state, the selected
+        instance boxed."""
+        frame = self.by_id[self.frames[self.frame_index].frame_id]
+        if self.pixels is None:
+            return np.zeros((8, IMAGE_WIDTH, 3), np.uint8)
+        photo = frame.image(self.camera.name)
+        canvas = photo.copy()
+        height, width = photo.shape[:2]
+        for s in self.states:  # one paste per instance, not per point
+            if s.bbox is None or not s.mask_path or not Path(s.mask_path).is_file():
+                continue
+            crop = cv2.imread(s.mask_path, cv2.IMREAD_COLOR)
+            if crop is None:
+                continue
+            crop = cv2.cvtColor(crop, cv2.COLOR_BGR2RGB)
+            u0, v0 = max(s.bbox[0] - CROP_PAD_PX, 0), max(s.bbox[1] - CROP_PAD_PX, 0)
+            h = min(crop.shape[0], height - v0)
+            w = min(crop.shape[1], width - u0)
+            region = canvas[v0 : v0 + h, u0 : u0 + w]
+            tinted = (crop[:h, :w] != photo[v0 : v0 + h, u0 : u0 + w]).any(axis=2)
+            region[tinted] = crop[:h, :w][tinted]
+        scale = IMAGE_WIDTH / width
+        small = cv2.resize(
+            canvas, (IMAGE_WIDTH, max(int(round(height * scale)), 1)), interpolation=cv2.INTER_AREA
+        )
+        row, col = self.pixels
+        dots = np.flatnonzero((self.owner >= 0) & (row >= 0))
+        r = np.minimum((row[dots] * scale).astype(np.int64), small.shape[0] - 1)
+        c = np.minimum((col[dots] * scale).astype(np.int64), small.shape[1] - 1)
+        small[r, c] = STATE_RGB[self.state[dots]]
+        if self.selected is not None:
+            s = self.by_index.get(self.selected)
+            if s is not None and s.bbox is not None:
+                u0, v0, u1, v1 = (int(round(v * scale)) for v in s.bbox)
+                cv2.rectangle(small, (u0 - 2, v0 - 2), (u1 + 2, v1 + 2), SELECTED_RGB.tolist(), 1)
+        return small
+
+    def _row_label(self, s: InstanceState) -> str:
+        mark = "▶ " if s.instance_index == self.selected else ""
+        what = f"#{s.instance_index} {s.class_name}, {s.point_count:,} pts"
+        return f"{mark}{what}: {s.decision.value}"
+
+    def _draw_list(self) -> None:
+        """One button group per instance: select, approve, reject, reset."""
+        for row in self.rows:
+            row.remove()
+        self.rows = []
+        gui = self.session.client.gui
+        with self.instance_folder:
+            if not self.states:
+                self.rows.append(gui.add_markdown("No instances in this frame."))
+                return
+            for s in self.states:
+                options = ("Select", "Approve", "Reject", "Reset") if self.reviewer else ("Select",)
+                row = gui.add_button_group(self._row_label(s), options)
+                row.on_click(
+                    lambda event, k=s.instance_index: self.session.submit(
+                        self._row_action, k, event.target.value
+                    )
+                )
+                self.rows.append(row)
+
+    def _relabel_rows(self) -> None:
+        """Update the list's labels in place (after a selection or decision)."""
+        if len(self.rows) != len(self.states) or not self.states:
+            self._draw_list()
+            return
+        for row, s in zip(self.rows, self.states, strict=True):
+            label = self._row_label(s)
+            if row.label != label:
+                row.label = label
+
+    def _row_action(self, instance_index: int, action: str) -> None:
+        if action == "Select":
+            self.select(instance_index)
+            return
+        state = self.by_index.get(instance_index)
+        if state is not None:
+            self.decide([state], ACTIONS[action])
+
+    def _draw_selected(self) -> None:
+        s = None if self.selected is None else self.by_index.get(self.selected)
+        if s is None:
+            self.selected_text.content = "Click a point of an instance (or *Select* in the list)."
+            self.selected_image.visible = False
+            return
+        moving = {True: "moving", False: "static", None: "motion unknown"}[s.moving]
+        track = "" if s.track_id is None else f", track {s.track_id}"
+        decided = "" if s.user_id is None else f" by user {s.user_id}"
+        self.selected_text.content = (
+            f"**#{s.instance_index} {s.class_name}**: {s.point_count:,} points, {moving}{track}; "
+            f"**{s.decision.value}**{decided} (version {s.version})"
+        )
+        image = None
+        if s.mask_path and Path(s.mask_path).is_file():
+            image = cv2.imread(s.mask_path, cv2.IMREAD_COLOR)
+        if image is None:
+            self.selected_image.visible = False
+            return
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+        if image.shape[1] > IMAGE_WIDTH // 2:
+            scale = (IMAGE_WIDTH // 2) / image.shape[1]
+            size = (IMAGE_WIDTH // 2, max(int(round(image.shape[0] * scale)), 1))
+            image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        self.selected_image.image = image
+        self.selected_image.visible = True
+
+    def _refresh(self) -> None:
+        """Re-read the frame's decisions and resend colours (never positions) and the panel."""
+        self._reload_states()
+        if self.cloud is not None:
+            self.cloud.colors = self._colors()
+        count = self.frames[self.frame_index]
+        self.heading.content = (
+            f"**Frame {self.frame_index + 1} / {len(self.frames)}** `{count.frame_id}`: "
+            f"{count.instances} instances, {count.pending} pending"
+        )
+        self.image.image = self._overlay()
+        self._relabel_rows()
+        self._draw_selected()
+        self.session.client.flush()
+
+    # --- actions ------------------------------------------------------------------------------
+
+    def select(self, instance_index: int | None) -> None:
+        self.selected = instance_index
+        self._refresh()
+
+    def on_click(self, event: SceneClickEvent) -> None:
+        """Select the instance of the clicked point (the nearest shown point along the ray)."""
+        if self.folder is None or self.cloud is None:
+            return
+        hit = pick_on_ray(self.xyz[self.shown], event.ray_origin, event.ray_direction)
+        if hit < 0:
+            self.status.content = "No point under the click."
+            return
+        instance = int(self.owner[self.shown[hit]])
+        if instance < 0 or instance not in self.by_index:
+            self.status.content = "That point belongs to no instance."
+            return
+        self.select(instance)
+        self.status.content = f"Selected #{instance} ({self.by_index[instance].class_name})."
+
+    def decide(self, states: Sequence[InstanceState], decision: Decision) -> None:
+        """One versioned batch through the store; stale -> re-read and tell the reviewer."""
+        if not states:
+            self.status.content = "Nothing to decide."
+            return
+        user = checked_user(self.session, Role.reviewer, "deciding on clutter")
+        writes = [DecisionWrite(s.id, s.version, decision) for s in states]
+        try:
+            with self.session.db() as db:
+                clutter_review.decide(db, self.survey_id, writes, user.id)
+        except StaleWriteError as exc:
+            self.session.notify("Changed meanwhile", f"{exc.message} (reloaded)", error=True)
+            self.status.content = "Someone else decided first: the frame was reloaded."
+            self._refresh()
+            return
+        self.status.content = f"{len(states)} instance(s) {decision.value}."
+        self._refresh()
+
+    def decide_pending(self, decision: Decision) -> None:
+        self.decide([s for s in self.states if s.decision == Decision.pending], decision)
+
+    def next_pending(self) -> None:
+        """The next frame (after this one, wrapping) that still has pending instances."""
+        with self.session.db() as db:
+            self.frames = clutter_review.frame_counts(db, self.survey_id)
+        n = len(self.frames)
+        for step in range(1, n + 1):
+            i = (self.frame_index + step) % n
+            if self.frames[i].pending:
+                self.show_frame(i)
+                return
+        self.status.content = "No frame has pending instances: the review is complete."
+
+    def recompute(self) -> None:
+        """Queue clutter:recompute (reviewer): the cleaned map from the decisions."""
+        user = checked_user(self.session, Role.reviewer, "recomputing the cleaned map")
+        settings = self.session.viewer.settings
+        with self.session.db() as db:
+            if not clutter_review.has_review(db, self.survey_id):
+                raise ConflictError(f"survey {self.survey_id} has no clutter run to review")
+            job = enqueue(db, clutter_review.RECOMPUTE_KIND, {}, self.survey_id, user.id, settings)
+        self.status.content = f"Queued job {job.id} ({job.kind}): see the dashboard's jobs."
+        self.session.notify("Recompute queued", f"job {job.id}: {job.kind}")

@@ -1,0 +1,217 @@
+"""Clutter review mode on a real `run:clutter` of a small simulated street (the real ESPNetv2
+weights): the frame's points coloured by the pipeline's flags and the decisions, approve /
+reject through the store with versions (a stale one reloads), a click selects the instance
+under it, approve-all, next pending frame, recompute queued, read-only for annotators."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+from sqlalchemy.engine import Engine
+from sqlmodel import Session, select
+
+from app.core.errors import PermissionDeniedError
+from app.io import open_survey
+from app.jobs.registry import task_for
+from app.simulate.survey import SimulationConfig, simulate
+from app.store.clutter_review import DecisionWrite, decide, frame_counts, get_instance
+from app.store.models import Decision, Job, JobStatus
+from app.store.surveys import register_opened_survey
+from app.viewer.modes.clutter import (
+    APPROVED,
+    REJECTED,
+    REMOVED_PENDING,
+    STATE_RGB,
+    ClutterMode,
+    pick_on_ray,
+    point_states,
+)
+from tests.jobs.conftest import job_context
+from tests.pipelines.clutter.conftest import weights_dir  # noqa: F401  (the fixture)
+from tests.viewer.test_modes_common import (
+    SCENE_POINTS,
+    Connection,
+    Driver,
+    add_users,
+    new_engine,
+    viewer_settings,
+)
+from tests.viewer.wire import click_message, is_color_update, is_point_cloud
+
+
+@dataclass
+class Review:
+    driver: Driver
+    engine: Engine
+    survey_id: int
+    users: dict[str, tuple[int, str]]
+    run_dir: Path
+
+
+@pytest.fixture(scope="module")
+def review(tmp_path_factory: pytest.TempPathFactory, weights_dir: Path) -> Iterator[Review]:  # noqa: F811
+    """A 6-frame simulated street run through `run:clutter` in a fresh store, and a viewer."""
+    root = tmp_path_factory.mktemp("clutter-mode")
+    simulate(SimulationConfig(scene="urban", length=6.0, seed=3), root / "sim")
+    settings = viewer_settings(root, weights_dir=weights_dir)
+    engine = new_engine(settings)
+    users = add_users(engine)
+    with Session(engine) as session:
+        record = register_opened_survey(
+            session, open_survey(root / "sim", "sim"), format="sim", source_path=root / "sim"
+        )
+    context = job_context(settings, engine, 1000, record.id)
+    task_for("run:clutter")(context, {"threads": 2})
+    driver = Driver(settings, engine)
+    yield Review(driver, engine, record.id, users, context.workdir)
+    driver.close()
+    engine.dispose()
+
+
+def open_mode(review: Review, user: str) -> tuple[Connection, ClutterMode]:
+    connection = review.driver.connect(*review.users[user], review.survey_id)
+    return connection, connection.switch("Clutter review")
+
+
+def cloud_colors(connection: Connection, since: int = 0) -> np.ndarray:
+    """The newest colours of the frame cloud the client holds (full message or update)."""
+    newest = None
+    for message in connection.since(since, lambda m: True):
+        if is_point_cloud(message) and message["name"] == "/clutter/frame":
+            newest = message["props"]["colors"]
+        elif is_color_update(message) and message["name"] == "/clutter/frame":
+            newest = message["updates"]["colors"]
+    assert newest is not None, "the client has no frame cloud"
+    return np.asarray(newest).reshape(-1, 3)
+
+
+def test_frame_is_coloured_by_the_pipeline_and_decisions_apply_with_versions(
+    review: Review,
+) -> None:
+    connection, mode = open_mode(review, "rev")
+    frame_id = mode.frames[mode.frame_index].frame_id
+    assert mode.frames[mode.frame_index].pending > 0  # opens on a frame that needs review
+    cloud = connection.wait(lambda m: is_point_cloud(m) and m["name"] == "/clutter/frame")
+    points = np.asarray(cloud["props"]["points"])
+    assert points.dtype == np.float32 and len(points) // 3 == len(mode.shown) <= SCENE_POINTS
+    assert connection.since(0, lambda m: m.get("type") == "GuiImageMessage")  # camera + mask
+
+    # every removed point of the run's membership is orange while pending
+    with np.load(review.run_dir / "instances" / f"{frame_id}.npz") as member:
+        owner, flags = member["instance"], member["removed"]
+    assert np.array_equal(mode.owner, owner) and np.array_equal(mode.flags, flags)
+    colors = cloud_colors(connection)
+    removed = flags[mode.shown]
+    assert removed.any()
+    assert (colors[removed] == STATE_RGB[REMOVED_PENDING]).all()
+    assert not (colors[~removed] == STATE_RGB[REMOVED_PENDING]).all(axis=1).any()
+
+    # approve the instance with the most points the pipeline kept: they turn red too
+    kept_by_pipeline = np.bincount(owner[(owner >= 0) & ~flags], minlength=owner.max() + 1)
+    target = mode.by_index[int(np.argmax(kept_by_pipeline))]
+    other = next(s for s in mode.states if s.id != target.id and s.point_count > 1)
+    mark = connection.mark()
+    connection.call(mode.decide, [target], Decision.approved)
+    with Session(review.engine) as session:
+        stored = get_instance(session, review.survey_id, target.id)
+    assert stored.decision == Decision.approved and stored.version == target.version + 1
+    assert stored.user_id == review.users["rev"][0]
+    connection.wait(lambda m: is_color_update(m) and m["name"] == "/clutter/frame", mark)
+    colors = cloud_colors(connection)
+    mine = owner[mode.shown] == target.instance_index
+    assert mine.any() and (colors[mine] == STATE_RGB[APPROVED]).all()
+    assert "approved" in mode.rows[mode.states.index(mode.by_index[target.instance_index])].label
+
+    # reject another: its points are kept (green), the rest of the frame is as the pipeline says
+    connection.call(mode.decide, [other], Decision.rejected)
+    expected = point_states(
+        owner,
+        flags,
+        np.array([s.instance_index for s in mode.states]),
+        [s.decision for s in mode.states],
+    )
+    assert np.array_equal(mode.state, expected)
+    assert (expected[owner == other.instance_index] == REJECTED).all()
+
+    # someone else decides `other` meanwhile: our stale write is refused and we reload
+    held = mode.by_index[other.instance_index]
+    with Session(review.engine) as session:
+        decide(
+            session,
+            review.survey_id,
+            [DecisionWrite(held.id, held.version, Decision.approved)],
+            review.users["rev2"][0],
+        )
+    mark = connection.mark()
+    connection.call(mode.decide, [held], Decision.pending)
+    with Session(review.engine) as session:
+        now = get_instance(session, review.survey_id, held.id)
+    assert now.decision == Decision.approved and now.user_id == review.users["rev2"][0]
+    assert mode.by_index[other.instance_index].version == now.version  # reloaded
+    connection.wait(lambda m: m.get("type") == "NotificationShowMessage", mark)
+    assert "first" in mode.status.content
+
+
+def test_click_selects_the_instance_under_it(review: Review) -> None:
+    connection, mode = open_mode(review, "rev")
+    shown = mode.shown
+    xyz = mode.xyz[shown]
+    # a ray straight down onto the highest point of a sizeable instance
+    sizes = np.bincount(mode.owner[shown][mode.owner[shown] >= 0])
+    instance = int(np.argmax(sizes))
+    candidates = np.flatnonzero(mode.owner[shown] == instance)
+    top = candidates[np.argmax(xyz[candidates, 2])]
+    origin = xyz[top].astype(np.float64) + np.array([0.0, 0.0, 30.0])
+    assert pick_on_ray(xyz, origin, np.array([0.0, 0.0, -1.0])) == top
+    connection.send(click_message(tuple(origin.tolist()), (0.0, 0.0, -1.0)))
+    deadline = time.monotonic() + 30
+    while mode.selected != instance and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert mode.selected == instance
+    connection.call(lambda: None)  # the selection's redraw has finished
+    row = mode.rows[[s.instance_index for s in mode.states].index(instance)]
+    assert row.label.startswith("▶ ")
+    assert f"#{instance}" in mode.selected_text.content
+    # selected points are drawn yellow-ish, the others keep their state colour
+    colors = mode._colors()
+    assert (colors[mode.owner[shown] == instance][:, 2] < 120).all()
+
+
+def test_approve_all_pending_next_pending_and_recompute(review: Review) -> None:
+    connection, mode = open_mode(review, "rev")
+    first = mode.frame_index
+    connection.call(mode.decide_pending, Decision.approved)
+    with Session(review.engine) as session:
+        counts = {c.frame_id: c for c in frame_counts(session, review.survey_id)}
+    assert counts[mode.frames[first].frame_id].pending == 0
+    mark = connection.mark()
+    connection.call(mode.next_pending)
+    assert mode.frame_index != first and mode.frames[mode.frame_index].pending > 0
+    cloud = connection.wait(lambda m: is_point_cloud(m) and m["name"] == "/clutter/frame", mark)
+    assert len(np.asarray(cloud["props"]["points"])) // 3 == len(mode.shown)
+    connection.call(mode.show_frame, first)  # previous frames stay reachable
+    assert mode.frame_index == first and mode.frames[first].pending == 0
+
+    connection.call(mode.recompute)
+    with Session(review.engine) as session:
+        job = session.exec(select(Job).where(Job.kind == "clutter:recompute")).one()
+    assert job.status == JobStatus.queued and job.survey_id == review.survey_id
+    assert job.created_by == review.users["rev"][0]
+
+
+def test_annotators_see_but_cannot_decide(review: Review) -> None:
+    connection, mode = open_mode(review, "ann")
+    assert not mode.all_pending.visible and "Read only" in mode.status.content
+    assert all(row.options == ("Select",) for row in mode.rows)
+    state = mode.states[0]
+    with pytest.raises(PermissionDeniedError):
+        connection.call(mode.decide, [state], Decision.rejected)
+    with pytest.raises(PermissionDeniedError):
+        connection.call(mode.recompute)
+    with Session(review.engine) as session:
+        assert get_instance(session, review.survey_id, state.id).version == state.version
