@@ -57,7 +57,7 @@ def _survey_in(websocket_url: str) -> int | None:
 
 @router.get(
     "/viewer",
-    response_class=HTMLResponse,
+    response_class=Response,  # HTML page or redirect; errors are JSON
     responses={
         200: {"description": "viser's client page", "content": {"text/html": {}}},
         303: {"description": "to the page pointed at the relay; to the login page (browsers)"},
