@@ -1,0 +1,397 @@
+"""Guardrail review: correct the 0.5 m slice labels the guardrail run predicted.
+
+The points of every slice come from the slice stage the last `run:guardrail` saved
+(`ReconstructionInput`, found through the store's ingest event); they are re-centred on the
+survey origin and coloured by the slice's current label in the store: guardrail or other,
+brighter where a person labelled the slice, darker where the label is still the classifier's
+(after adjacency correction). A click toggles the clicked slice (one versioned write through
+`app.store.guardrail_review.put_slice_labels`, as this session's user); "Next uncertain slice"
+flies to the unlabelled slice whose probability is nearest 0.5; "Preview correction" colours the
+slices the adjacency correction would change (`preview_correction`, nothing saved) and "Apply"
+writes those as human labels in one batch.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from sqlmodel import col, select
+
+from app.core.errors import StaleWriteError
+from app.jobs.guardrail_tasks import load_stage, preview_correction
+from app.store.guardrail_review import (
+    MAX_LABELS_PER_WRITE,
+    SliceLabelEdit,
+    latest_run,
+    match_slices,
+    next_uncertain,
+    put_slice_labels,
+)
+from app.store.models import GuardrailSlice, Role
+from app.viewer.modes.base import Mode
+from app.viewer.modes.clutter import checked_user, evenly, legend_html, may, pick_on_ray
+
+if TYPE_CHECKING:
+    from viser import SceneClickEvent
+
+    from app.viewer.session import ViewerSession
+
+# slice colours: [label, human]; slices the store does not know are grey
+LABEL_RGB = np.array(
+    [
+        [(70, 95, 130), (40, 130, 255)],  # other: classifier (dark), human (bright)
+        [(150, 105, 40), (255, 160, 0)],  # guardrail: classifier (dark), human (bright)
+    ],
+    dtype=np.uint8,
+)
+UNKNOWN_RGB = np.array((110, 110, 110), dtype=np.uint8)
+PREVIEW_RGB = {1: np.array((235, 40, 210), np.uint8), 0: np.array((0, 225, 225), np.uint8)}
+FOCUS_RGB = np.array((255, 255, 255), dtype=np.uint8)
+MAP_RGB = np.array((70, 70, 70), dtype=np.uint8)
+MAP_POINTS = 100_000  # most context points of the survey's map under the slices
+VIEW_DISTANCE = 12.0  # metres from the camera to a slice it flies to
+
+
+class SliceRows:
+    """The survey's slices in the store as arrays (id order), with versions for writes."""
+
+    def __init__(self, rows: list[tuple]):
+        a = np.asarray(rows, dtype=np.float64).reshape(-1, 7)
+        self.id = a[:, 0].astype(np.int64)
+        self.component = a[:, 1].astype(np.int64)
+        self.slice_index = a[:, 2].astype(np.int64)
+        self.label = a[:, 3].astype(np.int64)
+        self.human = a[:, 4].astype(bool)
+        self.version = a[:, 5].astype(np.int64)
+        self.probability = a[:, 6]  # nan: none
+
+    def __len__(self) -> int:
+        return len(self.id)
+
+    def update(self, rows: list[GuardrailSlice]) -> None:
+        """Take the store's answer to a write (label, labeller, version) for these slices."""
+        ids = np.array([r.id for r in rows], dtype=np.int64)
+        at = np.searchsorted(self.id, ids)
+        self.label[at] = [r.label for r in rows]
+        self.human[at] = [r.labelled_by is not None for r in rows]
+        self.version[at] = [r.version for r in rows]
+
+
+def read_slices(session: ViewerSession, survey_id: int) -> SliceRows:
+    with session.db() as db:
+        rows = db.exec(
+            select(
+                GuardrailSlice.id,
+                GuardrailSlice.component_id,
+                GuardrailSlice.slice_index,
+                GuardrailSlice.label,
+                col(GuardrailSlice.labelled_by).is_not(None),
+                GuardrailSlice.version,
+                GuardrailSlice.probability,
+            )
+            .where(GuardrailSlice.survey_id == survey_id)
+            .order_by(GuardrailSlice.id)
+        ).all()
+    return SliceRows([tuple(np.nan if v is None else v for v in r) for r in rows])
+
+
+def slice_colors(
+    row_of_slice: np.ndarray,
+    rows: SliceRows,
+    preview: dict[int, int] | None = None,
+    focus: int | None = None,
+) -> np.ndarray:
+    """(K, 3) colour per stage slice: current label (human brighter), preview overlay (the
+    label the correction would give, where it differs), the focused slice white."""
+    known = row_of_slice >= 0
+    rgb = np.tile(UNKNOWN_RGB, (len(row_of_slice), 1))
+    r = row_of_slice[known]
+    rgb[known] = LABEL_RGB[rows.label[r], rows.human[r].astype(np.int64)]
+    if preview:
+        ids = np.fromiter(preview.keys(), dtype=np.int64, count=len(preview))
+        to = np.fromiter(preview.values(), dtype=np.int64, count=len(preview))
+        slice_of_row = np.full(len(rows), -1, dtype=np.int64)
+        slice_of_row[row_of_slice[known]] = np.flatnonzero(known)
+        k = slice_of_row[np.searchsorted(rows.id, ids)]
+        for label, colour in PREVIEW_RGB.items():
+            pick = k[(to == label) & (k >= 0)]
+            rgb[pick] = colour
+    if focus is not None and focus >= 0:
+        rgb[focus] = FOCUS_RGB
+    return rgb
+
+
+class GuardrailMode(Mode):
+    name = "Guardrail review"
+    key = "guardrails"
+
+    def enter(self, session: ViewerSession) -> None:
+        self.session = session
+        self.survey_id = session.view.survey_id
+        self.origin = session.view.map.origin
+        self.clouds: dict[str, Any] = {}
+        self.preview: dict[int, int] = {}  # slice id -> corrected label, where it differs
+        self.focus: int | None = None  # stage slice flown to
+        gui = session.client.gui
+        with session.db() as db:
+            run = latest_run(db, self.survey_id)
+        if run is None:
+            with session.mode_folder:
+                gui.add_markdown(
+                    "**No guardrail run on this survey yet.** Start *run:guardrail* from the "
+                    "dashboard; its slices show up here for review when it has finished."
+                )
+            return
+        self.stage = load_stage(run)
+        s = self.stage.slices
+        self.rows = read_slices(session, self.survey_id)
+        self.row_of_slice = match_slices(
+            s.component, s.station_index, self.rows.component, self.rows.slice_index
+        )
+        self.xyz = (self.stage.xyz - self.origin).astype(np.float32)
+        self.point_slice = s.point_slice
+        cap = session.viewer.settings.viewer_tile_points
+        self.shown = evenly(np.flatnonzero(self.point_slice >= 0), cap)
+        self.annotator = may(session, Role.annotator)
+        self._build_gui()
+        self._draw()
+        self._describe()
+
+    def leave(self) -> None:
+        for cloud in self.clouds.values():
+            cloud.remove()
+        self.clouds = {}
+        command = getattr(self, "command", None)
+        if command is not None:
+            command.remove()
+            self.command = None
+
+    # --- GUI ----------------------------------------------------------------------------------
+
+    def _build_gui(self) -> None:
+        session = self.session
+        gui = session.client.gui
+        submit = session.submit
+        with session.mode_folder:
+            gui.add_html(
+                legend_html(
+                    [
+                        ("guardrail (human)", LABEL_RGB[1, 1]),
+                        ("guardrail (classifier)", LABEL_RGB[1, 0]),
+                        ("other (human)", LABEL_RGB[0, 1]),
+                        ("other (classifier)", LABEL_RGB[0, 0]),
+                        ("preview: would become guardrail", PREVIEW_RGB[1]),
+                        ("preview: would become other", PREVIEW_RGB[0]),
+                    ]
+                )
+            )
+            self.summary = gui.add_markdown("")
+            jump = gui.add_button("Next uncertain slice", hint="N: unlabelled, probability ~0.5")
+            preview = gui.add_button("Preview correction", hint="the adjacency correction, unsaved")
+            self.apply = gui.add_button(
+                "Apply correction", disabled=True, hint="write the previewed labels as yours"
+            )
+            clear = gui.add_button("Clear preview")
+            with gui.add_folder("Display", expand_by_default=False):
+                self.show_map = gui.add_checkbox("Show the map", initial_value=True)
+                self.point_size = gui.add_slider(
+                    "Point size", min=0.01, max=0.3, step=0.01, initial_value=0.05
+                )
+            note = "" if self.annotator else "Read only: labelling needs the annotator role. "
+            self.status = gui.add_markdown(note + "Click a slice to toggle guardrail / other.")
+        jump.on_click(lambda _: submit(self.next_uncertain_slice))
+        preview.on_click(lambda _: submit(self.preview_correction))
+        self.apply.on_click(lambda _: submit(self.apply_correction))
+        clear.on_click(lambda _: submit(self.clear_preview))
+        self.show_map.on_update(lambda _: submit(self._toggle_map))
+        self.point_size.on_update(lambda _: submit(self._resize))
+        self.command = session.client.gui.add_command("Next uncertain slice", hotkey="N")
+        self.command.on_trigger(lambda _: submit(self.next_uncertain_slice))
+
+    def _describe(self) -> None:
+        rows = self.rows
+        self.summary.content = (
+            f"{len(rows):,} slices: {int(rows.label.sum()):,} guardrail, "
+            f"{int(rows.human.sum()):,} labelled by people"
+        )
+
+    # --- drawing ------------------------------------------------------------------------------
+
+    def _colors(self) -> np.ndarray:
+        per_slice = slice_colors(self.row_of_slice, self.rows, self.preview, self.focus)
+        return per_slice[self.point_slice[self.shown]]
+
+    def _draw(self) -> None:
+        if self.show_map.value:
+            self._draw_map()
+        self.clouds["slices"] = self.session.client.scene.add_point_cloud(
+            f"/{self.key}/slices",
+            points=self.xyz[self.shown],
+            colors=self._colors(),
+            point_size=self.point_size.value,
+            precision="float32",
+            point_shading="flat",
+        )
+        if len(self.shown):  # look at the slices from behind-left and above
+            lo, hi = self.xyz[self.shown].min(axis=0), self.xyz[self.shown].max(axis=0)
+            distance = float(np.clip(0.6 * np.max(hi[:2] - lo[:2]), 15.0, 120.0))
+            offset = np.array([-0.45, -0.55, 0.7])
+            self.session.move_camera((lo + hi) / 2.0, offset / np.linalg.norm(offset) * distance)
+
+    def _recolor(self) -> None:
+        self.clouds["slices"].colors = self._colors()
+        self._describe()
+        self.session.client.flush()
+
+    def _toggle_map(self) -> None:
+        if self.show_map.value:
+            self._draw_map()
+        else:
+            cloud = self.clouds.pop("map", None)
+            if cloud is not None:
+                cloud.remove()
+
+    def _draw_map(self) -> None:
+        view_map = self.session.view.map
+        if "map" in self.clouds or not len(view_map):
+            return
+        context = evenly(view_map.overview, MAP_POINTS)
+        self.clouds["map"] = self.session.client.scene.add_point_cloud(
+            f"/{self.key}/map",
+            points=view_map.xyz[context],
+            colors=MAP_RGB,
+            point_size=0.6 * self.point_size.value,
+            precision="float32",
+            point_shading="flat",
+        )
+
+    def _resize(self) -> None:
+        for name, cloud in self.clouds.items():
+            cloud.point_size = self.point_size.value * (0.6 if name == "map" else 1.0)
+
+    # --- actions ------------------------------------------------------------------------------
+
+    def _reload(self) -> None:
+        self.rows = read_slices(self.session, self.survey_id)
+        s = self.stage.slices
+        self.row_of_slice = match_slices(
+            s.component, s.station_index, self.rows.component, self.rows.slice_index
+        )
+
+    def _write(self, edits: list[SliceLabelEdit]) -> bool:
+        """Versioned label writes (batches of the store's maximum); stale -> reload, False."""
+        user = checked_user(self.session, Role.annotator, "labelling guardrail slices")
+        try:
+            for start in range(0, len(edits), MAX_LABELS_PER_WRITE):
+                with self.session.db() as db:
+                    written = put_slice_labels(
+                        db, self.survey_id, edits[start : start + MAX_LABELS_PER_WRITE], user
+                    )
+                self.rows.update(written)
+        except StaleWriteError as exc:
+            self.session.notify("Changed meanwhile", f"{exc.message} (reloaded)", error=True)
+            self.status.content = "Someone else labelled these slices first: reloaded."
+            self._reload()
+            self._recolor()
+            return False
+        return True
+
+    def on_click(self, event: SceneClickEvent) -> None:
+        """Toggle the label of the clicked slice (the nearest slice point along the ray)."""
+        if "slices" not in self.clouds:
+            return
+        hit = pick_on_ray(self.xyz[self.shown], event.ray_origin, event.ray_direction)
+        if hit < 0:
+            self.status.content = "No slice under the click."
+            return
+        self.toggle_slice(int(self.point_slice[self.shown[hit]]))
+
+    def toggle_slice(self, k: int) -> None:
+        """Stage slice k: guardrail <-> other, as a human label at the version we hold."""
+        r = int(self.row_of_slice[k])
+        if r < 0:
+            self.status.content = "This slice is not in the store any more: run guardrail again."
+            return
+        new = 1 - int(self.rows.label[r])
+        edit = SliceLabelEdit(int(self.rows.id[r]), int(self.rows.version[r]), new)
+        if self._write([edit]):
+            what = "guardrail" if new else "other"
+            self.status.content = f"Slice {edit.id} is now **{what}** (version {edit.version + 1})."
+            self._drop_stale_preview()
+            self._recolor()
+
+    def next_uncertain_slice(self) -> None:
+        """Fly to the unlabelled slice whose probability is nearest 0.5."""
+        self._reload()
+        with self.session.db() as db:
+            row, remaining = next_uncertain(db, self.survey_id)
+        if row is None:
+            self.focus = None
+            self.status.content = "Every slice has a human label."
+            self._recolor()
+            return
+        s = self.stage.slices
+        at = match_slices([row.component_id], [row.slice_index], s.component, s.station_index)
+        k = int(at[0])
+        self.focus = k if k >= 0 else None
+        if k >= 0:
+            look_at = s.centre[k] - self.origin
+            camera = self.session.client.camera
+            offset = np.asarray(camera.position) - np.asarray(camera.look_at)
+            norm = float(np.linalg.norm(offset))
+            offset = offset / norm * VIEW_DISTANCE if norm > 0 else np.array([-6.0, -6.0, 8.0])
+            self.session.move_camera(look_at, offset)
+        p = "n/a" if row.probability is None else f"{row.probability:.2f}"
+        self.status.content = (
+            f"Slice {row.id} (component {row.component_id}, #{row.slice_index}, "
+            f"{row.station_m:.1f} m): probability {p}; {remaining:,} unlabelled left."
+        )
+        self._recolor()
+
+    def preview_correction(self) -> None:
+        """Colour the slices whose label the adjacency correction would change."""
+        self._reload()
+        with self.session.db() as db:
+            result = preview_correction(db, self.survey_id, {})
+        self.preview = {
+            s["id"]: s["corrected_label"]
+            for s in result["slices"]
+            if s["corrected_label"] != s["label"]
+        }
+        n = len(self.preview)
+        self.apply.disabled = n == 0 or not self.annotator
+        self.apply.label = f"Apply correction ({n} slices)" if n else "Apply correction"
+        self.status.content = (
+            f"Correction (gap {result['max_gap']}, isolated {result['max_isolated']}) would "
+            f"change {n} slice(s); {result['guardrail_slices']:,} guardrail slices after it."
+        )
+        self._recolor()
+
+    def apply_correction(self) -> None:
+        """Write the previewed labels as this user's labels (one batch)."""
+        if not self.preview:
+            self.status.content = "No preview to apply."
+            return
+        at = np.searchsorted(self.rows.id, np.fromiter(self.preview, dtype=np.int64))
+        edits = [
+            SliceLabelEdit(int(self.rows.id[r]), int(self.rows.version[r]), label)
+            for r, label in zip(at.tolist(), self.preview.values(), strict=True)
+        ]
+        if self._write(edits):
+            self.status.content = f"Applied the correction to {len(edits)} slice(s)."
+        self.clear_preview()
+
+    def clear_preview(self) -> None:
+        self.preview = {}
+        self.apply.disabled = True
+        self.apply.label = "Apply correction"
+        self._recolor()
+
+    def _drop_stale_preview(self) -> None:
+        """A toggled slice invalidates the preview (it was computed from other labels)."""
+        if self.preview:
+            self.preview = {}
+            self.apply.disabled = True
+            self.apply.label = "Apply correction"
+            self.status.content += " Preview cleared: preview again."
