@@ -93,11 +93,15 @@ def click_message(
     )
 
 
-def button_press(uuid: str) -> bytes:
-    """What the browser sends when a GUI button is pressed."""
+def gui_set(uuid: str, value: Any) -> bytes:
+    """What the browser sends when a GUI input changes (a button press sets True)."""
     return msgspec.msgpack.encode(
-        {"type": "GuiUpdateMessage", "uuid": uuid, "updates": {"value": True}}
+        {"type": "GuiUpdateMessage", "uuid": uuid, "updates": {"value": value}}
     )
+
+
+def button_press(uuid: str) -> bytes:
+    return gui_set(uuid, True)
 
 
 def is_point_cloud(message: dict[str, Any]) -> bool:
@@ -152,12 +156,12 @@ class WireClient:
     async def send(self, frame: bytes) -> None:
         await self.connection.send(frame)
 
-    def button_uuid(self, label: str) -> str:
-        """The uuid of a GUI button this client was sent."""
+    def gui_uuid(self, label: str, kind: str = "GuiButtonMessage") -> str:
+        """The uuid of a GUI element (of message type `kind`) this client was sent."""
         for _, message in self.received:
-            if message.get("type") == "GuiButtonMessage" and message["props"]["label"] == label:
+            if message.get("type") == kind and message["props"]["label"] == label:
                 return message["uuid"]
-        raise KeyError(f"no button {label!r} received")
+        raise KeyError(f"no {kind} {label!r} received")
 
     async def close(self) -> None:
         await self.connection.close()
