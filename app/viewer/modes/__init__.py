@@ -4,8 +4,9 @@ first is the default). A new mode is a `Mode` subclass (see `base`) added here."
 from app.viewer.modes.base import Mode
 from app.viewer.modes.clutter import ClutterMode
 from app.viewer.modes.guardrails import GuardrailMode
+from app.viewer.modes.models import ModelMode
 from app.viewer.modes.pillars import PillarMode
 
-MODES: tuple[type[Mode], ...] = (PillarMode, ClutterMode, GuardrailMode)
+MODES: tuple[type[Mode], ...] = (PillarMode, ClutterMode, GuardrailMode, ModelMode)
 
-__all__ = ["MODES", "ClutterMode", "GuardrailMode", "Mode", "PillarMode"]
+__all__ = ["MODES", "ClutterMode", "GuardrailMode", "Mode", "ModelMode", "PillarMode"]
