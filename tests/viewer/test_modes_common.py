@@ -17,10 +17,14 @@ from typing import Any
 import numpy as np
 from sqlalchemy.engine import Engine
 from sqlmodel import Session
+from viser import SceneClickEvent
 
 from app.core.settings import Settings
+from app.io import open_survey
+from app.io.ply import write_ply
 from app.store.db import init_db, make_engine
 from app.store.models import Decision, Role
+from app.store.surveys import register_opened_survey
 from app.store.users import create_user
 from app.viewer.modes import MODES
 from app.viewer.modes.clutter import (
@@ -196,7 +200,7 @@ def add_users(engine: Engine) -> dict[str, tuple[int, str]]:
 def test_modes_are_registered_once_each() -> None:
     names = [m.name for m in MODES]
     assert names[0] == "Pillar labelling"
-    assert {"Clutter review"} <= set(names)
+    assert {"Clutter review", "Guardrail review", "Model inspection", "QA"} <= set(names)
     assert len(set(names)) == len(names) and len({m.key for m in MODES}) == len(MODES)
 
 
@@ -246,3 +250,49 @@ def test_point_states_apply_decisions_as_the_recompute_does() -> None:
     partial = point_states(owner, flags, np.array([1]), [Decision.approved])
     assert partial[2:5].tolist() == [REMOVED_PENDING, REMOVED_PENDING, KEPT_PENDING]
     assert partial[5] == APPROVED
+
+
+def test_modes_without_a_pipeline_run_say_so(tmp_path: Path) -> None:
+    """On a survey no pipeline ran on, every review mode explains what to run; clicks and
+    leaving do nothing harmful."""
+    settings = viewer_settings(tmp_path)
+    engine = new_engine(settings)
+    users = add_users(engine)
+    gx, gy = np.meshgrid(np.arange(0, 40, 0.5), np.arange(0, 20, 0.5), indexing="ij")
+    points = np.stack([gx.ravel(), gy.ravel(), 0.01 * gx.ravel()], axis=1) + [600_000, 5e6, 80]
+    path = write_ply(tmp_path / "plain.ply", points)
+    with Session(engine) as session:
+        survey = register_opened_survey(
+            session, open_survey(path, "ply"), format="ply", source_path=path
+        )
+    driver = Driver(settings, engine)
+    try:
+        connection = driver.connect(*users["rev"], survey.id)
+        expected = {
+            "Clutter review": "No clutter run",
+            "Guardrail review": "No guardrail run",
+            "Model inspection": "No guardrail run",
+            "QA": "No clutter run",
+        }
+        click = SceneClickEvent(
+            client=connection.session.client,
+            client_id=connection.session.client.client_id,
+            ray_origin=(0.0, 0.0, 10.0),
+            ray_direction=(0.0, 0.0, -1.0),
+            screen_pos=((0.5, 0.5),),
+            modifier=None,
+        )
+        for name, text in expected.items():
+            mark = connection.mark()
+            mode = connection.switch(name)
+            connection.wait(
+                lambda m, t=text: (
+                    m.get("type") == "GuiMarkdownMessage" and t in m["props"]["_markdown"]
+                ),
+                mark,
+            )
+            connection.call(mode.on_click, click)
+        connection.switch("Pillar labelling")  # leaving each of them worked
+    finally:
+        driver.close()
+        engine.dispose()

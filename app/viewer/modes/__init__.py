@@ -6,7 +6,8 @@ from app.viewer.modes.clutter import ClutterMode
 from app.viewer.modes.guardrails import GuardrailMode
 from app.viewer.modes.models import ModelMode
 from app.viewer.modes.pillars import PillarMode
+from app.viewer.modes.qa import QAMode
 
-MODES: tuple[type[Mode], ...] = (PillarMode, ClutterMode, GuardrailMode, ModelMode)
+MODES: tuple[type[Mode], ...] = (PillarMode, ClutterMode, GuardrailMode, ModelMode, QAMode)
 
-__all__ = ["MODES", "ClutterMode", "GuardrailMode", "Mode", "ModelMode", "PillarMode"]
+__all__ = ["MODES", "ClutterMode", "GuardrailMode", "Mode", "ModelMode", "PillarMode", "QAMode"]
