@@ -26,6 +26,7 @@ from app.viewer.modes.clutter import (
     APPROVED,
     REJECTED,
     REMOVED_PENDING,
+    SELECTED_RGB,
     STATE_RGB,
     ClutterMode,
     pick_on_ray,
@@ -177,9 +178,10 @@ def test_click_selects_the_instance_under_it(review: Review) -> None:
     row = mode.rows[[s.instance_index for s in mode.states].index(instance)]
     assert row.label.startswith("▶ ")
     assert f"#{instance}" in mode.selected_text.content
-    # selected points are drawn yellow-ish, the others keep their state colour
+    # the selected instance is drawn magenta, the others keep their state colours
     colors = mode._colors()
-    assert (colors[mode.owner[shown] == instance][:, 2] < 120).all()
+    assert (colors[mode.owner[shown] == instance] == SELECTED_RGB).all()
+    assert not (colors[mode.owner[shown] != instance] == SELECTED_RGB).all(axis=1).any()
 
 
 def test_approve_all_pending_next_pending_and_recompute(review: Review) -> None:

@@ -27,7 +27,7 @@ from app.simulate.survey import SimulationConfig, simulate
 from app.store.clutter_review import DecisionWrite, decide, list_instances
 from app.store.models import Decision, Job, JobStatus
 from app.store.surveys import register_opened_survey
-from app.viewer.modes.qa import CLEANED, ORIGINAL, REMOVED_RGB, QAMode
+from app.viewer.modes.qa import CLEANED, ORIGINAL, REMOVED_RGB, QAMode, percent
 from tests.pipelines.clutter.conftest import weights_dir  # noqa: F401  (the fixture)
 from tests.viewer.test_modes_common import (
     SCENE_POINTS,
@@ -181,7 +181,9 @@ def test_metrics_panel_and_export_links(street: Street) -> None:
     full = clutter.result["metrics"]["full"]["dynamic"]
     oa = full["error_matrix"]["overall_accuracy"]
     aa = full["scores"]["AA"]
-    assert f"| full | dynamic | {oa:.1f} |" in text and f"{aa:.1f}" in text
+    assert f"| 360° | dynamic | {percent(oa)} |" in text
+    sa, da = full["scores"]["SA"], full["scores"]["DA"]
+    assert f"| 360° | dynamic | {percent(sa)} | {percent(da)} | {percent(aa)} |" in text
     assert f"job {clutter.id}" in text and f"job {phantom.id}" in text
     point = phantom.result["metrics"]["point"]["classes"]["phantom"]
     p, r, f = point["precision"], point["recall"], point["f1"]

@@ -60,7 +60,7 @@ STATE_RGB = np.array(
     ],
     dtype=np.uint8,
 )
-SELECTED_RGB = np.array((255, 235, 0), dtype=np.uint8)
+SELECTED_RGB = np.array((255, 0, 255), dtype=np.uint8)  # apart from every state colour
 LEGEND = (
     ("removed (pending: pipeline)", REMOVED_PENDING),
     ("removed (approved)", APPROVED),
@@ -164,7 +164,8 @@ def point_states(
 
 
 def state_colors(state: np.ndarray, z: np.ndarray, selected: np.ndarray | None) -> np.ndarray:
-    """(n, 3) uint8: state colours, kept points shaded by height, a selected instance yellow."""
+    """(n, 3) uint8: state colours, kept points shaded by height, the selected instance magenta
+    (its state is in the list)."""
     rgb = STATE_RGB[state].astype(np.float32)
     kept = (state == KEPT) | (state == KEPT_PENDING)
     if kept.any() and len(z):
@@ -172,7 +173,7 @@ def state_colors(state: np.ndarray, z: np.ndarray, selected: np.ndarray | None) 
         shade = np.clip((z[kept] - lo) / max(hi - lo, 1e-3), 0.0, 1.0)
         rgb[kept] *= (0.55 + 0.6 * shade)[:, None]
     if selected is not None and selected.any():
-        rgb[selected] = 0.35 * rgb[selected] + 0.65 * SELECTED_RGB
+        rgb[selected] = SELECTED_RGB
     return np.clip(rgb, 0, 255).astype(np.uint8)
 
 
@@ -266,7 +267,8 @@ class ClutterMode(Mode):
             self.image = gui.add_image(
                 np.zeros((8, IMAGE_WIDTH, 3), np.uint8), label="Camera", format="jpeg"
             )
-            gui.add_html(legend_html([(n, STATE_RGB[s]) for n, s in LEGEND]))
+            legend = [(n, STATE_RGB[s]) for n, s in LEGEND] + [("selected", SELECTED_RGB)]
+            gui.add_html(legend_html(legend))
             self.all_pending = gui.add_button_group(
                 "All pending", ("Approve", "Reject"), visible=self.reviewer
             )

@@ -183,6 +183,7 @@ class ModelMode(Mode):
             point_shading="flat",
         )
         self.centres: dict[int, np.ndarray] = {}
+        self.extents: dict[int, float] = {}
         for m in self.models:  # one mesh per model
             if not m.mesh_path or not Path(m.mesh_path).is_file():
                 continue
@@ -190,7 +191,9 @@ class ModelMode(Mode):
             if not len(faces):
                 continue
             position = origin - self.origin
-            self.centres[m.id] = position + (vertices.min(axis=0) + vertices.max(axis=0)) / 2
+            lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+            self.centres[m.id] = position + (lo + hi) / 2
+            self.extents[m.id] = float(np.linalg.norm(hi - lo))
             handle = scene.add_mesh_simple(
                 f"/{self.key}/mesh/{m.id}",
                 vertices.astype(np.float32),
@@ -259,7 +262,8 @@ class ModelMode(Mode):
         camera = self.session.client.camera
         offset = np.asarray(camera.position) - np.asarray(camera.look_at)
         norm = float(np.linalg.norm(offset))
-        offset = offset / norm * VIEW_DISTANCE if norm > 0 else np.array([-8.0, -8.0, 8.0])
+        distance = max(VIEW_DISTANCE, 0.9 * self.extents.get(self.selected, 0.0))  # all of it
+        offset = offset / norm * distance if norm > 0 else np.array([-0.6, -0.6, 0.6]) * distance
         self.session.move_camera(centre, offset)
 
     def on_click(self, event: SceneClickEvent) -> None:

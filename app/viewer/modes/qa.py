@@ -32,6 +32,7 @@ PHANTOM_KINDS = ("run:phantom",)
 VOXEL = 0.1  # metres: one point per voxel before the point budget applies
 REMOVED_RGB = np.array((235, 30, 30), dtype=np.uint8)
 ORIGINAL, CLEANED = "Original", "Cleaned"
+SCOPES = {"in_view": "camera view", "full": "360°"}
 
 
 def percent(value: Any) -> str:
@@ -45,31 +46,28 @@ def percent(value: Any) -> str:
 
 def clutter_markdown(metrics: Mapping[str, Any] | None) -> str:
     """Lee et al.'s scores per scope (camera view / full 360) and reference (dynamic / clutter
-    classes): overall accuracy, clutter omission / commission, SA / DA / AA."""
+    classes), as two narrow tables (the panel is narrow): overall accuracy with clutter
+    omission / commission, and SA / DA / AA."""
     if not isinstance(metrics, Mapping) or not metrics:
         return "_No clutter metrics: the survey has no reference labels._"
-    lines = [
-        "| scope | reference | OA | omission | commission | SA | DA | AA |",
-        "|---|---|---:|---:|---:|---:|---:|---:|",
-    ]
+    removal = ["| scope | reference | OA | omission | commission |", "|---|---|---:|---:|---:|"]
+    dynamic = ["| scope | reference | SA | DA | AA |", "|---|---|---:|---:|---:|"]
     for scope, by_kind in metrics.items():
         if not isinstance(by_kind, Mapping):
             continue
+        where = SCOPES.get(scope, scope.replace("_", " "))
         for kind, entry in by_kind.items():
             if not isinstance(entry, Mapping):
                 continue
             em, sc = entry.get("error_matrix") or {}, entry.get("scores") or {}
-            values = (
-                em.get("overall_accuracy"),
-                em.get("clutter_omission"),
-                em.get("clutter_commission"),
-                sc.get("SA"),
-                sc.get("DA"),
-                sc.get("AA"),
-            )
-            cells = " | ".join(percent(v) for v in values)
-            lines.append(f"| {scope.replace('_', ' ')} | {kind} | {cells} |")
-    return "\n".join(lines) + "\n\n(percent; omission / commission of clutter points)"
+            scores = [
+                em.get(k) for k in ("overall_accuracy", "clutter_omission", "clutter_commission")
+            ]
+            removal.append(f"| {where} | {kind} | {' | '.join(map(percent, scores))} |")
+            scores = [sc.get(k) for k in ("SA", "DA", "AA")]
+            dynamic.append(f"| {where} | {kind} | {' | '.join(map(percent, scores))} |")
+    note = "(percent; omission / commission of the clutter points)"
+    return "\n".join(removal) + "\n\n" + "\n".join(dynamic) + "\n\n" + note
 
 
 def phantom_markdown(metrics: Mapping[str, Any] | None) -> str:
