@@ -71,8 +71,10 @@ class ViewerServer:
     def upstream_url(self) -> str:
         return f"ws://{LOOPBACK}:{self.port}/"
 
-    def issue_ticket(self, user_id: int, username: str, survey_id: int | None) -> str:
-        return self.tickets.issue(Ticket(user_id, username, survey_id))
+    def issue_ticket(
+        self, user_id: int, username: str, survey_id: int | None, mode: str | None = None
+    ) -> str:
+        return self.tickets.issue(Ticket(user_id, username, survey_id, mode))
 
     def labels_written(self) -> None:
         """Someone wrote pillar labels: have open views recolour now, not at the next poll."""

@@ -47,6 +47,7 @@ class ViewerSession:
         self.user_id = ticket.user_id
         self.username = ticket.username
         self.requested_survey = ticket.survey_id
+        self.requested_mode = ticket.mode
         self.view: SurveyView | None = None
         self.mode: Mode | None = None
         self.mode_folder: Any = None
@@ -113,7 +114,8 @@ class ViewerSession:
         survey_menu = gui.add_dropdown(
             "Survey", tuple(self._survey_ids), initial_value=label_of[survey_id]
         )
-        mode_menu = gui.add_dropdown("Mode", tuple(m.name for m in MODES))
+        first = next((m.name for m in MODES if m.key == self.requested_mode), MODES[0].name)
+        mode_menu = gui.add_dropdown("Mode", tuple(m.name for m in MODES), initial_value=first)
         self._gui += [survey_menu, mode_menu]
 
         @survey_menu.on_update

@@ -24,6 +24,7 @@ class Ticket:
     user_id: int
     username: str
     survey_id: int | None  # None: the viewer picks the first survey
+    mode: str | None = None  # a Mode.key to open first (the dashboard's links); None: the first
 
 
 class TicketRegistry:

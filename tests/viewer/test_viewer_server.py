@@ -115,6 +115,12 @@ def test_viewer_page_points_viser_at_the_relay(viewer_server: Server) -> None:
         elsewhere = client.get("/viewer", params={"websocket": "ws://evil.example/ws"})
         assert elsewhere.status_code == 303 and "evil" not in elsewhere.headers["location"]
         assert client.get("/viewer", params={"survey": 999}).status_code == 404
+        # the dashboard's mode links ride along to the relay, which hands them to the session
+        moded = client.get("/viewer", params={"survey": 1, "mode": "qa"})
+        assert unquote(moded.headers["location"]).endswith("/viewer/ws?survey=1&mode=qa")
+        assert client.get(moded.headers["location"]).status_code == 200
+        unknown = client.get("/viewer", params={"survey": 1, "mode": "paint"})
+        assert unknown.status_code == 422 and unknown.json()["detail"].startswith("mode:")
 
 
 # --- viser listens on loopback only ----------------------------------------------------------

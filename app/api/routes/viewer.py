@@ -14,7 +14,7 @@ from __future__ import annotations
 from functools import cache
 from pathlib import Path
 from typing import Annotated
-from urllib.parse import quote, urlsplit
+from urllib.parse import parse_qs, quote, urlencode, urlsplit
 
 import viser
 from fastapi import APIRouter, HTTPException, Query, Request, WebSocket, status
@@ -24,14 +24,17 @@ from sqlmodel import Session
 
 from app.api.deps import TOKEN_COOKIE, SessionDep, token_of, user_from_token
 from app.api.errors import errors
-from app.core.errors import NotFoundError
+from app.core.errors import ConfigError, NotFoundError
 from app.store.models import Survey, User
+from app.viewer.modes import MODES
 from app.viewer.relay import relay
 
 router = APIRouter(tags=["viewer"])
 
 WS_PATH = "/viewer/ws"
 LOGIN_PAGE = "/"
+MODE_KEYS = tuple(m.key for m in MODES)
+MODE_LIST = ", ".join(MODE_KEYS)
 POLICY_VIOLATION = 1008  # websocket close code; before accept the client sees HTTP 403
 
 
@@ -41,18 +44,20 @@ def client_page() -> bytes:
     return (Path(viser.__file__).parent / "client" / "build" / "index.html").read_bytes()
 
 
-def relay_url(request: Request, survey: int | None) -> str:
-    """ws(s)://<the host the browser used>/viewer/ws[?survey=N]."""
+def relay_url(request: Request, survey: int | None, mode: str | None = None) -> str:
+    """ws(s)://<the host the browser used>/viewer/ws[?survey=N][&mode=KEY]."""
     scheme = "wss" if request.url.scheme == "https" else "ws"
     host = request.headers.get("host") or request.url.netloc
-    query = f"?survey={survey}" if survey is not None else ""
-    return f"{scheme}://{host}{WS_PATH}{query}"
+    params = {"survey": survey, "mode": mode}
+    query = urlencode({k: v for k, v in params.items() if v is not None})
+    return f"{scheme}://{host}{WS_PATH}{'?' + query if query else ''}"
 
 
-def _survey_in(websocket_url: str) -> int | None:
-    query = urlsplit(websocket_url).query
-    value = query.removeprefix("survey=") if query.startswith("survey=") else ""
-    return int(value) if value.isdigit() else None
+def _relay_params(websocket_url: str) -> tuple[int | None, str | None]:
+    """(survey, mode) of a relay URL the page was pointed at."""
+    query = parse_qs(urlsplit(websocket_url).query)
+    survey = query.get("survey", [""])[0]
+    return (int(survey) if survey.isdigit() else None), query.get("mode", [None])[0]
 
 
 @router.get(
@@ -61,13 +66,14 @@ def _survey_in(websocket_url: str) -> int | None:
     responses={
         200: {"description": "viser's client page", "content": {"text/html": {}}},
         303: {"description": "to the page pointed at the relay; to the login page (browsers)"},
-        **errors(401, 404),
+        **errors(401, 404, 422),
     },
 )
 def viewer_page(
     request: Request,
     session: SessionDep,
     survey: Annotated[int | None, Query(ge=1, description="survey to open")] = None,
+    mode: Annotated[str | None, Query(description="mode to open first: " + MODE_LIST)] = None,
     websocket: Annotated[str | None, Query(description="set by the redirect")] = None,
 ) -> Response:
     """The 3D viewer (viser's client page) for the logged-in user; it connects to
@@ -83,11 +89,14 @@ def viewer_page(
             detail="not logged in: log in on the dashboard first",
             headers={"WWW-Authenticate": "Bearer"},
         )
-    if websocket is not None and survey is None:
-        survey = _survey_in(websocket)
+    if websocket is not None and survey is None and mode is None:
+        survey, mode = _relay_params(websocket)
+        mode = mode if mode in MODE_KEYS else None
+    if mode is not None and mode not in MODE_KEYS:
+        raise ConfigError("mode", f"unknown viewer mode {mode!r}; known: {MODE_LIST}")
     if survey is not None and session.get(Survey, survey) is None:
         raise NotFoundError(f"survey {survey} not found")
-    expected = relay_url(request, survey)
+    expected = relay_url(request, survey, mode)
     if websocket != expected:  # only ever point the page at our own relay
         return RedirectResponse(
             f"/viewer?websocket={quote(expected, safe='')}", status.HTTP_303_SEE_OTHER
@@ -139,7 +148,10 @@ async def viewer_socket(websocket: WebSocket, token: str | None = None) -> None:
         await websocket.close(code=POLICY_VIOLATION)
         return
     survey = websocket.query_params.get("survey")
-    nonce = viewer.issue_ticket(user.id, user.username, int(survey) if survey else None)
+    mode = websocket.query_params.get("mode")
+    nonce = viewer.issue_ticket(
+        user.id, user.username, int(survey) if survey else None, mode if mode in MODE_KEYS else None
+    )
     try:
         await relay(websocket, f"{viewer.upstream_url}?session={nonce}", offered[0])
     finally:
