@@ -90,6 +90,15 @@ def slices_colors(connection: Connection) -> np.ndarray:
     return np.asarray(newest).reshape(-1, 3)
 
 
+def shows(connection: Connection, points: np.ndarray, rgb: np.ndarray, timeout: float = 10.0):
+    """Wait until the client's slice colours give `points` (a mask of the shown points) `rgb`
+    (the recolouring may still be on the wire when the session's call returns)."""
+    deadline = time.monotonic() + timeout
+    while not (slices_colors(connection)[points] == rgb).all():
+        assert time.monotonic() < deadline, f"the client never showed {rgb}"
+        time.sleep(0.05)
+
+
 def row_of(mode: GuardrailMode, slice_id: int) -> int:
     return int(np.searchsorted(mode.rows.id, slice_id))
 
@@ -149,12 +158,12 @@ def test_slices_are_coloured_by_label_and_a_click_toggles_one(street: Street) ->
     assert stored.label == 0 and stored.version == version + 1
     assert stored.labelled_by == street.users["ann"][0]
     mine = slice_of == k
-    assert (slices_colors(connection)[mine] == LABEL_RGB[0, 1]).all()  # other, human: bright
+    shows(connection, mine, LABEL_RGB[0, 1])  # other, by a human: bright
     click_slice(connection, mode, k)  # and back
     with Session(street.engine) as session:
         stored = get_slice(session, street.survey_id, slice_id)
     assert stored.label == 1 and stored.version == version + 2
-    assert (slices_colors(connection)[mine] == LABEL_RGB[1, 1]).all()
+    shows(connection, mine, LABEL_RGB[1, 1])
 
 
 def test_a_stale_toggle_is_refused_and_reloaded(street: Street) -> None:
@@ -187,12 +196,18 @@ def test_next_uncertain_slice_flies_there(street: Street) -> None:
         row.component_id,
         row.slice_index,
     )
-    look = connection.wait(lambda m: m.get("type") == "SetCameraLookAtMessage", mark)
-    np.testing.assert_allclose(look["look_at"], s.centre[mode.focus] - mode.origin, atol=1e-3)
+    target = s.centre[mode.focus] - mode.origin
+    connection.wait(  # the camera is sent to look at the slice's centre
+        lambda m: (
+            m.get("type") == "SetCameraLookAtMessage"
+            and np.allclose(m["look_at"], target, atol=1e-3)
+        ),
+        mark,
+    )
     assert f"{remaining:,} unlabelled left" in mode.status.content
     focus_points = mode.point_slice[mode.shown] == mode.focus
     if focus_points.any():
-        assert (slices_colors(connection)[focus_points] == 255).all()
+        shows(connection, focus_points, np.array([255, 255, 255]))
 
 
 def test_preview_shows_the_correction_and_apply_writes_it(street: Street) -> None:
@@ -211,7 +226,7 @@ def test_preview_shows_the_correction_and_apply_writes_it(street: Street) -> Non
     assert mode.preview == expected and expected.get(slice_id) == 1
     assert not mode.apply.disabled and f"({len(expected)} slices)" in mode.apply.label
     mine = mode.point_slice[mode.shown] == k
-    assert (slices_colors(connection)[mine] == PREVIEW_RGB[1]).all()
+    shows(connection, mine, PREVIEW_RGB[1])
 
     connection.call(mode.apply_correction)
     with Session(street.engine) as session:
@@ -219,6 +234,6 @@ def test_preview_shows_the_correction_and_apply_writes_it(street: Street) -> Non
             stored = get_slice(session, street.survey_id, sid)
             assert stored.label == label and stored.labelled_by == street.users["rev"][0]
     assert mode.preview == {} and mode.apply.disabled
-    assert (slices_colors(connection)[mine] == LABEL_RGB[1, 1]).all()
+    shows(connection, mine, LABEL_RGB[1, 1])
     connection.call(mode.preview_correction)  # nothing left to correct
     assert mode.preview == {} and mode.apply.disabled

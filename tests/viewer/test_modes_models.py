@@ -49,9 +49,11 @@ def test_meshes_sit_over_their_points_and_the_list_describes_them(street: Street
     with Session(street.engine) as session:
         models = list_models(session, street.survey_id)
     assert sorted(m.kind.value for m in models) == ["beam", "pipe"]
+    cloud = connection.wait(lambda m: is_point_cloud(m) and m["name"] == "/models/points")
+    for m in models:  # the meshes follow the points
+        connection.wait(lambda x, n=f"/models/mesh/{m.id}": x.get("name") == n)
     meshes = {m["name"]: m for m in connection.since(0, lambda m: m.get("type") == "MeshMessage")}
     assert set(meshes) == {f"/models/mesh/{m.id}" for m in models}
-    cloud = connection.wait(lambda m: is_point_cloud(m) and m["name"] == "/models/points")
     assert 0 < len(np.asarray(cloud["props"]["points"])) // 3 <= SCENE_POINTS
     for m in models:
         message = meshes[f"/models/mesh/{m.id}"]

@@ -29,14 +29,15 @@ if TYPE_CHECKING:
 
     from app.viewer.session import ViewerSession
 
+# meshes in their review colour (the selected one orange), points grey: both show on white
 STATUS_RGB = {
-    ModelStatus.pending: (205, 205, 215),
-    ModelStatus.approved: (60, 200, 90),
+    ModelStatus.pending: (70, 130, 230),
+    ModelStatus.approved: (50, 185, 80),
     ModelStatus.rejected: (225, 50, 50),
 }
-SELECTED_RGB = (255, 220, 0)
-POINT_RGB = np.array((110, 150, 200), dtype=np.uint8)
-SELECTED_POINT_RGB = np.array((255, 240, 120), dtype=np.uint8)
+SELECTED_RGB = (255, 150, 0)
+POINT_RGB = np.array((150, 150, 150), dtype=np.uint8)
+SELECTED_POINT_RGB = np.array((90, 90, 90), dtype=np.uint8)
 VIEW_DISTANCE = 14.0  # metres from the camera to a guardrail it flies to
 
 

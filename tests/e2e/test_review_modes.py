@@ -1,0 +1,273 @@
+"""The review modes in a real browser (Debian's Chromium, software WebGL) against `mmsclean serve`
+with the sample survey and a small simulated street with moving objects (the sample is scanned
+by a profile scanner, whose scan plane the forward camera never sees, so clutter runs on the
+street): approve a clutter instance in the clutter mode, toggle a guardrail slice with a click
+in the canvas, reject then accept a reconstructed guardrail and download the mesh export; each
+checked through the REST API. One screenshot per mode goes to docs/ (see conftest)."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+import time
+import zipfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+import trimesh
+
+from app.pipelines.clutter.segmenter import WEIGHTS_FILE
+from app.simulate.survey import SimulationConfig, simulate
+from tests.api.server import Server
+from tests.e2e.conftest import (
+    VIEWER_OVERVIEW_POINTS,
+    VIEWER_TILE_POINTS,
+    save_screenshot,
+)
+
+PASSWORD = "password-123"
+WAIT_S = 30.0
+JOB_TIMEOUT_S = 600.0  # two pipeline runs on two shared cores
+SAMPLE = 1  # the sample survey: guardrails
+
+
+@pytest.fixture(scope="module")
+def viewer_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+    """conftest's server, plus a 6 m simulated street with a camera inside its data dir to
+    import, and the segmentation weights when MMSCLEAN_WEIGHTS_DIR names them."""
+    data_dir = tmp_path_factory.mktemp("review-e2e") / "var"
+    simulate(SimulationConfig(scene="urban", length=6.0, seed=3), data_dir / "street")
+    env = {
+        "MMSCLEAN_VIEWER_OVERVIEW_POINTS": str(VIEWER_OVERVIEW_POINTS),
+        "MMSCLEAN_VIEWER_TILE_POINTS": str(VIEWER_TILE_POINTS),
+        "MMSCLEAN_RETRAIN_EVERY": "0",
+        "MMSCLEAN_WORKERS": "1",
+    }
+    running = Server(data_dir, env=env).start()
+    yield running
+    running.stop()
+
+
+def has_weights() -> bool:
+    folder = os.environ.get("MMSCLEAN_WEIGHTS_DIR")
+    return bool(folder) and (Path(folder) / WEIGHTS_FILE).is_file()
+
+
+def wait_job(api: httpx.Client, job_id: int) -> dict:
+    deadline = time.monotonic() + JOB_TIMEOUT_S
+    while time.monotonic() < deadline:
+        job = api.get(f"/jobs/{job_id}").json()
+        if job["status"] in ("succeeded", "failed", "cancelled", "interrupted"):
+            assert job["status"] == "succeeded", job
+            return job
+        time.sleep(1.0)
+    raise AssertionError(f"job {job_id} did not finish in {JOB_TIMEOUT_S} s")
+
+
+@pytest.fixture(scope="module")
+def street(viewer_server: Server) -> int:
+    """The street imported, run:clutter and run:phantom on it and run:guardrail on the sample,
+    finished."""
+    api = viewer_server.client()
+    imported = api.post(
+        "/surveys/import",
+        json={"path": str(viewer_server.data_dir / "street"), "format": "sim", "name": "street"},
+    )
+    assert imported.status_code == 201, imported.text
+    street_id = imported.json()["id"]
+    clutter = {"threads": 2} if has_weights() else {"use_camera": False}
+    jobs = [
+        api.post("/jobs", json={"kind": kind, "survey_id": survey, "config": config}).json()
+        for kind, survey, config in (
+            ("run:clutter", street_id, clutter),
+            ("run:guardrail", SAMPLE, {"head": "geometry"}),
+            ("run:phantom", street_id, {}),  # for the QA panel
+        )
+    ]
+    for job in jobs:
+        wait_job(api, job["id"])
+    return street_id
+
+
+def wait_until(what: str, check, timeout: float = WAIT_S):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = check()
+        if value:
+            return value
+        time.sleep(0.2)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def switch_mode(page, name: str) -> None:
+    """Pick a mode in the viewer's "Mode" dropdown."""
+    page.locator("input:not([type=hidden])[value='Pillar labelling']").click()
+    page.get_by_role("option", name=name, exact=True).click()
+
+
+def row_button(page, label: str, button: str):
+    """The button `button` of the GUI row (button group) labelled `label`."""
+    return page.locator(
+        f'xpath=//label[normalize-space(.)="{label}"]'
+        '/ancestor::div[contains(@class,"mantine-Flex-root")][1]'
+        f'//button[normalize-space(.)="{button}"]'
+    )
+
+
+def close_notifications(page) -> None:
+    """Close the "software WebGL" notice before a screenshot (best effort)."""
+    for close in page.locator(".mantine-Notification-root button").all():
+        with contextlib.suppress(Exception):  # already gone
+            close.click(timeout=2000)
+
+
+def user_id(client: httpx.Client) -> int:
+    return client.get("/auth/me").json()["id"]
+
+
+def canvas_box(page) -> dict:
+    box = page.locator("canvas").first.bounding_box()
+    assert box is not None and box["width"] > 400 and box["height"] > 300
+    return box
+
+
+@pytest.mark.e2e
+def test_approve_a_clutter_instance(open_viewer, viewer_server: Server, street, artefacts) -> None:
+    reviewer = viewer_server.add_user("clutterrev", "reviewer", PASSWORD)
+    reviewer_id = user_id(reviewer)
+    frames = reviewer.get(f"/surveys/{street}/clutter/frames").json()
+    index, frame = next((i, f) for i, f in enumerate(frames) if f["pending"])
+    items = reviewer.get(
+        f"/surveys/{street}/clutter/instances", params={"frame_id": frame["frame_id"]}
+    ).json()["items"]
+    target = max(items, key=lambda s: s["point_count"])
+    label = f"#{target['instance_index']} {target['class_name']}, {target['point_count']:,} pts"
+
+    page = open_viewer("clutterrev", PASSWORD, survey_id=street)
+    switch_mode(page, "Clutter review")
+    page.get_by_text(f"Frame {index + 1} / {len(frames)}").wait_for(timeout=60_000)
+    row_button(page, f"{label}: pending", "Approve").click()
+
+    def stored() -> dict | None:
+        now = reviewer.get(f"/surveys/{street}/clutter/instances/{target['id']}").json()
+        return now if now["decision"] == "approved" else None
+
+    now = wait_until("the approval in the store", stored)
+    assert now["user_id"] == reviewer_id and now["version"] == target["version"] + 1
+    page.get_by_text(f"{label}: approved").wait_for()
+    # select another instance from the list: its points turn magenta, its mask image shows
+    other = next(s for s in items if s["id"] != target["id"] and s["point_count"] > 50)
+    name = f"#{other['instance_index']} {other['class_name']}"
+    row_button(page, f"{name}, {other['point_count']:,} pts: pending", "Select").click()
+    page.get_by_text(f"▶ {name}").wait_for()
+    page.get_by_text(f"Frame {index + 1} / {len(frames)}").scroll_into_view_if_needed()
+    close_notifications(page)
+    page.wait_for_timeout(2000)  # software WebGL draws the new colours
+    save_screenshot(page, artefacts, "clutter", docs="viewer_clutter.png")
+
+
+def slices(api: httpx.Client) -> dict[int, tuple[int, int, int | None]]:
+    page = api.get(f"/surveys/{SAMPLE}/guardrails/slices", params={"limit": 5000}).json()
+    assert page["total"] == len(page["items"])
+    return {s["id"]: (s["label"], s["version"], s["labelled_by"]) for s in page["items"]}
+
+
+@pytest.mark.e2e
+def test_toggle_a_guardrail_slice_with_a_click(
+    open_viewer, viewer_server: Server, street, artefacts
+) -> None:
+    annotator = viewer_server.add_user("railann", "annotator", PASSWORD)
+    annotator_id = user_id(annotator)
+    before = slices(annotator)
+    page = open_viewer("railann", PASSWORD, survey_id=SAMPLE)
+    switch_mode(page, "Guardrail review")
+    page.get_by_text("labelled by people").wait_for(timeout=60_000)
+    page.get_by_role("button", name="Next uncertain slice").click()
+    page.get_by_text("unlabelled left").wait_for()
+    page.wait_for_timeout(1500)  # the camera has flown there
+    box = canvas_box(page)
+    cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    changed: dict = {}
+    for dx, dy in [(0, 0), (0, -6), (0, 6), (-6, 0), (6, 0), (0, -12), (0, 12), (-12, 0)]:
+        page.mouse.click(cx + dx, cy + dy)  # the slice flown to lies under the centre
+        try:
+            changed = wait_until(
+                "a toggled slice",
+                lambda: {k: v for k, v in slices(annotator).items() if v != before[k]},
+                timeout=5.0,
+            )
+            break
+        except AssertionError:
+            continue
+    assert len(changed) == 1, changed
+    ((slice_id, (label, version, by)),) = changed.items()
+    assert label == 1 - before[slice_id][0] and version == before[slice_id][1] + 1
+    assert by == annotator_id
+    page.get_by_text(f"Slice {slice_id} is now").wait_for()
+    close_notifications(page)
+    page.wait_for_timeout(1500)
+    save_screenshot(page, artefacts, "guardrails", docs="viewer_guardrails.png")
+
+
+@pytest.mark.e2e
+def test_reject_accept_a_guardrail_model_and_download_the_meshes(
+    open_viewer, viewer_server: Server, street, artefacts, tmp_path: Path
+) -> None:
+    reviewer = viewer_server.add_user("modelrev", "reviewer", PASSWORD)
+    reviewer_id = user_id(reviewer)
+    models = reviewer.get(f"/surveys/{SAMPLE}/guardrails/models").json()
+    assert models, "the sample's guardrail run reconstructed nothing"
+    first = models[0]  # the mode selects the first guardrail when it opens
+    page = open_viewer("modelrev", PASSWORD, survey_id=SAMPLE)
+    switch_mode(page, "Model inspection")
+    page.get_by_text("ICP residual").wait_for(timeout=60_000)
+
+    def model() -> dict:
+        return next(
+            m
+            for m in reviewer.get(f"/surveys/{SAMPLE}/guardrails/models").json()
+            if m["id"] == first["id"]
+        )
+
+    row_button(page, "Decision", "Reject").click()
+    rejected = wait_until("the rejection", lambda: (m := model())["status"] == "rejected" and m)
+    assert rejected["decided_by"] == reviewer_id and rejected["version"] == first["version"] + 1
+    row_button(page, "Decision", "Accept").click()
+    accepted = wait_until("the acceptance", lambda: (m := model())["status"] == "approved" and m)
+    assert accepted["decided_by"] == reviewer_id and accepted["version"] == first["version"] + 2
+    page.get_by_text(f"{first['kind']} {first['guardrail_index']}").first.wait_for()
+
+    with page.expect_download() as download:
+        page.get_by_role("link", name="guardrails.zip").click()
+    archive = tmp_path / "guardrails.zip"
+    download.value.save_as(archive)
+    with zipfile.ZipFile(archive) as zf:
+        names = zf.namelist()
+        assert "manifest.json" in names
+        meshes = [n for n in names if n.endswith(".glb")]
+        assert len(meshes) == 1  # only the accepted guardrail is exported
+        mesh = trimesh.load(io.BytesIO(zf.read(meshes[0])), file_type="glb", force="mesh")
+    assert len(mesh.vertices) > 0 and len(mesh.faces) > 0
+    close_notifications(page)
+    page.wait_for_timeout(1500)
+    save_screenshot(page, artefacts, "models", docs="viewer_models.png")
+
+
+@pytest.mark.e2e
+def test_qa_mode_shows_the_maps_and_metrics(
+    open_viewer, viewer_server: Server, street, artefacts
+) -> None:
+    viewer_server.add_user("qarev", "reviewer", PASSWORD)
+    page = open_viewer("qarev", PASSWORD, survey_id=street)
+    switch_mode(page, "QA")
+    page.get_by_text("Cleaned map:").wait_for(timeout=60_000)
+    page.get_by_text("Clutter (job").wait_for()
+    page.get_by_text("Phantom (job").wait_for()
+    href = page.get_by_role("link", name="QA report").get_attribute("href")
+    assert href == f"/surveys/{street}/exports/qa-report.html"
+    close_notifications(page)
+    page.wait_for_timeout(2500)
+    save_screenshot(page, artefacts, "qa", docs="viewer_qa.png")
