@@ -127,6 +127,15 @@ def test_frame_is_coloured_by_the_pipeline_and_decisions_apply_with_versions(
     mine = owner[mode.shown] == target.instance_index
     assert mine.any() and (colors[mine] == STATE_RGB[APPROVED]).all()
     assert "approved" in mode.rows[mode.states.index(mode.by_index[target.instance_index])].label
+    # ... and red on the camera image, where they project into it (over the tinted masks)
+    row, col = mode.pixels
+    seen = np.flatnonzero((owner == target.instance_index) & (row >= 0))
+    assert len(seen)  # a camera instance
+    image, scale = mode._overlay(), mode.photo[1]
+    r = np.minimum((row[seen] * scale).astype(int), image.shape[0] - 1)
+    c = np.minimum((col[seen] * scale).astype(int), image.shape[1] - 1)
+    red = (image[r, c] == STATE_RGB[APPROVED]).all(axis=1)
+    assert red.mean() > 0.5  # other instances' dots may share a pixel of the small image
 
     # reject another: its points are kept (green), the rest of the frame is as the pipeline says
     connection.call(mode.decide, [other], Decision.rejected)

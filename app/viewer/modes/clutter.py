@@ -228,6 +228,11 @@ class ClutterMode(Mode):
         with session.db() as db:
             record = db.get(SurveyRecord, self.survey_id)
             self.frames: list[FrameCount] = clutter_review.frame_counts(db, self.survey_id)
+        if not self.frames:
+            with session.mode_folder:
+                gui.add_markdown("The survey has no frames to review.")
+            self.folder = None
+            return
         self.survey: Survey = open_survey(record.source_path, record.format)
         self.by_id: dict[str, Frame] = {f.frame_id: f for f in self.survey.frames}
         self.camera = self._camera()
@@ -331,6 +336,7 @@ class ClutterMode(Mode):
         self.shown = np.sort(np.concatenate([owned, rest]))
         self.pixels = self._project(frame)
         self._reload_states()
+        self.photo = None if self.pixels is None else self._masked_photo()
         if self.cloud is not None:
             self.cloud.remove()
         self.cloud = self.session.client.scene.add_point_cloud(
@@ -410,13 +416,11 @@ class ClutterMode(Mode):
         self._draw_list()
         self._draw_selected()
 
-    def _overlay(self) -> np.ndarray:
-        """The frame's camera image (downscaled) with each instance's mask image pasted where
-        it differs from the photo (the tinted mask), its points dotted by state, the selected
-        instance boxed."""
+    def _masked_photo(self) -> tuple[np.ndarray, float] | None:
+        """(the frame's camera image downscaled, with each instance's mask image pasted where
+        it differs from the photo, i.e. the tinted mask; the scale), once per frame: decisions
+        change only the dots drawn over it."""
         frame = self.by_id[self.frames[self.frame_index].frame_id]
-        if self.pixels is None:
-            return np.zeros((8, IMAGE_WIDTH, 3), np.uint8)
         photo = frame.image(self.camera.name)
         canvas = photo.copy()
         height, width = photo.shape[:2]
@@ -434,9 +438,16 @@ class ClutterMode(Mode):
             tinted = (crop[:h, :w] != photo[v0 : v0 + h, u0 : u0 + w]).any(axis=2)
             region[tinted] = crop[:h, :w][tinted]
         scale = IMAGE_WIDTH / width
-        small = cv2.resize(
-            canvas, (IMAGE_WIDTH, max(int(round(height * scale)), 1)), interpolation=cv2.INTER_AREA
-        )
+        size = (IMAGE_WIDTH, max(int(round(height * scale)), 1))
+        return cv2.resize(canvas, size, interpolation=cv2.INTER_AREA), scale
+
+    def _overlay(self) -> np.ndarray:
+        """The masked camera image with the instances' points dotted by state and the selected
+        instance boxed."""
+        if self.pixels is None or self.photo is None:
+            return np.zeros((8, IMAGE_WIDTH, 3), np.uint8)
+        base, scale = self.photo
+        small = base.copy()
         row, col = self.pixels
         dots = np.flatnonzero((self.owner >= 0) & (row >= 0))
         r = np.minimum((row[dots] * scale).astype(np.int64), small.shape[0] - 1)
