@@ -4,7 +4,6 @@ labels with the brush as its own user, sees API writes recoloured and can undo."
 
 from __future__ import annotations
 
-import asyncio
 import ipaddress
 import socket
 import subprocess
@@ -35,6 +34,7 @@ from tests.viewer.wire import (
     gui_set,
     is_color_update,
     is_point_cloud,
+    run_coroutine,
 )
 
 SCENE_TIMEOUT = 120.0  # the first open builds the sample's map (seconds on 2 shared cores)
@@ -58,7 +58,7 @@ def refused_status(url: str, **kwargs) -> int:
         except InvalidStatus as exc:
             return exc.response.status_code
 
-    return asyncio.run(attempt())
+    return run_coroutine(attempt())
 
 
 # --- nothing without a login -----------------------------------------------------------------
@@ -87,7 +87,7 @@ def test_relay_refuses_other_origins_unknown_surveys_and_other_protocols(
         except InvalidStatus as exc:
             return exc.response.status_code
 
-    assert asyncio.run(no_viser_protocol()) == 403
+    assert run_coroutine(no_viser_protocol()) == 403
 
 
 def test_viewer_page_needs_a_login(viewer_server: Server) -> None:
@@ -175,7 +175,7 @@ def test_direct_connection_to_viser_gets_no_scene(viewer_server: Server) -> None
             await client.wait_for(is_point_cloud, 10)
         return client.connection.close_code, [m.get("type") for _, m in client.received]
 
-    code, types = asyncio.run(dial())
+    code, types = run_coroutine(dial())
     assert code == 1008
     assert "PointCloudMessage" not in types and "GuiMarkdownMessage" not in types
 
@@ -257,7 +257,7 @@ def test_client_gets_the_scene_labels_as_its_user_sees_api_writes_and_undoes(
         assert len(human_labels(admin, beside)) == 2
         await client.close()
 
-    asyncio.run(session())
+    run_coroutine(session())
 
 
 def test_model_prelabels_from_another_process_show_lighter_hide_and_lead_the_camera(
@@ -308,6 +308,6 @@ def test_model_prelabels_from_another_process_show_lighter_hide_and_lead_the_cam
         await client.close()
 
     try:
-        asyncio.run(session())
+        run_coroutine(session())
     finally:
         engine.dispose()

@@ -12,6 +12,7 @@ camera (`ViewerCameraMessage`), so `hello()` sends one.
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import time
 from collections.abc import Callable
 from typing import Any
@@ -165,3 +166,10 @@ class WireClient:
 
     async def close(self) -> None:
         await self.connection.close()
+
+
+def run_coroutine(coroutine: Any) -> Any:
+    """`asyncio.run` in a thread of its own: a test may run while another fixture (Playwright's
+    sync API, used by the browser tests) keeps an event loop running in the main thread."""
+    with concurrent.futures.ThreadPoolExecutor(max_workers=1) as pool:
+        return pool.submit(asyncio.run, coroutine).result()
