@@ -29,9 +29,9 @@ from app.viewer.modes.clutter import (
     SELECTED_RGB,
     STATE_RGB,
     ClutterMode,
-    pick_on_ray,
     point_states,
 )
+from app.viewer.modes.common import pick_on_ray
 from tests.jobs.conftest import job_context
 from tests.pipelines.clutter.conftest import weights_dir  # noqa: F401  (the fixture)
 from tests.viewer.test_modes_common import (

@@ -33,10 +33,9 @@ from app.viewer.modes.clutter import (
     KEPT_PENDING,
     REJECTED,
     REMOVED_PENDING,
-    evenly,
-    pick_on_ray,
     point_states,
 )
+from app.viewer.modes.common import evenly, pick_on_ray
 from app.viewer.server import ViewerServer
 from app.viewer.session import ViewerSession
 from tests.viewer.wire import WireClient, decode_frame

@@ -27,7 +27,7 @@ from app.store.guardrail_review import (
 )
 from app.store.models import User
 from app.store.surveys import register_opened_survey
-from app.viewer.modes.clutter import pick_on_ray
+from app.viewer.modes.common import pick_on_ray
 from app.viewer.modes.guardrails import LABEL_RGB, PREVIEW_RGB, GuardrailMode
 from tests.jobs.conftest import job_context
 from tests.viewer.test_modes_common import (

@@ -30,7 +30,7 @@ from app.store.guardrail_review import (
 )
 from app.store.models import GuardrailSlice, Role
 from app.viewer.modes.base import Mode
-from app.viewer.modes.clutter import checked_user, evenly, legend_html, may, pick_on_ray
+from app.viewer.modes.common import checked_user, evenly, legend_html, may, pick_on_ray
 
 if TYPE_CHECKING:
     from viser import SceneClickEvent

@@ -22,7 +22,7 @@ from app.jobs.guardrail_tasks import load_stage
 from app.store.guardrail_review import decide_model, latest_run, list_models, match_slices
 from app.store.models import GuardrailModel, ModelStatus, Role
 from app.viewer.modes.base import Mode
-from app.viewer.modes.clutter import checked_user, evenly, legend_html, may, pick_on_ray
+from app.viewer.modes.common import checked_user, evenly, legend_html, may, pick_on_ray
 
 if TYPE_CHECKING:
     from viser import SceneClickEvent

@@ -22,7 +22,7 @@ from app.io.las import read_las_points
 from app.store.models import Job
 from app.store.surveys import latest_succeeded_job
 from app.viewer.modes.base import Mode
-from app.viewer.modes.clutter import evenly, legend_html
+from app.viewer.modes.common import evenly, legend_html
 
 if TYPE_CHECKING:
     from app.viewer.session import ViewerSession
