@@ -27,6 +27,7 @@ from sqlmodel import Session
 from app.core.errors import ConfigError, ConflictError, StaleWriteError
 from app.geometry.pillars import PillarGrid
 from app.store.audit import audit
+from app.store.db import commit
 from app.store.models import EditState, LabelSource, PillarClass, PillarEditBatch, utcnow
 
 STORE_GRID = PillarGrid(0.0, 0.0, 0.2)  # s_c = 0.2 m (Nagy & Benedek)
@@ -197,7 +198,7 @@ def write_labels(
         erased=int((labels == NO_LABEL).sum()),
     )
     versions = _versions_after(session, survey_id, cell_ids)
-    _commit(session)
+    commit(session)
     return LabelWrite(batch.id, cell_ids, versions)
 
 
@@ -227,12 +228,6 @@ def _record_batch(
     ]
     conn.execute(_RECORD_EDITS, {"batch": batch.id, "rows": json.dumps(rows)})
     return batch
-
-
-def _commit(session: Session) -> None:
-    from app.store.db import commit
-
-    commit(session)
 
 
 def _batch_edits(session: Session, batch_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -286,7 +281,7 @@ def _step(session: Session, survey_id: int, user_id: int | None, undo: bool) -> 
     session.add(batch)
     audit(session, user_id, f"pillar.{what}", "pillar_edit_batch", batch.id, pillars=len(cells))
     versions = _versions_after(session, survey_id, cells)
-    _commit(session)
+    commit(session)
     return LabelWrite(batch.id, cells, versions)
 
 
