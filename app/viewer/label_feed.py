@@ -1,4 +1,5 @@
-"""Which pillar labels changed, whoever changed them: a tail of the audit log.
+"""Which pillar labels and review decisions changed, whoever changed them: a tail of the audit
+log.
 
 Every label write in the store leaves an audit row in the same transaction (`pillar.label`,
 `pillar.undo`, `pillar.redo` name an edit batch, whose edits list the pillars;
@@ -7,8 +8,14 @@ audit log by id therefore sees writes from the REST API, from viewer clients, fr
 processes and from other server processes alike, in commit order (SQLite has one writer at a
 time, so ids are handed out in commit order), and costs one index range read per poll.
 
+The same tail reports the review writes of the other modes per survey (`ReviewChange`: which
+`REVIEW_ACTIONS` happened): clutter decisions (`clutter.approve` / `clutter.reject` /
+`clutter.reset`, survey in the payload) and a new clutter run (`clutter.ingest`), guardrail slice
+labels (`guardrail_slice.label`) and model decisions (`guardrail_model.approve` / `.reject`),
+a new guardrail run (`guardrail.ingest`) and a rebuild of its models (`guardrail.rebuild`).
+
 The feed polls every `interval` seconds; `wake()` makes it poll now, which the API calls after
-a label write so open viewers recolour within milliseconds instead of at the next poll.
+a label or review write so open viewers recolour within milliseconds instead of at the next poll.
 """
 
 from __future__ import annotations
@@ -28,12 +35,23 @@ log = logging.getLogger(__name__)
 
 BATCH_ACTIONS = ("pillar.label", "pillar.undo", "pillar.redo")
 MODEL_ACTION = "pillar.model_labels"
-
-_NEW_EVENTS = text(
-    "SELECT id, action, entity_id FROM audit_event WHERE id > :last "
-    "AND action IN ('pillar.label', 'pillar.undo', 'pillar.redo', 'pillar.model_labels') "
-    "ORDER BY id"
+LABEL_ACTIONS = (*BATCH_ACTIONS, MODEL_ACTION)
+CLUTTER_DECISIONS = frozenset({"clutter.approve", "clutter.reject", "clutter.reset"})
+CLUTTER_RUN = "clutter.ingest"
+SLICE_LABEL = "guardrail_slice.label"
+MODEL_DECISIONS = frozenset({"guardrail_model.approve", "guardrail_model.reject"})
+GUARDRAIL_RUN = frozenset({"guardrail.ingest", "guardrail.rebuild"})
+REVIEW_ACTIONS = frozenset(
+    {*CLUTTER_DECISIONS, CLUTTER_RUN, SLICE_LABEL, *MODEL_DECISIONS, *GUARDRAIL_RUN}
 )
+
+# the survey: the payload's survey_id (decisions, labels), else the survey the event names (runs)
+_NEW_EVENTS = text(
+    "SELECT id, action, entity_id, coalesce(json_extract(payload, '$.survey_id'), "
+    "CASE WHEN entity = 'survey' THEN entity_id END) FROM audit_event WHERE id > :last "
+    "AND action IN (SELECT value FROM json_each(:actions)) ORDER BY id"
+)
+_ACTIONS = json.dumps(sorted({*LABEL_ACTIONS, *REVIEW_ACTIONS}))
 _BATCH_CELLS = text(
     "SELECT b.survey_id, json_group_array(e.cell_id) FROM pillar_edit AS e "
     "JOIN pillar_edit_batch AS b ON b.id = e.batch_id "
@@ -48,12 +66,34 @@ class LabelChange:
     model_replaced: bool = False  # a job replaced the survey's model pre-labels
 
 
+@dataclass
+class ReviewChange:
+    """Review writes on one survey since the last poll: which `REVIEW_ACTIONS` happened."""
+
+    survey_id: int
+    actions: set[str] = field(default_factory=set)
+
+
 def read_changes(session: Session, after_id: int) -> tuple[int, list[LabelChange]]:
     """(newest audit id seen, label changes per survey) since audit id `after_id`."""
+    last_id, labels, _ = read_events(session, after_id)
+    return last_id, labels
+
+
+def read_events(
+    session: Session, after_id: int
+) -> tuple[int, list[LabelChange], list[ReviewChange]]:
+    """(newest audit id seen, label changes per survey, review changes per survey) since audit
+    id `after_id`."""
     conn = session.connection()
-    events = conn.execute(_NEW_EVENTS, {"last": after_id}).all()
+    events = conn.execute(_NEW_EVENTS, {"last": after_id, "actions": _ACTIONS}).all()
     if not events:
-        return after_id, []
+        return after_id, [], []
+    reviews: dict[int, ReviewChange] = {}
+    for event in events:
+        if event[1] in REVIEW_ACTIONS and event[3] is not None:
+            survey_id = int(event[3])
+            reviews.setdefault(survey_id, ReviewChange(survey_id)).actions.add(event[1])
     changes: dict[int, LabelChange] = {}
     batches = [int(e[2]) for e in events if e[1] in BATCH_ACTIONS and e[2] is not None]
     if batches:
@@ -65,7 +105,7 @@ def read_changes(session: Session, after_id: int) -> tuple[int, list[LabelChange
         if event[1] == MODEL_ACTION and event[2] is not None:
             survey_id = int(event[2])
             changes.setdefault(survey_id, LabelChange(survey_id)).model_replaced = True
-    return int(events[-1][0]), list(changes.values())
+    return int(events[-1][0]), list(changes.values()), list(reviews.values())
 
 
 def newest_audit_id(session: Session) -> int:
@@ -74,16 +114,19 @@ def newest_audit_id(session: Session) -> int:
 
 
 class LabelFeed:
-    """A thread that reports label changes to `on_changes`, oldest first."""
+    """A thread that reports label changes to `on_changes` and review changes to `on_reviews`
+    (when given), oldest first."""
 
     def __init__(
         self,
         engine: Engine,
         on_changes: Callable[[list[LabelChange]], None],
         interval: float = 0.5,
+        on_reviews: Callable[[list[ReviewChange]], None] | None = None,
     ):
         self.engine = engine
         self.on_changes = on_changes
+        self.on_reviews = on_reviews
         self.interval = interval
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -108,9 +151,11 @@ class LabelFeed:
 
     def poll(self) -> None:
         with Session(self.engine) as session:
-            self.last_id, changes = read_changes(session, self.last_id)
+            self.last_id, changes, reviews = read_events(session, self.last_id)
         if changes:
             self.on_changes(changes)
+        if reviews and self.on_reviews is not None:
+            self.on_reviews(reviews)
 
     def _run(self) -> None:
         while not self._stop.is_set():

@@ -21,7 +21,7 @@ import viser
 from sqlalchemy.engine import Engine
 
 from app.core.settings import Settings
-from app.viewer.label_feed import LabelChange, LabelFeed
+from app.viewer.label_feed import LabelChange, LabelFeed, ReviewChange
 from app.viewer.session import ViewerSession
 from app.viewer.survey_view import SurveyViews
 from app.viewer.tickets import Ticket, TicketRegistry, nonce_of
@@ -47,7 +47,9 @@ class ViewerServer:
         self.viser = viser.ViserServer(host=LOOPBACK, port=self.settings.viewer_port, verbose=False)
         self.viser.on_client_connect(self._on_connect)
         self.viser.on_client_disconnect(self._on_disconnect)
-        self.feed = LabelFeed(self.engine, self._on_label_changes).start()
+        self.feed = LabelFeed(
+            self.engine, self._on_label_changes, on_reviews=self._on_review_changes
+        ).start()
         log.info("viewer: viser listens on %s:%d (loopback only)", LOOPBACK, self.port)
         return self
 
@@ -77,7 +79,8 @@ class ViewerServer:
         return self.tickets.issue(Ticket(user_id, username, survey_id, mode))
 
     def labels_written(self) -> None:
-        """Someone wrote pillar labels: have open views recolour now, not at the next poll."""
+        """Someone wrote pillar labels or review decisions (clutter, guardrail slices and
+        models): have open views and modes update now, not at the next poll."""
         if self.feed is not None:
             self.feed.wake()
 
@@ -120,3 +123,13 @@ class ViewerServer:
                 view.load_all()
             elif len(change.human_cells):
                 view.refresh_human(change.human_cells)
+
+    def _on_review_changes(self, changes: list[ReviewChange]) -> None:
+        """Review writes (anyone's): each session on the survey passes them to its mode."""
+        with self._sessions_lock:
+            sessions = list(self.sessions.values())
+        for change in changes:
+            for session in sessions:
+                view = session.view
+                if view is not None and view.survey_id == change.survey_id:
+                    session.review_changed(change.survey_id, frozenset(change.actions))

@@ -1,10 +1,11 @@
 """One connected browser tab: its user, its survey, its own scene and GUI, its current mode.
 
 viser gives every client its own `client.scene` and `client.gui`, so two operators on the same
-survey never see each other's selection or tool state, only each other's labels (through the
-store and the label feed). Everything a session does runs on its own worker thread, one call at
-a time: viser's callbacks and the label feed only queue work here, so a slow store write never
-stalls viser's event loop and a mode never needs a lock.
+survey never see each other's selection or tool state, only each other's labels and decisions
+(through the store and the label feed, which also reports the review writes the open mode
+follows: `review_changed`). Everything a session does runs on its own worker thread, one call
+at a time: viser's callbacks and the label feed only queue work here, so a slow store write
+never stalls viser's event loop and a mode never needs a lock.
 
 Label writes go through `app.store.pillar_labels` (the same versioned, undoable batches the REST
 API writes) with a fresh database session per action, attributed to the session's user.
@@ -56,6 +57,7 @@ class ViewerSession:
         self._camera_pending = threading.Event()
         self._gui: list[Any] = []
         self._survey_ids: dict[str, int] = {}
+        self._hold_camera = False
 
     # --- running work ----------------------------------------------------------------------
 
@@ -167,6 +169,8 @@ class ViewerSession:
         self.move_camera(look_at, offset)
 
     def move_camera(self, look_at: np.ndarray, offset: np.ndarray) -> None:
+        if self._hold_camera:  # a mode reloading itself: the user's view stays
+            return
         camera = self.client.camera
         camera.up_direction = (0.0, 0.0, 1.0)
         camera.position = look_at + offset  # moves look_at along ...
@@ -183,6 +187,23 @@ class ViewerSession:
         self.mode = mode_class()
         self.mode.enter(self)
         self.client.flush()
+
+    def reload_mode(self) -> Mode | None:
+        """Leave the open mode and enter a fresh one of the same kind (a new pipeline run or
+        rebuild replaced what it shows), keeping the camera where the user put it; the new mode."""
+        if self.mode is None or self.view is None:
+            return None
+        mode_class = type(self.mode)
+        self._leave_mode()
+        self.mode_folder = self.client.gui.add_folder(mode_class.name)
+        self.mode = mode_class()
+        self._hold_camera = True
+        try:
+            self.mode.enter(self)
+        finally:
+            self._hold_camera = False
+        self.client.flush()
+        return self.mode
 
     def _leave_mode(self) -> None:
         if self.mode is not None:
@@ -239,6 +260,16 @@ class ViewerSession:
     def _recolor(self, changed: np.ndarray) -> None:
         if self.mode is not None:
             self.mode.on_labels_changed(changed)
+            self.client.flush()
+
+    def review_changed(self, survey_id: int, actions: frozenset[str]) -> None:
+        """From the label feed's thread: review writes on a survey (anyone's, ours included);
+        the open mode follows them on our thread."""
+        self.submit(self._review_changed, survey_id, actions)
+
+    def _review_changed(self, survey_id: int, actions: frozenset[str]) -> None:
+        if self.mode is not None and self.view is not None and self.view.survey_id == survey_id:
+            self.mode.on_review_changed(set(actions))
             self.client.flush()
 
     # --- label writes (the store's batches, attributed to this user) ---------------------------

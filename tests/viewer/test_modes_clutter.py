@@ -226,3 +226,38 @@ def test_annotators_see_but_cannot_decide(review: Review) -> None:
         connection.call(mode.recompute)
     with Session(review.engine) as session:
         assert get_instance(session, review.survey_id, state.id).version == state.version
+
+
+def test_decisions_by_someone_else_show_up_live(review: Review) -> None:
+    """Another reviewer decides an instance of the open frame straight through the store: the
+    list, the point states and the client's colours follow within seconds, and the user's own
+    selection stays."""
+    connection, mode = open_mode(review, "rev")
+    shown_owner = mode.owner[mode.shown]
+    visible = [s for s in mode.states if (shown_owner == s.instance_index).any()]
+    assert len(visible) >= 2
+    chosen, target = visible[0], next(s for s in visible[1:] if s.decision != Decision.rejected)
+    connection.call(mode.select, chosen.instance_index)
+    mark = connection.mark()
+    with Session(review.engine) as session:
+        decide(
+            session,
+            review.survey_id,
+            [DecisionWrite(target.id, target.version, Decision.rejected)],
+            review.users["rev2"][0],
+        )
+    deadline = time.monotonic() + 10
+    while mode.by_index[target.instance_index].decision != Decision.rejected:
+        assert time.monotonic() < deadline, "the open frame never saw the other decision"
+        time.sleep(0.05)
+    connection.call(lambda: None)  # the refresh has finished
+    now = mode.by_index[target.instance_index]
+    assert now.version == target.version + 1 and now.user_id == review.users["rev2"][0]
+    assert mode.selected == chosen.instance_index
+    assert "rejected" in mode.rows[mode.states.index(now)].label
+    assert (mode.state[mode.owner == target.instance_index] == REJECTED).all()
+    connection.wait(lambda m: is_color_update(m) and m["name"] == "/clutter/frame", mark)
+    colors = cloud_colors(connection, mark)
+    mine = shown_owner == target.instance_index
+    assert (colors[mine] == STATE_RGB[REJECTED]).all()
+    assert (colors[shown_owner == chosen.instance_index] == SELECTED_RGB).all()

@@ -19,13 +19,15 @@ from app.io import open_survey
 from app.jobs.guardrail_tasks import preview_correction
 from app.jobs.registry import task_for
 from app.simulate.survey import SimulationConfig, simulate
+from app.store.audit import audit
 from app.store.guardrail_review import (
     SliceLabelEdit,
     get_slice,
+    latest_run,
     next_uncertain,
     put_slice_labels,
 )
-from app.store.models import User
+from app.store.models import AuditEvent, User
 from app.store.surveys import register_opened_survey
 from app.viewer.modes.common import pick_on_ray
 from app.viewer.modes.guardrails import LABEL_RGB, PREVIEW_RGB, GuardrailMode
@@ -171,11 +173,17 @@ def test_a_stale_toggle_is_refused_and_reloaded(street: Street) -> None:
     k = int(np.flatnonzero(mode.row_of_slice >= 0)[0])
     r = int(mode.row_of_slice[k])
     slice_id, held = int(mode.rows.id[r]), int(mode.rows.version[r])
+    label = int(mode.rows.label[r])
     with Session(street.engine) as session:
         rev = session.get(User, street.users["rev"][0])
         put_slice_labels(session, street.survey_id, [SliceLabelEdit(slice_id, held, 1)], rev)
+
+    def stale_toggle() -> None:  # on the session's thread: no live reload in between
+        mode.rows.version[r], mode.rows.label[r] = held, label  # as if not seen yet
+        mode.toggle_slice(k)
+
     mark = connection.mark()
-    connection.call(mode.toggle_slice, k)
+    connection.call(stale_toggle)
     connection.wait(lambda m: m.get("type") == "NotificationShowMessage", mark)
     with Session(street.engine) as session:
         stored = get_slice(session, street.survey_id, slice_id)
@@ -237,3 +245,37 @@ def test_preview_shows_the_correction_and_apply_writes_it(street: Street) -> Non
     shows(connection, mine, LABEL_RGB[1, 1])
     connection.call(mode.preview_correction)  # nothing left to correct
     assert mode.preview == {} and mode.apply.disabled
+
+
+def test_labels_by_someone_else_recolour_live(street: Street) -> None:
+    """Another user labels a slice straight through the store: the mode's rows and the
+    client's colours follow within seconds; a new run (its ingest event) reloads the mode."""
+    connection, mode = open_mode(street, "ann")
+    slice_of = mode.point_slice[mode.shown]
+    k = int(next(k for k in np.unique(slice_of) if mode.row_of_slice[k] >= 0))
+    r = int(mode.row_of_slice[k])
+    slice_id, version, label = int(mode.rows.id[r]), int(mode.rows.version[r]), mode.rows.label[r]
+    new = 1 - int(label)
+    with Session(street.engine) as session:
+        rev = session.get(User, street.users["rev"][0])
+        put_slice_labels(session, street.survey_id, [SliceLabelEdit(slice_id, version, new)], rev)
+    deadline = time.monotonic() + 10
+    while mode.rows.version[row_of(mode, slice_id)] != version + 1:
+        assert time.monotonic() < deadline, "the mode never saw the other label"
+        time.sleep(0.05)
+    assert mode.rows.label[row_of(mode, slice_id)] == new and mode.rows.human[r]
+    shows(connection, slice_of == k, LABEL_RGB[new, 1])
+
+    mark = connection.mark()
+    with Session(street.engine) as session:  # the same run ingested again, as a new one
+        run = session.get(AuditEvent, latest_run(session, street.survey_id).event_id)
+        audit(session, None, run.action, "survey", street.survey_id, **run.payload)
+        session.commit()
+    deadline = time.monotonic() + 30
+    while connection.mode is mode:
+        assert time.monotonic() < deadline, "the mode was not reloaded"
+        time.sleep(0.05)
+    connection.call(lambda: None)
+    assert isinstance(connection.mode, GuardrailMode) and "slices" in connection.mode.clouds
+    connection.wait(lambda m: is_point_cloud(m) and m["name"] == "/guardrails/slices", mark)
+    assert not connection.since(mark, lambda m: m.get("type") == "SetCameraLookAtMessage")

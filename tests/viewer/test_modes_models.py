@@ -5,6 +5,7 @@ link, read-only for annotators."""
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -15,6 +16,7 @@ from sqlalchemy.engine import Engine
 from sqlmodel import Session
 
 from app.core.errors import PermissionDeniedError
+from app.store.audit import audit
 from app.store.guardrail_review import decide_model, get_model, list_models
 from app.store.models import ModelStatus, User
 from app.viewer.modes.models import SELECTED_RGB, STATUS_RGB, ModelMode, load_mesh
@@ -117,13 +119,19 @@ def test_reviewers_accept_and_reject_with_versions(street: Street) -> None:
     assert mode.meshes[second.id].color == STATUS_RGB[ModelStatus.rejected]
     assert "| approved |" in mode.table.content and "| rejected |" in mode.table.content
 
-    # another reviewer changes the first one meanwhile: our write is refused, the list reloads
+    # another reviewer changes the first one meanwhile: a write at the version we held is
+    # refused and the list reloads (the live feed may have reloaded it already)
+    held = mode._model(first.id)
     with Session(street.engine) as session:
         rev2 = session.get(User, street.users["rev2"][0])
         decide_model(session, street.survey_id, a.id, a.version, ModelStatus.rejected, rev2)
-    held = mode._model(first.id)
+
+    def stale_decide() -> None:  # on the session's thread: no live reload in between
+        mode.models = [held if m.id == held.id else m for m in mode.models]  # as if not seen
+        mode.decide(held.id, ModelStatus.approved)  # holds version a.version
+
     stale_mode = connection.mark()
-    connection.call(mode.decide, held.id, ModelStatus.approved)  # holds version a.version
+    connection.call(stale_decide)
     connection.wait(lambda m: m.get("type") == "NotificationShowMessage", stale_mode)
     with Session(street.engine) as session:
         now = get_model(session, street.survey_id, first.id)
@@ -139,3 +147,47 @@ def test_annotators_cannot_decide(street: Street) -> None:
         connection.call(mode.decide, model.id, ModelStatus.approved)
     with Session(street.engine) as session:
         assert get_model(session, street.survey_id, model.id).version == model.version
+
+
+def test_decisions_by_someone_else_show_up_live(street: Street) -> None:
+    """Another reviewer decides a model straight through the store: the list and the mesh's
+    colour follow within seconds, the selection stays; a rebuild reloads the meshes."""
+    connection, mode = open_mode(street, "rev")
+    chosen, target = mode.models[0], mode.models[1]
+    connection.call(mode.select, chosen.id)
+    new = ModelStatus.approved if target.status != ModelStatus.approved else ModelStatus.rejected
+    mark = connection.mark()
+    with Session(street.engine) as session:
+        rev2 = session.get(User, street.users["rev2"][0])
+        decide_model(session, street.survey_id, target.id, target.version, new, rev2)
+    deadline = time.monotonic() + 10
+    while mode._model(target.id).status != new:
+        assert time.monotonic() < deadline, "the list never saw the other decision"
+        time.sleep(0.05)
+    connection.call(lambda: None)  # the recolouring has finished
+    assert mode._model(target.id).version == target.version + 1
+    assert mode.selected == chosen.id and mode.meshes[target.id].color == STATUS_RGB[new]
+    assert f"| {new.value} |" in mode.table.content
+    connection.wait(
+        lambda m: (
+            m.get("type") == "SceneNodeUpdateMessage"
+            and m.get("name") == f"/models/mesh/{target.id}"
+            and tuple(m["updates"].get("color", ())) == STATUS_RGB[new]
+        ),
+        mark,
+    )
+
+    # a rebuild (its audit event) reloads the mode: fresh meshes, the selection kept
+    mark = connection.mark()
+    with Session(street.engine) as session:
+        audit(session, None, "guardrail.rebuild", "survey", street.survey_id)
+        session.commit()
+    deadline = time.monotonic() + 30
+    while connection.mode is mode:
+        assert time.monotonic() < deadline, "the mode was not reloaded"
+        time.sleep(0.05)
+    connection.call(lambda: None)
+    fresh = connection.mode
+    assert isinstance(fresh, ModelMode) and fresh.selected == chosen.id
+    assert fresh._model(target.id).status == new
+    connection.wait(lambda m: m.get("name") == f"/models/mesh/{target.id}", mark)

@@ -14,7 +14,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Annotated
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Query, Request
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field
 
@@ -155,16 +155,26 @@ def read_frames(survey_id: int, _: CurrentUser, session: SessionDep) -> list[Fra
     return [FrameReview(**c.__dict__) for c in frame_counts(session, survey_id)]
 
 
+def _wake_viewer(request: Request) -> None:
+    """Viewer hook (as pillars.py): open viewer modes on the survey follow this write now, not
+    at the next poll of their feed (`app.viewer.label_feed`, which also sees other processes)."""
+    viewer = getattr(request.app.state, "viewer", None)
+    if viewer is not None:
+        viewer.labels_written()
+
+
 @router.post("/decisions", response_model=list[InstancePublic], responses=errors(403, 409, 422))
 def post_decisions(
-    survey_id: int, body: DecisionBatch, user: Reviewer, session: SessionDep
+    survey_id: int, body: DecisionBatch, user: Reviewer, session: SessionDep, request: Request
 ) -> list[InstancePublic]:
     """Approve (remove the points), reject (keep them) or reset to pending, in one transaction.
     Any stale version rejects the whole batch with 409 and `current`: the decisions as they
     are now. Answers the instances after the write, in request order."""
     survey_or_404(session, survey_id)
     writes = [DecisionWrite(d.instance_id, d.version, d.decision) for d in body.decisions]
-    return [InstancePublic.of(s) for s in decide(session, survey_id, writes, user.id)]
+    states = decide(session, survey_id, writes, user.id)
+    _wake_viewer(request)
+    return [InstancePublic.of(s) for s in states]
 
 
 @router.post("/recompute", response_model=JobPublic, status_code=202, responses=errors(403, 409))

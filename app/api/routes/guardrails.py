@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Query, Request
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field
 
@@ -115,6 +115,14 @@ class JobRef(BaseModel):
     status: str
 
 
+def _wake_viewer(request: Request) -> None:
+    """Viewer hook (as pillars.py): open viewer modes on the survey follow this write now, not
+    at the next poll of their feed (`app.viewer.label_feed`, which also sees other processes)."""
+    viewer = getattr(request.app.state, "viewer", None)
+    if viewer is not None:
+        viewer.labels_written()
+
+
 @router.get("/slices", response_model=SlicePage, responses=errors(422))
 def get_slices(
     survey_id: int,
@@ -140,11 +148,13 @@ def get_slices(
 
 @router.put("/slices", response_model=list[GuardrailSlicePublic], responses=errors(403, 409, 422))
 def put_slices(
-    survey_id: int, body: SliceLabelsIn, user: Annotator, session: SessionDep
+    survey_id: int, body: SliceLabelsIn, user: Annotator, session: SessionDep, request: Request
 ) -> list[GuardrailSlicePublic]:
     """Label many slices at once (all or nothing); 409 with `current` on a stale version."""
     edits = [SliceLabelEdit(s.id, s.version, s.label) for s in body.slices]
-    return [GuardrailSlicePublic.of(r) for r in put_slice_labels(session, survey_id, edits, user)]
+    rows = put_slice_labels(session, survey_id, edits, user)
+    _wake_viewer(request)
+    return [GuardrailSlicePublic.of(r) for r in rows]
 
 
 @router.get("/slices/next-uncertain", response_model=NextUncertain)
@@ -210,13 +220,18 @@ def get_mesh(
     responses=errors(403, 409, 422),
 )
 def post_decision(
-    survey_id: int, model_id: int, body: DecisionIn, user: Reviewer, session: SessionDep
+    survey_id: int,
+    model_id: int,
+    body: DecisionIn,
+    user: Reviewer,
+    session: SessionDep,
+    request: Request,
 ) -> GuardrailModelPublic:
     """Approve or reject a reconstructed guardrail (reviewer); 409 with `current` when stale."""
     status = ModelStatus(body.status)
-    return GuardrailModelPublic.of(
-        decide_model(session, survey_id, model_id, body.version, status, user)
-    )
+    row = decide_model(session, survey_id, model_id, body.version, status, user)
+    _wake_viewer(request)
+    return GuardrailModelPublic.of(row)
 
 
 @router.post("/rebuild", response_model=JobRef, status_code=202, responses=errors(403, 409, 422))

@@ -18,6 +18,12 @@ How the session drives a mode:
   coalesce into one call with the newest camera).
 - `on_labels_changed(changed)`: pillar labels of the open survey changed (by anyone): `changed`
   indexes `session.view.map.cells`; recolour with `session.view.point_colors`.
+- `on_review_changed(actions)`: review writes on the open survey (by anyone, this user's own
+  included, so applying one must be idempotent): `actions` is the set of audit actions seen
+  since the last call (`app.viewer.label_feed.REVIEW_ACTIONS`: clutter decisions and runs,
+  guardrail slice labels, model decisions, runs and rebuilds). Re-read what the mode shows
+  and recolour, keeping the user's selection; after a new run or a rebuild a mode may call
+  `session.reload_mode()` (leave, then enter a fresh mode of its kind; the camera stays).
 
 Every call above runs on the session's own worker thread, one at a time, so a mode keeps plain
 attributes without locks. GUI callbacks fire on viser's thread pool instead: forward them with
@@ -68,4 +74,8 @@ class Mode(abc.ABC):
 
     def on_labels_changed(self, changed: np.ndarray) -> None:
         """Pillar labels of the open survey changed (indices into `session.view.map.cells`)."""
+        return None  # optional: modes override what they use
+
+    def on_review_changed(self, actions: set[str]) -> None:
+        """Review writes on the open survey (audit actions, see `label_feed.REVIEW_ACTIONS`)."""
         return None  # optional: modes override what they use

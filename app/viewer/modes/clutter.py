@@ -10,7 +10,9 @@ instance list with approve / reject per instance and for every pending one of th
 
 Decisions go through `app.store.clutter_review.decide` (the API's own versioned batch, as this
 session's user); a stale version means someone else decided first: the frame is re-read and the
-reviewer told. "Recompute cleaned map" queues `clutter:recompute`.
+reviewer told. "Recompute cleaned map" queues `clutter:recompute`. Decisions written by anyone
+else (the API, another client) re-read the open frame's instances and recolour it, keeping the
+selection; a new clutter run reloads the mode.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from app.store import clutter_review
 from app.store.clutter_review import DecisionWrite, FrameCount, InstanceState
 from app.store.models import Decision, Role
 from app.store.models import Survey as SurveyRecord
+from app.viewer.label_feed import CLUTTER_DECISIONS, CLUTTER_RUN
 from app.viewer.modes.base import Mode
 from app.viewer.modes.common import checked_user, evenly, legend_html, may, pick_on_ray
 
@@ -472,6 +475,13 @@ class ClutterMode(Mode):
         self._draw_selected()
         self.session.client.flush()
 
+    def on_review_changed(self, actions: set[str]) -> None:
+        """Someone decided (re-read the open frame's decisions) or ran clutter again (reload)."""
+        if CLUTTER_RUN in actions:
+            self.session.reload_mode()
+        elif actions & CLUTTER_DECISIONS and self.folder is not None and self.cloud is not None:
+            self._refresh()
+
     # --- actions ------------------------------------------------------------------------------
 
     def select(self, instance_index: int | None) -> None:
@@ -503,6 +513,7 @@ class ClutterMode(Mode):
         try:
             with self.session.db() as db:
                 clutter_review.decide(db, self.survey_id, writes, user.id)
+            self.session.viewer.labels_written()  # other clients follow now
         except StaleWriteError as exc:
             self.session.notify("Changed meanwhile", f"{exc.message} (reloaded)", error=True)
             self.status.content = "Someone else decided first: the frame was reloaded."

@@ -8,7 +8,8 @@ brighter where a person labelled the slice, darker where the label is still the 
 `app.store.guardrail_review.put_slice_labels`, as this session's user); "Next uncertain slice"
 flies to the unlabelled slice whose probability is nearest 0.5; "Preview correction" colours the
 slices the adjacency correction would change (`preview_correction`, nothing saved) and "Apply"
-writes those as human labels in one batch.
+writes those as human labels in one batch. Labels written by anyone else recolour the slices
+(and drop a preview computed before them); a new run or rebuild reloads the mode.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from app.store.guardrail_review import (
     put_slice_labels,
 )
 from app.store.models import GuardrailSlice, Role
+from app.viewer.label_feed import GUARDRAIL_RUN, SLICE_LABEL
 from app.viewer.modes.base import Mode
 from app.viewer.modes.common import checked_user, evenly, legend_html, may, pick_on_ray
 
@@ -272,6 +274,27 @@ class GuardrailMode(Mode):
 
     # --- actions ------------------------------------------------------------------------------
 
+    def on_review_changed(self, actions: set[str]) -> None:
+        """Slice labels by anyone: re-read and recolour; a new run or rebuild: reload."""
+        if actions & GUARDRAIL_RUN:
+            self.session.reload_mode()
+            return
+        if SLICE_LABEL not in actions or "slices" not in self.clouds:
+            return
+        before = self.rows
+        self._reload()
+        same = np.array_equal(before.id, self.rows.id) and np.array_equal(
+            before.version, self.rows.version
+        )
+        if same:  # our own writes (already applied) or nothing of ours
+            return
+        if self.preview:  # computed from labels that changed since
+            self.preview = {}
+            self.apply.disabled = True
+            self.apply.label = "Apply correction"
+            self.status.content = "Someone else labelled slices: preview cleared, preview again."
+        self._recolor()
+
     def _reload(self) -> None:
         self.rows = read_slices(self.session, self.survey_id)
         s = self.stage.slices
@@ -289,6 +312,7 @@ class GuardrailMode(Mode):
                         db, self.survey_id, edits[start : start + MAX_LABELS_PER_WRITE], user
                     )
                 self.rows.update(written)
+                self.session.viewer.labels_written()  # other clients follow now
         except StaleWriteError as exc:
             self.session.notify("Changed meanwhile", f"{exc.message} (reloaded)", error=True)
             self.status.content = "Someone else labelled these slices first: reloaded."

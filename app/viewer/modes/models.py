@@ -5,7 +5,9 @@ model's origin, re-centred here on the survey origin, so nothing goes to the bro
 float coordinates) in its review colour, over the points of its slices from the last run's slice
 stage. The panel lists kind, units, ICP residual and status; a reviewer accepts or rejects the
 selected guardrail (`decide_model`, with the version this client saw; stale -> reloaded). The
-export link downloads the approved meshes (`/surveys/{id}/exports/guardrails.zip`).
+export link downloads the approved meshes (`/surveys/{id}/exports/guardrails.zip`). Decisions
+by anyone else update the list and the mesh colours; a new run or rebuild reloads the meshes
+(the selected guardrail stays selected when it survived).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from app.core.errors import StaleWriteError
 from app.jobs.guardrail_tasks import load_stage
 from app.store.guardrail_review import decide_model, latest_run, list_models, match_slices
 from app.store.models import GuardrailModel, ModelStatus, Role
+from app.viewer.label_feed import GUARDRAIL_RUN, MODEL_DECISIONS
 from app.viewer.modes.base import Mode
 from app.viewer.modes.common import checked_user, evenly, legend_html, may, pick_on_ray
 
@@ -289,6 +292,7 @@ class ModelMode(Mode):
         try:
             with self.session.db() as db:
                 row = decide_model(db, self.survey_id, m.id, m.version, status, user)
+            self.session.viewer.labels_written()  # other clients follow now
         except StaleWriteError as exc:
             self.session.notify("Changed meanwhile", f"{exc.message} (reloaded)", error=True)
             self.status.content = "Someone else decided first: the list was reloaded."
@@ -297,6 +301,17 @@ class ModelMode(Mode):
         self.models = [row if x.id == row.id else x for x in self.models]
         self.status.content = f"Guardrail {row.guardrail_index} {row.status.value}."
         self._recolor()
+
+    def on_review_changed(self, actions: set[str]) -> None:
+        """Model decisions by anyone: re-read the list; a new run or rebuild: reload."""
+        if actions & GUARDRAIL_RUN:
+            selected = getattr(self, "selected", None)
+            mode = self.session.reload_mode()
+            shown = isinstance(mode, ModelMode) and getattr(mode, "choice", None) is not None
+            if shown and mode._model(selected) is not None:
+                mode.select(selected)
+        elif actions & MODEL_DECISIONS and getattr(self, "table", None) is not None:
+            self.reload()
 
     def reload(self) -> None:
         with self.session.db() as db:
