@@ -67,6 +67,7 @@ from app.pipelines.clutter.segmenter import (
 from app.pipelines.outputs import write_frame_labels, write_report
 from app.store import clutter_review
 from app.store.models import Decision
+from app.store.surveys import get_survey
 
 FREE_SPACE = "free-space"
 PADDED_MASK = "padded-mask"
@@ -165,7 +166,7 @@ def survey_id(context: JobContext) -> int:
 
 def _open_survey(context: JobContext) -> Survey:
     with Session(context.engine) as session:
-        record = clutter_review.survey_or_404(session, survey_id(context))
+        record = get_survey(session, survey_id(context))
         source, fmt = record.source_path, record.format
     return open_survey(Path(source), fmt)
 
@@ -468,7 +469,7 @@ def recompute_clutter(context: JobContext, config: dict[str, Any]) -> dict[str, 
     started = time.perf_counter()
     sid = survey_id(context)
     with Session(context.engine) as session:
-        record = clutter_review.survey_or_404(session, sid)
+        record = get_survey(session, sid)
         source, fmt = record.source_path, record.format
         decisions = clutter_review.review_decisions(session, sid)
         run = clutter_review.run_folder_of([d[3] for d in decisions])

@@ -45,11 +45,11 @@ from app.store.guardrail_review import (
     replace_guardrail_models,
     replace_guardrail_run,
     slice_table,
-    survey_or_404,
     trajectory_position,
 )
 from app.store.model_versions import ensure_shipped_version, promoted_version
 from app.store.models import GuardrailKind, GuardrailSlice, Pipeline
+from app.store.surveys import get_survey
 
 STAGE_FILE = "guardrail_slices.npz"
 FEATURES_FILE = "slice_features.npz"  # classifier inputs per slice: what retraining reads
@@ -182,7 +182,7 @@ def run_guardrail(context: JobContext, config: dict[str, Any]) -> dict[str, Any]
     cfg, model_path = guardrail_options(config, context.settings)
     survey_id = _survey_id(context)
     with Session(context.engine) as session:
-        record = survey_or_404(session, survey_id)
+        record = get_survey(session, survey_id)
         source, fmt = record.source_path, record.format
         model_path = model_path or promoted_classifier(session)
     started = time.perf_counter()
@@ -249,7 +249,7 @@ def load_stage(run: GuardrailRun, slices_only: bool = False) -> ReconstructionIn
 
 
 def _current_run(session: Session, survey_id: int) -> GuardrailRun:
-    survey_or_404(session, survey_id)
+    get_survey(session, survey_id)
     run = latest_run(session, survey_id)
     if run is None:
         raise ConflictError(f"survey {survey_id} has no guardrail run yet; run run:guardrail")

@@ -31,7 +31,6 @@ from app.store.models import (
     Frame,
     Job,
     JobStatus,
-    Survey,
     utcnow,
 )
 
@@ -122,13 +121,6 @@ def _state_query() -> sa.Select:
 
 def _state(row: sa.Row) -> InstanceState:
     return InstanceState(**row._mapping)
-
-
-def survey_or_404(session: Session, survey_id: int) -> Survey:
-    survey = session.get(Survey, survey_id)
-    if survey is None:
-        raise NotFoundError(f"survey {survey_id} not found")
-    return survey
 
 
 def _filters(

@@ -40,10 +40,10 @@ from app.store.models import (
     GuardrailSlice,
     ModelStatus,
     Role,
-    Survey,
     User,
     utcnow,
 )
+from app.store.surveys import get_survey
 from app.store.users import has_role
 
 INGEST_ACTION = "guardrail.ingest"
@@ -121,13 +121,6 @@ def _current(rows: Sequence[GuardrailSlice]) -> list[dict[str, Any]]:
 # --- lookups ------------------------------------------------------------------------------
 
 
-def survey_or_404(session: Session, survey_id: int) -> Survey:
-    survey = session.get(Survey, survey_id)
-    if survey is None:
-        raise NotFoundError(f"survey {survey_id} not found")
-    return survey
-
-
 def get_slice(session: Session, survey_id: int, slice_id: int) -> GuardrailSlice:
     row = session.get(GuardrailSlice, slice_id)
     if row is None or row.survey_id != survey_id:
@@ -159,7 +152,7 @@ def list_slices(
     limit: int = 100,
 ) -> tuple[int, list[GuardrailSlice]]:
     """(total matching, one page): along the road by default, or most uncertain first."""
-    survey_or_404(session, survey_id)
+    get_survey(session, survey_id)
     where = [GuardrailSlice.survey_id == survey_id]
     if component is not None:
         where.append(GuardrailSlice.component_id == component)
@@ -242,7 +235,7 @@ def put_slice_labels(
     A slice whose version differs from the one sent raises `StaleWriteError` carrying every
     such slice as it is now; nothing is written then.
     """
-    survey_or_404(session, survey_id)
+    get_survey(session, survey_id)
     if not has_role(user, Role.annotator):
         raise PermissionDeniedError(f"user {user.username!r} may not label slices")
     if not edits:
@@ -299,7 +292,7 @@ def _stale_message(stale: Sequence[GuardrailSlice], edits: Sequence[SliceLabelEd
 
 
 def list_models(session: Session, survey_id: int) -> list[GuardrailModel]:
-    survey_or_404(session, survey_id)
+    get_survey(session, survey_id)
     query = select(GuardrailModel).where(GuardrailModel.survey_id == survey_id)
     return list(session.exec(query.order_by(GuardrailModel.guardrail_index)).all())
 
@@ -313,7 +306,7 @@ def decide_model(
     user: User,
 ) -> GuardrailModel:
     """A reviewer approves or rejects a reconstructed guardrail seen at `version`."""
-    survey_or_404(session, survey_id)
+    get_survey(session, survey_id)
     if not has_role(user, Role.reviewer):
         raise PermissionDeniedError(
             f"user {user.username!r} is {user.role.value}; deciding on models needs a reviewer"
@@ -432,7 +425,7 @@ def replace_guardrail_run(
 ) -> dict[str, int]:
     """Replace the survey's slices and models with a run's, keeping human labels of slices
     that still exist (same component and slice index, station within one slice length)."""
-    survey_or_404(session, survey_id)
+    get_survey(session, survey_id)
     old = session.exec(
         select(
             GuardrailSlice.component_id,

@@ -33,9 +33,9 @@ from app.store.clutter_review import (
     get_instance,
     has_review,
     list_instances,
-    survey_or_404,
 )
 from app.store.models import Decision
+from app.store.surveys import get_survey
 
 router = APIRouter(
     prefix="/surveys/{survey_id}/clutter", tags=["clutter"], responses=errors(401, 404)
@@ -115,7 +115,7 @@ def read_instances(
     limit: Annotated[int, Query(ge=1, le=MAX_PAGE)] = 100,
 ) -> InstancePage:
     """The survey's instances in frame order, one page at a time, with decision and version."""
-    survey_or_404(session, survey_id)
+    get_survey(session, survey_id)
     total, states = list_instances(
         session, survey_id, frame_id, decision, class_name, offset, limit
     )
@@ -129,7 +129,7 @@ def read_instance(
     survey_id: int, instance_id: int, _: CurrentUser, session: SessionDep
 ) -> InstancePublic:
     """One instance (an id of another survey is not found here)."""
-    survey_or_404(session, survey_id)
+    get_survey(session, survey_id)
     return InstancePublic.of(get_instance(session, survey_id, instance_id))
 
 
@@ -141,7 +141,7 @@ def read_instance(
 def read_mask(survey_id: int, instance_id: int, _: CurrentUser, session: SessionDep):
     """The instance's mask image: the camera image around it with its mask tinted and its
     points dotted (white: the pipeline removes them, black: keeps them), or a top view."""
-    survey_or_404(session, survey_id)
+    get_survey(session, survey_id)
     state = get_instance(session, survey_id, instance_id)
     if state.mask_path is None or not Path(state.mask_path).is_file():
         raise NotFoundError(f"clutter instance {instance_id} has no mask image")
@@ -151,7 +151,7 @@ def read_mask(survey_id: int, instance_id: int, _: CurrentUser, session: Session
 @router.get("/frames", response_model=list[FrameReview])
 def read_frames(survey_id: int, _: CurrentUser, session: SessionDep) -> list[FrameReview]:
     """Every frame with its instance count and how many still wait for a decision."""
-    survey_or_404(session, survey_id)
+    get_survey(session, survey_id)
     return [FrameReview(**c.__dict__) for c in frame_counts(session, survey_id)]
 
 
@@ -170,7 +170,7 @@ def post_decisions(
     """Approve (remove the points), reject (keep them) or reset to pending, in one transaction.
     Any stale version rejects the whole batch with 409 and `current`: the decisions as they
     are now. Answers the instances after the write, in request order."""
-    survey_or_404(session, survey_id)
+    get_survey(session, survey_id)
     writes = [DecisionWrite(d.instance_id, d.version, d.decision) for d in body.decisions]
     states = decide(session, survey_id, writes, user.id)
     _wake_viewer(request)
@@ -183,7 +183,7 @@ def post_recompute(
 ) -> JobPublic:
     """Queue `clutter:recompute`: the cleaned and removed maps from the decisions (approved:
     removed, rejected: kept, pending: as the pipeline decided). 409 before any clutter run."""
-    survey_or_404(session, survey_id)
+    get_survey(session, survey_id)
     if not has_review(session, survey_id):
         raise ConflictError(f"survey {survey_id} has no clutter run to review; run clutter first")
     return JobPublic.of(enqueue(session, RECOMPUTE_KIND, {}, survey_id, user.id, settings))

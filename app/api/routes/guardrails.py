@@ -32,9 +32,9 @@ from app.store.guardrail_review import (
     list_slices,
     next_uncertain,
     put_slice_labels,
-    survey_or_404,
 )
 from app.store.models import ModelStatus
+from app.store.surveys import get_survey
 
 router = APIRouter(
     prefix="/surveys/{survey_id}/guardrails", tags=["guardrails"], responses=errors(401, 404)
@@ -202,7 +202,7 @@ def get_mesh(
 ) -> FileResponse:
     """The model's assembled mesh (glb and ply relative to the model's origin, obj in world
     coordinates)."""
-    survey_or_404(session, survey_id)
+    get_survey(session, survey_id)
     model = get_model(session, survey_id, model_id)
     path = model.mesh_path if format == "glb" else (model.params.get("files") or {}).get(format)
     if not path:
@@ -240,7 +240,7 @@ def post_rebuild(
 ) -> JobRef:
     """Queue `guardrail:rebuild`: the guardrails again from the corrected slice labels
     (reviewer). Decided models whose slices did not change keep their decision."""
-    survey_or_404(session, survey_id)
+    get_survey(session, survey_id)
     if latest_run(session, survey_id) is None:
         raise ConflictError(f"survey {survey_id} has no guardrail run yet; run run:guardrail")
     config = body.model_dump(exclude_none=True) if body is not None else {}

@@ -14,8 +14,7 @@ from pydantic import BaseModel, Field, model_validator
 
 from app.api.deps import Annotator, CurrentUser, SessionDep
 from app.api.errors import errors
-from app.core.errors import NotFoundError
-from app.store.models import LabelSource, PillarClass, Survey
+from app.store.models import LabelSource, PillarClass
 from app.store.pillar_labels import (
     NO_LABEL,
     STORE_GRID,
@@ -27,6 +26,7 @@ from app.store.pillar_labels import (
     undo,
     write_labels,
 )
+from app.store.surveys import get_survey
 
 router = APIRouter(
     prefix="/surveys/{survey_id}/pillars", tags=["pillars"], responses=errors(401, 404)
@@ -34,13 +34,6 @@ router = APIRouter(
 
 MAX_BATCH = 100_000
 CLASS_NAMES = [c.name for c in PillarClass]
-
-
-def survey_or_404(session, survey_id: int) -> Survey:
-    survey = session.get(Survey, survey_id)
-    if survey is None:
-        raise NotFoundError(f"survey {survey_id} not found")
-    return survey
 
 
 class PillarLabelIn(BaseModel):
@@ -140,7 +133,7 @@ def put_labels(
     """Write a batch of human labels in one transaction (one undoable action). Pillars may be
     addressed by cell id or by a world position; a stale `version` rejects the whole batch with
     409 and the current state of the stale pillars."""
-    survey_or_404(session, survey_id)
+    get_survey(session, survey_id)
     items = batch.labels
     cell_ids = np.array([-1 if i.cell_id is None else i.cell_id for i in items], dtype=np.int64)
     by_xy = np.array([i.cell_id is None for i in items], dtype=bool)
@@ -174,7 +167,7 @@ def get_labels(
 ) -> Response:
     """Labels of the pillars in a world box (at most 1 km x 1 km), human and model, columnar
     (entry i of every array is one label; `ix`, `iy` the pillar's grid index)."""
-    survey_or_404(session, survey_id)
+    get_survey(session, survey_id)
     body = tile_json(session, survey_id, (x0, y0, x1, y1), source)
     return Response(body, media_type="application/json")
 
@@ -185,7 +178,7 @@ def undo_labels(
 ) -> LabelWriteOut:
     """Revert this user's newest labelling action on the survey (409 when there is none, or
     when someone changed those pillars since)."""
-    survey_or_404(session, survey_id)
+    get_survey(session, survey_id)
     result = undo(session, survey_id, user.id)
     _wake_viewer(request)
     return _write_out(result)
@@ -196,7 +189,7 @@ def redo_labels(
     survey_id: int, user: Annotator, session: SessionDep, request: Request
 ) -> LabelWriteOut:
     """Re-apply this user's most recently undone action (gone once they label anew)."""
-    survey_or_404(session, survey_id)
+    get_survey(session, survey_id)
     result = redo(session, survey_id, user.id)
     _wake_viewer(request)
     return _write_out(result)
@@ -213,7 +206,7 @@ def uncertain(
 ) -> list[UncertainAreaOut]:
     """The "uncertain first" queue: areas whose model pre-labels are least confident and not
     yet reviewed, most doubtful first; the viewer's "next uncertain area" jumps to the first."""
-    survey_or_404(session, survey_id)
+    get_survey(session, survey_id)
     areas = uncertain_areas(session, survey_id, threshold, area, limit)
     return [UncertainAreaOut(**a.__dict__) for a in areas]
 
@@ -221,6 +214,6 @@ def uncertain(
 @router.get("/stats", response_model=LabelStats)
 def stats(survey_id: int, user: CurrentUser, session: SessionDep) -> LabelStats:
     """Pillars per class, human labels and model pre-labels."""
-    survey_or_404(session, survey_id)
+    get_survey(session, survey_id)
     counts = label_counts(session, survey_id)
     return LabelStats(classes=CLASS_NAMES, human=counts["human"], model=counts["model"])
