@@ -183,11 +183,19 @@ def log_in(page, username: str = "admin", password: str = ADMIN_PASSWORD) -> Non
 
 
 def bar_state(page, selector: str) -> tuple[str | None, float | None]:
-    bar = page.locator(selector)
-    if not bar.count():
+    # both attributes from the same element in one call: the bar is rebuilt on every poll, and
+    # two separate reads could take the status from one rendering and the value from another
+    state = page.evaluate(
+        """(selector) => {
+            const bar = document.querySelector(selector);
+            return bar ? [bar.dataset.status ?? null, bar.getAttribute("aria-valuenow")] : null;
+        }""",
+        selector,
+    )
+    if state is None:
         return None, None
-    value = bar.first.get_attribute("aria-valuenow")
-    return bar.first.get_attribute("data-status"), None if value is None else float(value)
+    status, value = state
+    return status, None if value is None else float(value)
 
 
 def watch_bar(page, selector: str, until: set[str], timeout: float) -> list[tuple]:
