@@ -9,6 +9,7 @@ import csv
 import io
 import json
 import re
+import time
 import zipfile
 from collections.abc import Iterator
 from datetime import UTC, datetime
@@ -287,8 +288,13 @@ def test_guardrail_meshes(
         f"/surveys/{survey_id}/exports/guardrails.zip", params={"format": "ply"}
     )
     assert response.status_code == 422
-    leftovers = list((server.data_dir / "cache" / "exports").glob("*.zip"))
-    assert leftovers == []  # the temporary archives are deleted once sent
+    # the temporary archives are deleted once sent, by a task that runs after the response:
+    # give it a moment to run
+    exports = server.data_dir / "cache" / "exports"
+    deadline = time.monotonic() + 10
+    while list(exports.glob("*.zip")) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert list(exports.glob("*.zip")) == []
 
 
 def write_report(folder: Path, report: dict) -> Path:
