@@ -7,7 +7,8 @@
 4. 3D expansion: instances grown to their frame's Euclidean cluster (`expansion.py`), or the
    paper's padded masks (`expansion="pad"`);
 5. free-space evidence: every frame's rays into DUFOMap (`freespace.py`);
-6. tracking: object-sized clusters linked across frames (`tracking.py`);
+6. tracking: object-sized clusters linked across frames, their motion measured by registering
+   each object onto its previous frame (`tracking.py`, `motion.py`);
 7. fusion by mode (`fusion.py`): removed points per frame;
 8. accumulation: the kept points of every frame into the world map (`accumulate.py`).
 
@@ -33,7 +34,8 @@ from app.pipelines.clutter.freespace import FreeSpaceMap
 from app.pipelines.clutter.fusion import FrameEvidence, fuse
 from app.pipelines.clutter.instances import camera_instances, mask_components
 from app.pipelines.clutter.masking import mask_points
-from app.pipelines.clutter.tracking import Observation, TrackEvidence, track_clusters
+from app.pipelines.clutter.motion import object_shape
+from app.pipelines.clutter.tracking import Observation, Tracker, TrackEvidence
 
 Progress = Callable[[str, float], None]
 ClassMaps = Callable[[Frame], np.ndarray]  # frame -> (H, W) uint8 clutter class map
@@ -82,6 +84,7 @@ class ClutterPipeline:
             space = FreeSpaceMap(
                 cfg.dufomap_resolution, cfg.dufomap_d_s, cfg.dufomap_d_p, cfg.threads
             )
+        tracker = Tracker(cfg.track_gate) if cfg.use_tracking else None
         frames = list(survey.frames)
         times = _frame_times(frames)
         evidence: list[FrameEvidence] = []
@@ -91,6 +94,9 @@ class ClutterPipeline:
             with clock("read"):
                 xyz = frame.points().xyz
             ev, obs = self._frame(i, times[i], frame, xyz, camera, clock)
+            if tracker is not None:
+                with clock("tracking"):
+                    tracker.step(obs)
             if space is not None:
                 with clock("free_space"):
                     space.integrate(xyz, frame.pose)
@@ -105,10 +111,10 @@ class ClutterPipeline:
                     evidence[i].free = space.flags(xyz, frame.pose)
                     observations[i].count_free(evidence[i].cluster, evidence[i].free)
         tracks = None
-        if cfg.use_tracking:
+        if tracker is not None:
             report("tracking", 0.0)
             with clock("tracking"):
-                tracks = track_clusters(observations, cfg.track_gate, cfg.min_track_frames)
+                tracks = tracker.evidence(observations, cfg.min_track_frames)
         with clock("fusion"):
             removed = fuse(evidence, tracks, cfg)
         report("done", 1.0)
@@ -179,7 +185,7 @@ class ClutterPipeline:
         world = xyz @ frame.pose[:3, :3].T + frame.pose[:3, 3]
         observation = _observation(
             index, time_s, world, clusters.label, cluster_class, object_sized,
-            cfg.min_track_points,
+            cfg.min_track_points, with_shapes=cfg.use_tracking,
         )  # fmt: skip
         evidence = FrameEvidence(
             in_view=in_view,
@@ -227,6 +233,7 @@ def _observation(
     cluster_class: np.ndarray,
     object_sized: np.ndarray,
     min_points: int,
+    with_shapes: bool = True,
 ) -> Observation:
     count = len(object_sized)
     inside = label >= 0
@@ -241,6 +248,7 @@ def _observation(
         )
         / np.maximum(points, 1)[:, None]
     )
+    trackable = object_sized & (points >= min_points)
     return Observation(
         frame=frame,
         time=float(time_s),
@@ -248,5 +256,20 @@ def _observation(
         points=points,
         camera_class=cluster_class,
         free_points=np.zeros(count),
-        trackable=object_sized & (points >= min_points),
+        trackable=trackable,
+        shapes=_cluster_shapes(world, label, trackable) if with_shapes else None,
     )
+
+
+def _cluster_shapes(world: np.ndarray, label: np.ndarray, trackable: np.ndarray) -> list:
+    """Per cluster, the registration shape of a trackable one (others: empty)."""
+    empty = np.zeros((0, 3))
+    shapes = [empty] * len(trackable)
+    chosen = np.flatnonzero(trackable[np.maximum(label, 0)] & (label >= 0))
+    if len(chosen) == 0:
+        return shapes
+    order = chosen[np.argsort(label[chosen], kind="stable")]
+    ids, starts = np.unique(label[order], return_index=True)
+    for cluster, part in zip(ids, np.split(order, starts[1:]), strict=True):
+        shapes[int(cluster)] = object_shape(world[part], seed=int(cluster))
+    return shapes

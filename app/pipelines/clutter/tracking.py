@@ -3,8 +3,13 @@
 An object seen by the camera keeps its class after it leaves the view, and an object that moved
 anywhere is moving in every frame. Each frame's clusters are matched to the tracks' predicted
 positions (constant velocity) by the Hungarian method, gated at `gate` metres (twice that for
-tracks without a velocity yet). A track's speed is the least-squares slope of its centroids
-over time; it needs `min_frames` observations.
+tracks without a velocity yet). A track's position advances at each link by the registered
+displacement of its surface (`motion.py`); where a frame gave no surface (a test, an empty
+shape) or the surfaces do not overlap, the centroid step stands in. Its speed is the median
+speed over its links; it needs `min_frames` observations.
+
+Tracking streams: `Tracker.step` takes each frame's observation as the frame is read and frees
+its shapes, so a long drive holds one shape per active track, not per frame.
 """
 
 from __future__ import annotations
@@ -13,6 +18,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+
+from app.pipelines.clutter.motion import register_many
 
 
 @dataclass
@@ -26,6 +33,8 @@ class Observation:
     camera_class: np.ndarray  # (C,) uint8, 0 = no camera instance
     free_points: np.ndarray  # (C,) points in observed free space
     trackable: np.ndarray  # (C,) bool: object-sized
+    # per cluster, its downsampled world points (`motion.object_shape`); None = centroids only
+    shapes: list[np.ndarray] | None = None
 
     def count_free(self, label: np.ndarray, free: np.ndarray) -> None:
         """Set `free_points` from the frame's per-point cluster labels and free-space flags."""
@@ -41,32 +50,53 @@ class Track:
     clusters: list[int] = field(default_factory=list)
     times: list[float] = field(default_factory=list)
     centroids: list[np.ndarray] = field(default_factory=list)
+    positions: list[np.ndarray] = field(default_factory=list)  # registered, from the first
     velocity: np.ndarray | None = None
+    shape: np.ndarray | None = None  # the last observation's points
 
     def predict(self, time: float) -> np.ndarray:
         if self.velocity is None:
             return self.centroids[-1]
         return self.centroids[-1] + self.velocity * (time - self.times[-1])
 
-    def add(self, frame: int, cluster: int, time: float, centroid: np.ndarray) -> None:
-        if self.centroids and time > self.times[-1]:
-            step = (centroid - self.centroids[-1]) / (time - self.times[-1])
-            self.velocity = step if self.velocity is None else 0.5 * (self.velocity + step)
+    def add(
+        self,
+        frame: int,
+        cluster: int,
+        time: float,
+        centroid: np.ndarray,
+        shape: np.ndarray | None = None,
+        moved: np.ndarray | None = None,
+    ) -> None:
+        """Link an observation; `moved` is its registered displacement (None: centroid step)."""
+        if not self.centroids:
+            self.positions.append(np.zeros(3))
+        else:
+            centroid_step = centroid - self.centroids[-1]
+            if time > self.times[-1]:
+                step = centroid_step / (time - self.times[-1])
+                self.velocity = step if self.velocity is None else 0.5 * (self.velocity + step)
+            self.positions.append(self.positions[-1] + (centroid_step if moved is None else moved))
         self.frames.append(frame)
         self.clusters.append(cluster)
         self.times.append(time)
         self.centroids.append(centroid)
+        self.shape = shape
 
     def speed(self, min_frames: int) -> float:
-        """m/s from a straight-line fit of the horizontal centroids; 0 for short tracks."""
+        """m/s: the median over the track's links of horizontal distance moved per second.
+
+        A median, not a line fit: one wrong link (the track jumping to a neighbouring cluster,
+        two surfaces with no overlap) must not make a parked car move. 0 for short tracks.
+        """
         if len(self.times) < min_frames:
             return 0.0
-        t = np.asarray(self.times) - self.times[0]
-        c = np.asarray(self.centroids)[:, :2]
-        if np.ptp(t) <= 0:
+        dt = np.diff(np.asarray(self.times))
+        moved = np.linalg.norm(np.diff(np.asarray(self.positions)[:, :2], axis=0), axis=1)
+        timed = dt > 0
+        if not timed.any():
             return 0.0
-        slope = np.polyfit(t, c, 1)[0]
-        return float(np.hypot(*slope))
+        return float(np.median(moved[timed] / dt[timed]))
 
 
 @dataclass
@@ -80,42 +110,100 @@ class TrackEvidence:
     cluster_track: list[np.ndarray]  # per frame, (C,) int32 track id, -1 = untracked
 
 
-def track_clusters(
-    observations: list[Observation], gate: float, min_frames: int, max_missed: int = 2
-) -> TrackEvidence:
-    tracks: list[Track] = []
-    active: list[int] = []
-    cluster_track = []
-    for obs in observations:
+class Tracker:
+    """Links each frame's trackable clusters to the tracks as the frames come."""
+
+    def __init__(self, gate: float, max_missed: int = 2):
+        self.gate = gate
+        self.max_missed = max_missed
+        self.tracks: list[Track] = []
+        self.active: list[int] = []
+        self.cluster_track: list[np.ndarray] = []
+
+    def step(self, obs: Observation) -> None:
+        tracks = self.tracks
+        shapes = obs.shapes
         ids = np.full(len(obs.centroids), -1, dtype=np.int32)
         candidates = np.flatnonzero(obs.trackable)
-        still = [t for t in active if obs.frame - tracks[t].frames[-1] <= max_missed + 1]
+        still = [t for t in self.active if obs.frame - tracks[t].frames[-1] <= self.max_missed + 1]
         matched_clusters: set[int] = set()
         if still and len(candidates):
             predicted = np.stack([tracks[t].predict(obs.time) for t in still])
-            limit = np.array([gate if tracks[t].velocity is not None else 2 * gate for t in still])
+            limit = np.array(
+                [self.gate if tracks[t].velocity is not None else 2 * self.gate for t in still]
+            )
             cost = np.linalg.norm(predicted[:, None, :] - obs.centroids[candidates][None], axis=2)
             big = 1e6
             cost = np.where(cost <= limit[:, None], cost, big)
             rows, cols = linear_sum_assignment(cost)
-            for r, c in zip(rows, cols, strict=True):
-                if cost[r, c] >= big:
-                    continue
-                cluster = int(candidates[c])
-                tracks[still[r]].add(obs.frame, cluster, obs.time, obs.centroids[cluster])
-                ids[cluster] = still[r]
+            links = [
+                (still[r], int(candidates[c]))
+                for r, c in zip(rows, cols, strict=True)
+                if cost[r, c] < big
+            ]
+            moved = self._registered(links, obs)
+            for (track, cluster), displacement in zip(links, moved, strict=True):
+                shape = None if shapes is None else shapes[cluster]
+                centroid = obs.centroids[cluster]
+                tracks[track].add(obs.frame, cluster, obs.time, centroid, shape, displacement)
+                ids[cluster] = track
                 matched_clusters.add(cluster)
         for cluster in candidates:
             if int(cluster) in matched_clusters:
                 continue
             track = Track()
-            track.add(obs.frame, int(cluster), obs.time, obs.centroids[cluster])
+            shape = None if shapes is None else shapes[cluster]
+            track.add(obs.frame, int(cluster), obs.time, obs.centroids[cluster], shape)
             ids[cluster] = len(tracks)
             still.append(len(tracks))
             tracks.append(track)
-        active = still
-        cluster_track.append(ids)
-    return _evidence(tracks, observations, cluster_track, min_frames)
+        for t in set(self.active) - set(still):
+            tracks[t].shape = None  # ended: its surface is not needed any more
+        self.active = still
+        self.cluster_track.append(ids)
+        obs.shapes = None
+
+    def _registered(
+        self, links: list[tuple[int, int]], obs: Observation
+    ) -> list[np.ndarray | None]:
+        """Per link, the registered displacement of the track's surface (None: no fit)."""
+        moved: list[np.ndarray | None] = [None] * len(links)
+        if obs.shapes is None:
+            return moved
+        both = [
+            i
+            for i, (track, cluster) in enumerate(links)
+            if self.tracks[track].shape is not None
+            and len(self.tracks[track].shape)
+            and len(obs.shapes[cluster])
+        ]
+        if not both:
+            return moved
+        previous = [self.tracks[links[i][0]].shape for i in both]
+        current = [obs.shapes[links[i][1]] for i in both]
+        predicted = np.stack(
+            [obs.centroids[links[i][1]] - self.tracks[links[i][0]].centroids[-1] for i in both]
+        )
+        fit = register_many(previous, current, predicted)
+        for k, i in enumerate(both):
+            if np.isfinite(fit.residual[k]):
+                moved[i] = fit.displacement[k]
+        return moved
+
+    def evidence(self, observations: list[Observation], min_frames: int) -> TrackEvidence:
+        """Per-track evidence once every frame was stepped and its free points counted."""
+        for track in self.tracks:
+            track.shape = None
+        return _evidence(self.tracks, observations, self.cluster_track, min_frames)
+
+
+def track_clusters(
+    observations: list[Observation], gate: float, min_frames: int, max_missed: int = 2
+) -> TrackEvidence:
+    tracker = Tracker(gate, max_missed)
+    for obs in observations:
+        tracker.step(obs)
+    return tracker.evidence(observations, min_frames)
 
 
 def _evidence(
