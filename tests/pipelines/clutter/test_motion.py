@@ -103,7 +103,9 @@ def test_batch_matches_one_by_one() -> None:
     after = [before[0] + [0.2, 0.0, 0.0], before[1] + [-0.1, 0.05, 0.0]]
     before.append(np.zeros((2, 3)))
     after.append(np.ones((5, 3)))
-    predicted = np.array([a.mean(axis=0) - b.mean(axis=0) for a, b in zip(after, before)])
+    predicted = np.array(
+        [a.mean(axis=0) - b.mean(axis=0) for a, b in zip(after, before, strict=True)]
+    )
     batch = register_many(before, after, predicted)
     for i in range(2):
         alone = register(before[i], after[i], predicted[i])
