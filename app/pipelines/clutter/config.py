@@ -63,6 +63,11 @@ class ClutterConfig(BaseModel):
         "all",
         description="free-space points inside the camera view: all go, or only under a padded mask",
     )
+    free_ground: Literal["near_objects", "all"] = Field(
+        "near_objects",
+        description="free-space points at ground level: only those within halo_radius of a free "
+        "point above the ground (feet, wheels), or all (DUFOMap's own decision)",
+    )
     min_free_fraction: float = Field(
         0.1, ge=0, le=1, description="share of a track's points in free space to call it moving"
     )

@@ -30,6 +30,7 @@ class FrameEvidence:
     padded: np.ndarray  # (N,) bool: under a padded mask
     cluster: np.ndarray  # (N,) int32 cluster id, -1 = ground / out of range
     free: np.ndarray  # (N,) bool: DUFOMap free-space flag
+    ground: np.ndarray | None = None  # (N,) bool: within ground_tolerance of the frame's ground
     # kept for review (which camera instance a removed point came from); fusion ignores them
     instance: np.ndarray | None = None  # (N,) int32 camera instance id, -1 = none
     mask_class: np.ndarray | None = None  # (N,) uint8 clutter class under the unpadded mask

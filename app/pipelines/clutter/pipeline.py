@@ -6,7 +6,8 @@
 3. camera instances: mask components split at depth jumps (`instances.py`);
 4. 3D expansion: instances grown to their frame's Euclidean cluster (`expansion.py`), or the
    paper's padded masks (`expansion="pad"`);
-5. free-space evidence: every frame's rays into DUFOMap (`freespace.py`);
+5. free-space evidence: every frame's rays into DUFOMap, ground-level flags kept only at the feet
+   of free objects (`freespace.py`);
 6. tracking: object-sized clusters linked across frames, their motion measured by registering
    each object onto its previous frame (`tracking.py`, `motion.py`);
 7. fusion by mode (`fusion.py`): removed points per frame;
@@ -30,7 +31,7 @@ from app.io.survey import Camera, Frame, Survey
 from app.pipelines.clutter.clusters import frame_clusters
 from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.expansion import cluster_shapes, expand_instances, majority_class
-from app.pipelines.clutter.freespace import FreeSpaceMap
+from app.pipelines.clutter.freespace import FreeSpaceMap, off_ground
 from app.pipelines.clutter.fusion import FrameEvidence, fuse
 from app.pipelines.clutter.instances import camera_instances, mask_components
 from app.pipelines.clutter.masking import mask_points
@@ -108,7 +109,10 @@ class ClutterPipeline:
                 with clock("read"):
                     xyz = frame.points().xyz
                 with clock("free_space"):
-                    evidence[i].free = space.flags(xyz, frame.pose)
+                    free = space.flags(xyz, frame.pose)
+                    if cfg.free_ground == "near_objects":
+                        free = off_ground(free, xyz, evidence[i].ground, cfg.halo_radius)
+                    evidence[i].free = free
                     observations[i].count_free(evidence[i].cluster, evidence[i].free)
         tracks = None
         if tracker is not None:
@@ -193,6 +197,7 @@ class ClutterPipeline:
             padded=padded,
             cluster=clusters.label,
             free=np.zeros(n, dtype=bool),
+            ground=clusters.above_ground <= cfg.ground_tolerance,
             instance=instance,
             mask_class=mask_class,
         )

@@ -8,6 +8,7 @@ from app.io.survey import Camera
 from app.pipelines.clutter.clusters import frame_clusters, voxel_components
 from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.expansion import cluster_shapes, expand_instances
+from app.pipelines.clutter.freespace import off_ground
 from app.pipelines.clutter.fusion import FrameEvidence, fuse
 from app.pipelines.clutter.instances import camera_instances, mask_components
 from app.pipelines.clutter.masking import mask_points, pad_mask
@@ -148,3 +149,20 @@ def test_fusion_modes() -> None:
     for i in range(4):
         assert dynamic[i].tolist() == [True, True, False, False]  # only the car that moved
         assert clutter[i].all()  # both cars, after they left the view too
+
+
+def test_free_ground_points_stay_unless_they_touch_a_free_object() -> None:
+    """Road points DUFOMap calls free (grazing rays) stay; the feet of a free walker go."""
+    road = ground(extent=10.0, n=2000)
+    walker = box([3.0, 0.0, 0.9], [0.5, 0.5, 1.8], 300)
+    feet = box([3.0, 0.0, 0.1], [0.5, 0.5, 0.2], 40)
+    xyz = np.concatenate([road, walker, feet])
+    is_ground = np.r_[np.ones(len(road), bool), np.zeros(len(walker), bool), np.ones(40, bool)]
+    free = np.zeros(len(xyz), bool)
+    free[:200] = True  # grazing-ray noise on the road, away from the walker
+    free[len(road) :] = True  # the walker and its feet
+    far_from_walker = np.linalg.norm(road[:200, :2] - [3.0, 0.0], axis=1) > 1.0
+    kept = off_ground(free, xyz, is_ground, radius=0.3)
+    assert not kept[:200][far_from_walker].any()
+    assert kept[len(road) :].all()
+    assert (kept == free).sum() >= len(xyz) - 200
