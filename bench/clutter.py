@@ -48,6 +48,14 @@ FUSION_GRID = {
     "min_free_fraction": (0.1, 0.3, 0.5),
     "min_speed": (0.5, 1.0, 2.0, 4.0),
 }
+# only the clutter mode holds a track's class through missed masks
+CLUTTER_FUSION_GRID = {"min_class_share": (0.5, 1.0)}
+
+
+def fusion_grid(mode: str) -> dict[str, tuple]:
+    return FUSION_GRID | (CLUTTER_FUSION_GRID if mode == "clutter" else {})
+
+
 TARGETS = {
     "dynamic": "AA >= 90 with SA >= 98 (full map)",
     "clutter": "camera view: overall accuracy >= 97, clutter omission <= 5, map commission <= 0.5",
@@ -98,8 +106,9 @@ def fused_grid(seqs: list[Sequence], mode: str) -> dict[tuple, dict[str, dict]]:
         base = ClutterConfig(mode=mode, **dict(zip(EXPANSION_GRID, expansion, strict=True)))
         for seq in seqs:
             result = run(seq, base)
-            for fusion in itertools.product(*FUSION_GRID.values()):
-                cfg = base.model_copy(update=dict(zip(FUSION_GRID, fusion, strict=True)))
+            grid = fusion_grid(mode)
+            for fusion in itertools.product(*grid.values()):
+                cfg = base.model_copy(update=dict(zip(grid, fusion, strict=True)))
                 removed = fuse(result.evidence, result.tracks, cfg)
                 out.setdefault(expansion + fusion, {})[seq.name] = score(
                     seq, removed, result.in_view
@@ -122,8 +131,8 @@ def chosen_on_all(grid: dict[tuple, dict[str, dict]], mode: str, names: list[str
     return max(grid, key=lambda p: min(margin(mode, grid[p][n]) for n in names))
 
 
-def describe(point: tuple) -> str:
-    keys = list(EXPANSION_GRID) + list(FUSION_GRID)
+def describe(point: tuple, mode: str) -> str:
+    keys = list(EXPANSION_GRID) + list(fusion_grid(mode))
     return ", ".join(f"{k}={v}" for k, v in zip(keys, point, strict=True))
 
 
@@ -322,9 +331,9 @@ def main() -> int:
                 rows.append(rows_for(mode, seq.name, method, per_seq[seq.name]))
             pick = chosen[seq.name]
             rows.append(rows_for(mode, seq.name, "**mmsclean fused (LOSO)**", pick["metrics"]))
-            choices.append(f"{seq.name}: {describe(pick['point'])}")
+            choices.append(f"{seq.name}: {describe(pick['point'], mode)}")
             if mode == "clutter":
-                keys = list(EXPANSION_GRID) + list(FUSION_GRID)
+                keys = list(EXPANSION_GRID) + list(fusion_grid(mode))
                 cfg = ClutterConfig(mode=mode, **dict(zip(keys, pick["point"], strict=True)))
                 t0 = time.perf_counter()
                 run(seq, cfg)
@@ -339,7 +348,7 @@ def main() -> int:
             "tables (they have no mode). Fused thresholds by leave-one-sequence-out over "
             f"{len(grid)} grid points (the largest worst-case margin to the targets on the "
             "other sequences): " + "; ".join(choices) + ". Chosen on all sequences (what "
-            f"ClutterConfig's defaults follow): {describe(chosen_on_all(grid, mode, names))}."
+            f"ClutterConfig's defaults follow): {describe(chosen_on_all(grid, mode, names), mode)}."
         )
         title = f"Clutter: {mode} mode on SemanticKITTI"
         print(f"\n{title}\n{table}\n{notes}")

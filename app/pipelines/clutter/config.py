@@ -76,6 +76,13 @@ class ClutterConfig(BaseModel):
     min_speed: float = Field(2.0, ge=0, description="m/s: slower tracks did not move")
     min_track_points: int = Field(20, ge=1, description="smaller clusters are not tracked")
     min_track_frames: int = Field(3, ge=2, description="frames a track needs to estimate its speed")
+    min_class_share: float = Field(
+        0.5,
+        ge=0,
+        le=1,
+        description="clutter mode: a track the camera classed in this share of the frames where "
+        "it saw it keeps its class in the other ones (a mask missed in shadow or occlusion)",
+    )
     # accumulation
     voxel_dedup: float | None = Field(
         None, gt=0, description="voxel edge for de-duplicating the clean map; None keeps all"

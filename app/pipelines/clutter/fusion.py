@@ -8,7 +8,8 @@
   object (DUFOMap's own decision) go too.
 - `clutter` (the paper's definition, for HD maps): every movable object, parked ones included:
   the camera's expanded instances, every frame of a track the camera ever classified (after the
-  object left the view), and everything the dynamic mode removes.
+  object left the view; in the view when the camera classed it in at least `min_class_share` of
+  the frames where it saw it), and everything the dynamic mode removes.
 """
 
 from __future__ import annotations
@@ -76,12 +77,13 @@ def fuse(
             gone[tracked] |= moving[point_track[tracked]]
             if config.mode == "clutter":
                 # a classified object keeps its class where the camera cannot see it; in the view
-                # each frame's own camera decision stands
+                # too when the camera classed it in most frames where it saw it (a missed mask)
                 track_ids = tracks.cluster_track[i]
                 hidden = _out_of_view_clusters(ev, len(track_ids))
                 carry = np.zeros(len(track_ids), dtype=bool)
                 linked = track_ids >= 0
-                carry[linked] = movable[track_ids[linked]] & hidden[linked]
+                held = tracks.class_share[track_ids[linked]] >= config.min_class_share
+                carry[linked] = movable[track_ids[linked]] & (hidden[linked] | held)
                 gone[clustered] |= carry[ev.cluster[clustered]]
         removed.append(gone)
     return removed

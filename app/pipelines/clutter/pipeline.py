@@ -189,7 +189,7 @@ class ClutterPipeline:
         world = xyz @ frame.pose[:3, :3].T + frame.pose[:3, 3]
         observation = _observation(
             index, time_s, world, clusters.label, cluster_class, object_sized,
-            cfg.min_track_points, with_shapes=cfg.use_tracking,
+            cfg.min_track_points, with_shapes=cfg.use_tracking, in_view=in_view,
         )  # fmt: skip
         evidence = FrameEvidence(
             in_view=in_view,
@@ -239,6 +239,7 @@ def _observation(
     object_sized: np.ndarray,
     min_points: int,
     with_shapes: bool = True,
+    in_view: np.ndarray | None = None,
 ) -> Observation:
     count = len(object_sized)
     inside = label >= 0
@@ -254,6 +255,9 @@ def _observation(
         / np.maximum(points, 1)[:, None]
     )
     trackable = object_sized & (points >= min_points)
+    seen = None
+    if in_view is not None:
+        seen = 2 * np.bincount(label[inside & in_view], minlength=count) > points
     return Observation(
         frame=frame,
         time=float(time_s),
@@ -263,6 +267,7 @@ def _observation(
         free_points=np.zeros(count),
         trackable=trackable,
         shapes=_cluster_shapes(world, label, trackable) if with_shapes else None,
+        seen=seen,
     )
 
 

@@ -33,6 +33,7 @@ class Observation:
     camera_class: np.ndarray  # (C,) uint8, 0 = no camera instance
     free_points: np.ndarray  # (C,) points in observed free space
     trackable: np.ndarray  # (C,) bool: object-sized
+    seen: np.ndarray | None = None  # (C,) bool: the camera sees most of the cluster
     # per cluster, its downsampled world points (`motion.object_shape`); None = centroids only
     shapes: list[np.ndarray] | None = None
 
@@ -107,6 +108,7 @@ class TrackEvidence:
     speed: np.ndarray  # (T,) m/s
     camera_class: np.ndarray  # (T,) uint8 most frequent class of its camera instances
     free_fraction: np.ndarray  # (T,)
+    class_share: np.ndarray  # (T,) of the frames whose camera saw the object, those that classed it
     cluster_track: list[np.ndarray]  # per frame, (C,) int32 track id, -1 = untracked
 
 
@@ -217,13 +219,20 @@ def _evidence(
     votes = np.zeros((n, 256), dtype=np.int64)
     points = np.zeros(n)
     free = np.zeros(n)
+    seen = np.zeros(n)
+    classed = np.zeros(n)
     for obs, ids in zip(observations, cluster_track, strict=True):
         tracked = ids >= 0
         np.add.at(votes, (ids[tracked], obs.camera_class[tracked]), 1)
         np.add.at(points, ids[tracked], obs.points[tracked])
         np.add.at(free, ids[tracked], obs.free_points[tracked])
+        if obs.seen is not None:
+            looked = tracked & obs.seen
+            np.add.at(seen, ids[looked], 1)
+            np.add.at(classed, ids[looked & (obs.camera_class > 0)], 1)
     votes[:, 0] = 0
     camera_class = np.where(votes.max(axis=1) > 0, votes.argmax(axis=1), 0).astype(np.uint8)
     with np.errstate(invalid="ignore", divide="ignore"):
         free_fraction = np.where(points > 0, free / points, 0.0)
-    return TrackEvidence(tracks, speed, camera_class, free_fraction, cluster_track)
+        class_share = np.where(seen > 0, classed / seen, 0.0)
+    return TrackEvidence(tracks, speed, camera_class, free_fraction, class_share, cluster_track)

@@ -166,3 +166,28 @@ def test_free_ground_points_stay_unless_they_touch_a_free_object() -> None:
     assert not kept[:200][far_from_walker].any()
     assert kept[len(road) :].all()
     assert (kept == free).sum() >= len(xyz) - 200
+
+
+def test_clutter_mode_holds_a_class_through_a_missed_mask() -> None:
+    """A parked car the camera sees in 4 frames and classes in 3 (the mask misses it in the
+    shadow of frame 2) goes in frame 2 too, when 3 of 4 reaches min_class_share."""
+    observations = _observations([[[20, 5, 1]] for _ in range(4)])
+    for i, obs in enumerate(observations):
+        obs.seen = np.array([True])
+        obs.camera_class = np.array([0 if i == 2 else 3], np.uint8)
+    tracks = track_clusters(observations, gate=2.5, min_frames=3)
+    assert tracks.class_share.tolist() == [0.75]
+    evidence = [
+        FrameEvidence(
+            in_view=np.ones(2, bool),
+            camera_removed=np.full(2, i != 2),
+            padded=np.full(2, i != 2),
+            cluster=np.zeros(2, np.int32),
+            free=np.zeros(2, bool),
+        )
+        for i in range(4)
+    ]
+    held = fuse(evidence, tracks, ClutterConfig(mode="clutter", min_class_share=0.5))
+    strict = fuse(evidence, tracks, ClutterConfig(mode="clutter", min_class_share=1.0))
+    assert all(r.all() for r in held)
+    assert not strict[2].any() and strict[1].all()
