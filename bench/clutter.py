@@ -220,45 +220,20 @@ def speed_table(seqs: list[Sequence], dufomap_s: dict[str, float], fused_s: dict
     return markdown_table(header, rows)
 
 
+MOTION_KINDS = {"moving": np.arange(252, 260), "parked car": np.array([10])}
+
+
 def motion_table(seqs: list[Sequence]) -> str:
-    """How far each reference moving instance travels over the frames: its centroid, and its
-    surface registered link by link (what the tracker measures), in world coordinates."""
+    """How far each reference instance travels over the frames: its centroid, and its surface
+    registered link by link (what the tracker measures), in world coordinates. Moving instances
+    (252-259), then parked cars (10) of at least 100 points in 3 frames: the measure's noise."""
     rows = []
     for seq in seqs:
-        tracks: dict[int, list[tuple[float, np.ndarray, int]]] = {}
-        for frame in seq.survey.frames:
-            ref = frame.reference_labels()
-            sem, inst = ref["semantic"] & 0xFFFF, ref["instance"]
-            moving = np.isin(sem, np.arange(252, 260))
-            world = frame.world_points().xyz
-            for i in np.unique(inst[moving]):
-                sel = moving & (inst == i)
-                tracks.setdefault(int(i), []).append((frame.timestamp or 0.0, world[sel], 0))
-        for i, obs in sorted(tracks.items()):
-            if len(obs) < 2:
-                continue
-            times = np.array([t for t, _, _ in obs])
-            shapes = [object_shape(points) for _, points, _ in obs]
-            centroids = np.array([points.mean(axis=0) for _, points, _ in obs])
-            moved = float(np.linalg.norm((centroids[-1] - centroids[0])[:2]))
-            fit = register_many(shapes[:-1], shapes[1:], np.diff(centroids, axis=0))
-            links = np.linalg.norm(fit.displacement[:, :2], axis=1)
-            link_speed = links / np.maximum(np.diff(times), 1e-9)
-            rows.append(
-                [
-                    seq.name,
-                    str(i),
-                    f"{sum(len(points) for _, points, _ in obs):,}",
-                    str(len(obs)),
-                    f"{moved:.2f}",
-                    f"{moved / max(times[-1] - times[0], 1e-9):.2f}",
-                    f"{links.sum():.2f}",
-                    f"{np.median(link_speed):.2f}",
-                    f"{link_speed.max():.2f}",
-                ]
-            )
+        for kind, ids in MOTION_KINDS.items():
+            rows += [[seq.name, kind, *row] for row in _instance_motion(seq, ids, kind)]
     header = [
         "seq",
+        "kind",
         "instance",
         "points",
         "frames",
@@ -269,6 +244,43 @@ def motion_table(seqs: list[Sequence]) -> str:
         "max link speed (m/s)",
     ]
     return markdown_table(header, rows)
+
+
+def _instance_motion(seq: Sequence, ids: np.ndarray, kind: str) -> list[list[str]]:
+    tracks: dict[int, list[tuple[float, np.ndarray]]] = {}
+    for frame in seq.survey.frames:
+        ref = frame.reference_labels()
+        sem, inst = ref["semantic"] & 0xFFFF, ref["instance"]
+        chosen = np.isin(sem, ids)
+        world = frame.world_points().xyz
+        for i in np.unique(inst[chosen]):
+            sel = chosen & (inst == i)
+            tracks.setdefault(int(i), []).append((frame.timestamp or 0.0, world[sel]))
+    rows = []
+    for i, obs in sorted(tracks.items()):
+        points = sum(len(p) for _, p in obs)
+        if len(obs) < 2 or (kind != "moving" and (len(obs) < 3 or points < 100)):
+            continue
+        times = np.array([t for t, _ in obs])
+        shapes = [object_shape(p) for _, p in obs]
+        centroids = np.array([p.mean(axis=0) for _, p in obs])
+        moved = float(np.linalg.norm((centroids[-1] - centroids[0])[:2]))
+        fit = register_many(shapes[:-1], shapes[1:], np.diff(centroids, axis=0))
+        links = np.linalg.norm(fit.displacement[:, :2], axis=1)
+        link_speed = links / np.maximum(np.diff(times), 1e-9)
+        rows.append(
+            [
+                str(i),
+                f"{points:,}",
+                str(len(obs)),
+                f"{moved:.2f}",
+                f"{moved / max(times[-1] - times[0], 1e-9):.2f}",
+                f"{links.sum():.2f}",
+                f"{np.median(link_speed):.2f}",
+                f"{link_speed.max():.2f}",
+            ]
+        )
+    return rows
 
 
 def main() -> int:
@@ -287,12 +299,13 @@ def main() -> int:
     seqs = [load(Path(real), n) for n in names]
     motion = motion_table(seqs)
     motion_notes = (
-        "Reference moving instances (SemanticKITTI 252-259): how far their centroid moved in "
-        "world coordinates between their first and last frame, and how far their surface moved "
-        "when each frame's points are registered onto the previous frame's (the tracker's "
-        "measure, app/pipelines/clutter/motion.py; the centroid slides with the viewpoint). An "
-        "instance labelled moving that stands still in these frames leaves no free-space or "
-        "motion evidence here."
+        "Reference moving instances (SemanticKITTI 252-259) and parked cars (10, at least 100 "
+        "points in 3 frames: the measure's noise): how far their centroid moved in world "
+        "coordinates between their first and last frame, and how far their surface moved when "
+        "each frame's points are registered onto the previous frame's (the tracker's measure, "
+        "app/pipelines/clutter/motion.py; the centroid slides with the viewpoint). An instance "
+        "labelled moving that stands still in these frames leaves no free-space or motion "
+        "evidence here."
     )
     print(f"\nClutter: motion of the reference moving objects\n{motion}\n{motion_notes}")
     if args.motion_only:

@@ -1,7 +1,8 @@
 """Parameters of the clutter pipeline; defaults are Lee et al.'s numbers where the paper has one.
 
 Thresholds beyond the paper: bench/clutter.py searches a grid (min_mask_fraction,
-min_seed_share, free_in_view, min_free_fraction, min_speed) and reports every SemanticKITTI figure
+min_seed_share, free_in_view, min_free_fraction, min_speed, min_class_share) and reports every
+SemanticKITTI figure
 with the grid point chosen on the *other* sequences (leave-one-sequence-out). The defaults here
 are the clutter-mode grid point chosen on all three sequences (04, 05, 08), for use on new data;
 they are not what the reported figures ran with.
@@ -73,7 +74,7 @@ class ClutterConfig(BaseModel):
     )
     # tracking
     track_gate: float = Field(2.5, gt=0, description="metres a cluster may be from its prediction")
-    min_speed: float = Field(2.0, ge=0, description="m/s: slower tracks did not move")
+    min_speed: float = Field(0.5, ge=0, description="m/s: slower tracks did not move")
     min_track_points: int = Field(20, ge=1, description="smaller clusters are not tracked")
     min_track_frames: int = Field(3, ge=2, description="frames a track needs to estimate its speed")
     min_class_share: float = Field(
