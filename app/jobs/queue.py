@@ -28,6 +28,7 @@ from app.store.models import Job, JobStatus, Survey, utcnow
 
 RESUMABLE = (JobStatus.interrupted, JobStatus.failed, JobStatus.cancelled)
 ACTIVE = (JobStatus.queued, JobStatus.running)
+JOB_SUCCEEDED = "job.succeeded"
 SERVER_STOPPED = "interrupted: the server stopped while it ran; resume it to run it again"
 
 
@@ -142,17 +143,26 @@ def finish(
     message: str,
     result: dict[str, Any] | None = None,
 ) -> bool:
-    """End a running job; False when it was no longer running (then nothing changes)."""
+    """End a running job; False when it was no longer running (then nothing changes).
+
+    A success leaves a `job.succeeded` audit event (kind, survey) in the same transaction, so
+    whoever follows the audit log (the viewer's QA mode) sees new results once they are there.
+    """
     values: dict[str, Any] = {"status": status, "message": message, "finished_at": utcnow()}
     if status == JobStatus.succeeded:
         values["progress"] = 1.0
     if result is not None:
         values["result"] = result
-    with engine.begin() as conn:
-        done = conn.execute(
-            _update(Job.id == job_id, Job.status == JobStatus.running).values(values)
-        )
-    return done.rowcount == 1
+    with Session(engine) as session:
+        done = session.execute(
+            _update(Job.id == job_id, Job.status == JobStatus.running)
+            .values(values)
+            .returning(Job.kind, Job.survey_id)
+        ).first()
+        if done is not None and status == JobStatus.succeeded:
+            audit(session, None, JOB_SUCCEEDED, "job", job_id, kind=done[0], survey_id=done[1])
+        session.commit()
+    return done is not None
 
 
 def request_cancel(session: Session, job_id: int, user_id: int | None) -> Job:

@@ -12,7 +12,8 @@ The same tail reports the review writes of the other modes per survey (`ReviewCh
 `REVIEW_ACTIONS` happened): clutter decisions (`clutter.approve` / `clutter.reject` /
 `clutter.reset`, survey in the payload) and a new clutter run (`clutter.ingest`), guardrail slice
 labels (`guardrail_slice.label`) and model decisions (`guardrail_model.approve` / `.reject`),
-a new guardrail run (`guardrail.ingest`) and a rebuild of its models (`guardrail.rebuild`).
+a new guardrail run (`guardrail.ingest`) and a rebuild of its models (`guardrail.rebuild`),
+and finished jobs (`job.succeeded`, reported as `job.succeeded:<kind>`: new results to show).
 
 The feed polls every `interval` seconds; `wake()` makes it poll now, which the API calls after
 a label or review write so open viewers recolour within milliseconds instead of at the next poll.
@@ -31,6 +32,8 @@ from sqlalchemy import text
 from sqlalchemy.engine import Engine
 from sqlmodel import Session
 
+from app.jobs.queue import JOB_SUCCEEDED
+
 log = logging.getLogger(__name__)
 
 BATCH_ACTIONS = ("pillar.label", "pillar.undo", "pillar.redo")
@@ -48,10 +51,18 @@ REVIEW_ACTIONS = frozenset(
 # the survey: the payload's survey_id (decisions, labels), else the survey the event names (runs)
 _NEW_EVENTS = text(
     "SELECT id, action, entity_id, coalesce(json_extract(payload, '$.survey_id'), "
-    "CASE WHEN entity = 'survey' THEN entity_id END) FROM audit_event WHERE id > :last "
+    "CASE WHEN entity = 'survey' THEN entity_id END), json_extract(payload, '$.kind') "
+    "FROM audit_event WHERE id > :last "
     "AND action IN (SELECT value FROM json_each(:actions)) ORDER BY id"
 )
-_ACTIONS = json.dumps(sorted({*LABEL_ACTIONS, *REVIEW_ACTIONS}))
+_ACTIONS = json.dumps(sorted({*LABEL_ACTIONS, *REVIEW_ACTIONS, JOB_SUCCEEDED}))
+
+
+def job_succeeded(kind: str) -> str:
+    """The review action a feed reports when a job of `kind` succeeded on a survey."""
+    return f"{JOB_SUCCEEDED}:{kind}"
+
+
 _BATCH_CELLS = text(
     "SELECT b.survey_id, json_group_array(e.cell_id) FROM pillar_edit AS e "
     "JOIN pillar_edit_batch AS b ON b.id = e.batch_id "
@@ -91,9 +102,15 @@ def read_events(
         return after_id, [], []
     reviews: dict[int, ReviewChange] = {}
     for event in events:
-        if event[1] in REVIEW_ACTIONS and event[3] is not None:
-            survey_id = int(event[3])
-            reviews.setdefault(survey_id, ReviewChange(survey_id)).actions.add(event[1])
+        if event[3] is None:
+            continue
+        if event[1] in REVIEW_ACTIONS:
+            action = event[1]
+        elif event[1] == JOB_SUCCEEDED:
+            action = job_succeeded(str(event[4]))
+        else:
+            continue
+        reviews.setdefault(int(event[3]), ReviewChange(int(event[3]))).actions.add(action)
     changes: dict[int, LabelChange] = {}
     batches = [int(e[2]) for e in events if e[1] in BATCH_ACTIONS and e[2] is not None]
     if batches:

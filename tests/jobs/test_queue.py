@@ -148,6 +148,21 @@ def test_progress_and_finish(engine: Engine, session: Session, settings: Setting
     assert done.finished_at is not None
     assert finish(engine, job.id, JobStatus.failed, "late") is False  # only running jobs end
     assert report_progress(engine, job.id, 0.2, "late") is True
+    with Session(engine) as check:
+        events = check.exec(select(AuditEvent).where(AuditEvent.action == "job.succeeded")).all()
+    assert [(e.entity_id, e.payload) for e in events] == [
+        (str(job.id), {"kind": "test:steps", "survey_id": None})
+    ]
+
+
+def test_only_a_success_is_announced(engine: Engine, session: Session, settings: Settings) -> None:
+    failed, cancelled = queue_steps(session, settings, 2)
+    claim_next(engine, 1)
+    claim_next(engine, 1)
+    assert finish(engine, failed.id, JobStatus.failed, "boom") is True
+    assert finish(engine, cancelled.id, JobStatus.cancelled, "cancelled") is True
+    with Session(engine) as check:
+        assert not check.exec(select(AuditEvent).where(AuditEvent.action == "job.succeeded")).all()
 
 
 def test_cancel_queued_at_once(engine: Engine, session: Session, settings: Settings) -> None:

@@ -5,6 +5,7 @@ removed points red, the metrics panel from the newest jobs' results, the export 
 from __future__ import annotations
 
 import os
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -193,7 +194,10 @@ def test_metrics_panel_and_export_links(street: Street) -> None:
 
 
 def test_the_newest_clutter_job_is_shown(street: Street) -> None:
-    """After a review and `clutter:recompute`, QA shows the recomputed maps."""
+    """After a review and `clutter:recompute`, an open QA mode reloads (the job's success
+    reaches it through the label feed) and shows the recomputed maps."""
+    connection, mode = open_mode(street)
+    markdown(connection)
     with Session(street.engine) as session:
         _, states = list_instances(session, street.survey_id, limit=1000)
         target = max(states, key=lambda s: s.point_count)
@@ -203,6 +207,7 @@ def test_the_newest_clutter_job_is_shown(street: Street) -> None:
             [DecisionWrite(target.id, target.version, Decision.rejected)],
             street.users["rev"][0],
         )
+    mark = connection.mark()
     job = run_queued(
         street.engine,
         street.settings,
@@ -211,8 +216,21 @@ def test_the_newest_clutter_job_is_shown(street: Street) -> None:
         "clutter:recompute",
         {},
     )
-    connection, mode = open_mode(street)
-    assert f"job {job.id}, clutter:recompute" in markdown(connection)
+    deadline = time.monotonic() + 30
+    while connection.mode is mode:
+        assert time.monotonic() < deadline, "the QA mode was not reloaded"
+        time.sleep(0.05)
+    connection.call(lambda: None)
+    mode = connection.mode
+    assert isinstance(mode, QAMode)
+    connection.wait(
+        lambda m: (
+            m.get("type") == "GuiMarkdownMessage"
+            and f"job {job.id}, clutter:recompute" in str(m["props"]["_markdown"])
+        ),
+        mark,
+    )
+    connection.wait(lambda m: is_point_cloud(m) and m["name"] == "/qa/removed", mark)
     removed, _ = cloud(connection, "/qa/removed")
     distance, _ = cKDTree(file_points(job, "removed", mode.origin)).query(removed, workers=1)
     assert distance.max() < 1e-3

@@ -21,7 +21,8 @@ How the session drives a mode:
 - `on_review_changed(actions)`: review writes on the open survey (by anyone, this user's own
   included, so applying one must be idempotent): `actions` is the set of audit actions seen
   since the last call (`app.viewer.label_feed.REVIEW_ACTIONS`: clutter decisions and runs,
-  guardrail slice labels, model decisions, runs and rebuilds). Re-read what the mode shows
+  guardrail slice labels, model decisions, runs and rebuilds; `job.succeeded:<kind>` for each
+  finished job). Re-read what the mode shows
   and recolour, keeping the user's selection; after a new run or a rebuild a mode may call
   `session.reload_mode()` (leave, then enter a fresh mode of its kind; the camera stays).
 

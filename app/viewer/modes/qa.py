@@ -5,7 +5,8 @@ points as LAZ files (world coordinates); both are read once, re-centred on the s
 thinned to the viewer's point budget. "Original" shows both (the removed points red when
 highlighted), "Cleaned" only what the map keeps. The panel holds the paper metrics those jobs
 recorded (clutter: overall accuracy, omission / commission, SA / DA / AA; phantom: per-class
-precision / recall / F) and links to the exports.
+precision / recall / F) and links to the exports. When such a job succeeds (the label feed's
+`job.succeeded:<kind>`), the mode reloads with its maps and metrics.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from app.geometry.voxels import voxel_downsample
 from app.io.las import read_las_points
 from app.store.models import Job
 from app.store.surveys import latest_succeeded_job
+from app.viewer.label_feed import job_succeeded
 from app.viewer.modes.base import Mode
 from app.viewer.modes.common import evenly, legend_html
 
@@ -29,6 +31,7 @@ if TYPE_CHECKING:
 
 CLUTTER_KINDS = ("run:clutter", "clutter:recompute")
 PHANTOM_KINDS = ("run:phantom",)
+SHOWN_JOBS = frozenset(job_succeeded(kind) for kind in (*CLUTTER_KINDS, *PHANTOM_KINDS))
 VOXEL = 0.1  # metres: one point per voxel before the point budget applies
 REMOVED_RGB = np.array((235, 30, 30), dtype=np.uint8)
 ORIGINAL, CLEANED = "Original", "Cleaned"
@@ -164,6 +167,11 @@ class QAMode(Mode):
         self.show.on_update(lambda _: submit(self._apply_view))
         self.highlight.on_update(lambda _: submit(self._recolor))
         self.point_size.on_update(lambda _: submit(self._resize))
+
+    def on_review_changed(self, actions: set[str]) -> None:
+        """A clutter or phantom job succeeded on the survey: show its maps and metrics."""
+        if actions & SHOWN_JOBS:
+            self.session.reload_mode()
 
     def leave(self) -> None:
         for cloud in self.clouds.values():
