@@ -22,9 +22,14 @@ def write_frame_labels(out: Path, labels: dict[str, np.ndarray]) -> None:
 
 
 def write_report(out: Path, report: dict) -> Path:
-    path = Path(out) / "report.json"
-    partial = path.with_suffix(".partial")
-    partial.write_text(json.dumps(report, indent=1, sort_keys=True, default=_plain) + "\n")
+    return write_json(Path(out) / "report.json", report)
+
+
+def write_json(path: Path, data: dict) -> Path:
+    """`data` as indented JSON at `path` (numpy values made plain), whole or not at all."""
+    path = Path(path)
+    partial = path.with_name(path.name + ".partial")
+    partial.write_text(json.dumps(data, indent=1, sort_keys=True, default=_plain) + "\n")
     os.replace(partial, path)
     return path
 
