@@ -162,6 +162,19 @@ def list_surveys(session: Session) -> list[Survey]:
     return list(session.exec(select(Survey).order_by(col(Survey.id))).all())
 
 
+def find_survey(session: Session, key: str) -> Survey:
+    """A survey by its id (digits) or its exact name; a name two surveys share is refused."""
+    if key.isdigit():
+        return get_survey(session, int(key))
+    found = session.exec(select(Survey).where(Survey.name == key)).all()
+    if not found:
+        raise NotFoundError(f"no survey named {key!r}")
+    if len(found) > 1:
+        ids = ", ".join(str(s.id) for s in found)
+        raise ConflictError(f"{len(found)} surveys are named {key!r} (ids {ids}); give the id")
+    return found[0]
+
+
 def get_survey(session: Session, survey_id: int) -> Survey:
     survey = session.get(Survey, survey_id)
     if survey is None:

@@ -8,7 +8,10 @@ import base64
 import csv
 import io
 import json
+import os
 import re
+import subprocess
+import sys
 import time
 import zipfile
 from collections.abc import Iterator
@@ -398,3 +401,71 @@ def test_qa_report_without_runs(server: Server, reviewer: httpx.Client, tmp_path
     page = reviewer.get(f"/surveys/{bare['id']}/exports/qa-report.html").text
     assert page.count("No finished run of this pipeline") == 3
     assert "No human pillar labels yet." in page
+
+
+def mmsclean_export(server: Server, *args: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "MMSCLEAN_DATA_DIR": str(server.data_dir)}
+    env.pop("MMSCLEAN_DATABASE_URL", None)
+    return subprocess.run(
+        [sys.executable, "-m", "app", "export", *args],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
+
+
+def test_command_line_export_matches_the_downloads(
+    server: Server, survey_id: int, engine: Engine, reviewer: httpx.Client, tmp_path: Path
+) -> None:
+    """`mmsclean export` writes what the dashboard downloads, from the same store, audited."""
+    base = f"/surveys/{survey_id}/exports"
+    job_dir = server.data_dir / "jobs" / "clutter-cli"
+    rng = np.random.default_rng(2)
+    cleaned = write_laz(job_dir / "cleaned.laz", rng.uniform(0, 5, (30, 3)))
+    removed = write_laz(job_dir / "removed.laz", rng.uniform(0, 5, (5, 3)))
+    add(
+        engine,
+        succeeded_job(survey_id, "run:clutter", {"cleaned": cleaned, "removed": removed}, None),
+    )
+    removed.unlink()
+    for what, url in (("cleaned-laz", "cleaned.laz"), ("pillars-csv", "pillars.csv")):
+        done = mmsclean_export(server, str(survey_id), what, "--out", str(tmp_path / url))
+        assert done.returncode == 0, done.stderr
+        assert (tmp_path / url).read_bytes() == reviewer.get(f"{base}/{url}").content
+    done = mmsclean_export(
+        server,
+        "Main Street",
+        "guardrails",
+        "--out",
+        str(tmp_path / "g.zip"),
+        "--mesh-format",
+        "obj",
+    )
+    assert done.returncode == 0, done.stderr
+    with zipfile.ZipFile(tmp_path / "g.zip") as zf:
+        assert sorted(zf.namelist()) == ["Main-Street-guardrail-000-pipe.obj", "manifest.json"]
+    done = mmsclean_export(
+        server, str(survey_id), "pillars-npz", "--include-model", "--out", str(tmp_path / "p.npz")
+    )
+    assert done.returncode == 0, done.stderr
+    assert len(np.load(tmp_path / "p.npz")["cell_id"]) == 4
+    done = mmsclean_export(server, str(survey_id), "qa-report", "--out", str(tmp_path / "qa.html"))
+    assert done.returncode == 0 and "QA report: Main Street" in (tmp_path / "qa.html").read_text()
+    with Session(engine) as session:
+        cli = session.exec(select(AuditEvent).where(AuditEvent.action.startswith("export."))).all()
+    assert sum(e.payload.get("via") == "command line" for e in cli) == 5
+
+    # refusals: one line each, nothing written
+    refused = [
+        (("999", "qa-report", "--out", str(tmp_path / "x.html")), "survey 999 not found"),
+        ((str(survey_id), "removed-laz", "--out", str(tmp_path / "r.laz")), "gone from disk"),
+        ((str(survey_id), "qa-report", "--out", str(tmp_path / "qa.html")), "--overwrite"),
+        ((str(survey_id), "everything", "--out", str(tmp_path / "e")), "must be one of"),
+    ]
+    for args, message in refused:
+        done = mmsclean_export(server, *args)
+        assert done.returncode != 0 and message in done.stderr, done.stderr
+        assert len(done.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "x.html").exists() and not (tmp_path / "r.laz").exists()
+    assert not list(tmp_path.glob(".*.partial"))

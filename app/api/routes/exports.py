@@ -153,36 +153,29 @@ def mesh_file(model: GuardrailModel, fmt: str) -> Path:
     return path if path.is_absolute() else mesh.parent / path.name
 
 
-@router.get("/guardrails.zip", response_class=FileResponse)
-def guardrails_zip(
-    survey_id: int,
-    user: Reviewer,
-    session: SessionDep,
-    settings: SettingsDep,
-    format: Literal["glb", "obj"] = Query("glb", description="mesh file format"),
-) -> FileResponse:
-    """The approved guardrail models as meshes, with a manifest.json of their parameters."""
-    survey = get_survey(session, survey_id)
+def write_guardrails_zip(session: Session, survey: Survey, fmt: str, archive: Path) -> int:
+    """The approved guardrail models' meshes in FMT and a manifest.json of their parameters,
+    zipped to ARCHIVE (whole or not at all); the number of models."""
     rows = session.exec(
         select(GuardrailModel, User.username)
         .outerjoin(User, col(User.id) == col(GuardrailModel.decided_by))
         .where(
-            GuardrailModel.survey_id == survey_id,
+            GuardrailModel.survey_id == survey.id,
             GuardrailModel.status == ModelStatus.approved,
         )
         .order_by(col(GuardrailModel.guardrail_index))
     ).all()
     if not rows:
         raise NotFoundError(
-            f"survey {survey_id} has no approved guardrail model; approve one in the review first"
+            f"survey {survey.id} has no approved guardrail model; approve one in the review first"
         )
     stem = slug(survey.name)
     members, manifest = [], []
     for model, decided_by in rows:
-        path = mesh_file(model, format)
+        path = mesh_file(model, fmt)
         if not path.is_file():
             raise NotFoundError(f"{path}: mesh of approved guardrail model {model.id} is missing")
-        arcname = f"{stem}-guardrail-{model.guardrail_index:03d}-{model.kind.value}.{format}"
+        arcname = f"{stem}-guardrail-{model.guardrail_index:03d}-{model.kind.value}.{fmt}"
         members.append((path, arcname))
         manifest.append(
             {
@@ -197,21 +190,39 @@ def guardrails_zip(
                 "params": {k: v for k, v in model.params.items() if k != "files"},
             }
         )
-    archive = temp_file(settings, ".zip")
     try:
         with zipfile.ZipFile(archive, "w", zipfile.ZIP_DEFLATED) as zf:
             for path, arcname in members:
                 zf.write(path, arcname)
-            info = {"survey": survey.name, "survey_id": survey.id, "format": format}
+            info = {"survey": survey.name, "survey_id": survey.id, "format": fmt}
             zf.writestr("manifest.json", json.dumps({**info, "models": manifest}, indent=1))
     except BaseException:
         archive.unlink(missing_ok=True)
         raise
-    exported(session, user.id, survey, "guardrails_zip", format=format, models=len(members))
+    return len(members)
+
+
+@router.get("/guardrails.zip", response_class=FileResponse)
+def guardrails_zip(
+    survey_id: int,
+    user: Reviewer,
+    session: SessionDep,
+    settings: SettingsDep,
+    format: Literal["glb", "obj"] = Query("glb", description="mesh file format"),
+) -> FileResponse:
+    """The approved guardrail models as meshes, with a manifest.json of their parameters."""
+    survey = get_survey(session, survey_id)
+    archive = temp_file(settings, ".zip")
+    try:
+        count = write_guardrails_zip(session, survey, format, archive)
+    except BaseException:
+        archive.unlink(missing_ok=True)
+        raise
+    exported(session, user.id, survey, "guardrails_zip", format=format, models=count)
     return FileResponse(
         archive,
         media_type="application/zip",
-        filename=f"{stem}-guardrails-{format}.zip",
+        filename=f"{slug(survey.name)}-guardrails-{format}.zip",
         background=BackgroundTask(_unlink, archive),
     )
 
@@ -286,6 +297,23 @@ def csv_pieces(t: dict[str, np.ndarray]) -> Iterator[str]:
         buffer.truncate()
 
 
+def write_pillars_npz(t: dict[str, np.ndarray], path: Path) -> None:
+    """The pillar table's columns, the grid (origin, cell size) and class names (whole or not at
+    all: a failed write leaves no file)."""
+    try:
+        with open(path, "wb") as f:  # an open file: numpy adds no ".npz" to the name
+            np.savez_compressed(
+                f,
+                **t,
+                label_names=LABEL_NAMES,
+                grid_origin=np.array([STORE_GRID.origin_x, STORE_GRID.origin_y]),
+                cell_size=np.float64(STORE_GRID.cell_size),
+            )
+    except BaseException:
+        Path(path).unlink(missing_ok=True)
+        raise
+
+
 @router.get("/pillars.csv", response_class=StreamingResponse)
 def pillars_csv(
     survey_id: int,
@@ -320,17 +348,7 @@ def pillars_npz(
     survey = get_survey(session, survey_id)
     t = pillar_table(session, survey_id, include_model)
     path = temp_file(settings, ".npz")
-    try:
-        np.savez_compressed(
-            path,
-            **t,
-            label_names=LABEL_NAMES,
-            grid_origin=np.array([STORE_GRID.origin_x, STORE_GRID.origin_y]),
-            cell_size=np.float64(STORE_GRID.cell_size),
-        )
-    except BaseException:
-        path.unlink(missing_ok=True)
-        raise
+    write_pillars_npz(t, path)
     exported(
         session, user.id, survey, "pillars_npz", rows=len(t["cell_id"]), include_model=include_model
     )
