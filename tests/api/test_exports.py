@@ -8,10 +8,8 @@ import base64
 import csv
 import io
 import json
-import os
 import re
 import subprocess
-import sys
 import time
 import zipfile
 from collections.abc import Iterator
@@ -45,6 +43,7 @@ from app.store.models import (
 )
 from app.store.pillar_labels import STORE_GRID
 from tests.api.server import Server
+from tests.cli import mmsclean
 
 EXPORTS = ("cleaned.laz", "removed.laz", "guardrails.zip", "pillars.csv", "qa-report.html")
 
@@ -404,15 +403,7 @@ def test_qa_report_without_runs(server: Server, reviewer: httpx.Client, tmp_path
 
 
 def mmsclean_export(server: Server, *args: str) -> subprocess.CompletedProcess:
-    env = {**os.environ, "MMSCLEAN_DATA_DIR": str(server.data_dir)}
-    env.pop("MMSCLEAN_DATABASE_URL", None)
-    return subprocess.run(
-        [sys.executable, "-m", "app", "export", *args],
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=300,
-    )
+    return mmsclean("export", *args, env={"MMSCLEAN_DATA_DIR": str(server.data_dir)})
 
 
 def test_command_line_export_matches_the_downloads(

@@ -2,25 +2,18 @@
 
 from __future__ import annotations
 
-import os
 import subprocess
-import sys
 from pathlib import Path
 
 import httpx
 
 from tests.api.server import Server
+from tests.cli import mmsclean
 
 
 def user_add(data_dir: Path, *args: str, password: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "app", "user", "add", *args],
-        input=password + "\n",
-        capture_output=True,
-        text=True,
-        env={**os.environ, "MMSCLEAN_DATA_DIR": str(data_dir)},
-        timeout=120,
-    )
+    env = {"MMSCLEAN_DATA_DIR": str(data_dir)}
+    return mmsclean("user", "add", *args, input=password + "\n", env=env, timeout=120)
 
 
 def test_user_added_on_the_command_line_logs_in(tmp_path: Path) -> None:

@@ -3,14 +3,10 @@
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from app.core.errors import InputError
 from app.io import open_survey
@@ -18,24 +14,13 @@ from app.io.survey import Survey
 from app.pipelines.clutter.evaluate import reference_masks
 from app.pipelines.evaluation import evaluate_labels, read_frame_labels
 from app.pipelines.outputs import write_frame_labels
-from app.pipelines.phantom.model import save_model
-from app.pipelines.phantom.network import PillarCNN
 from app.pipelines.phantom.run import run_phantom_to_folder
-from app.simulate.survey import SimulationConfig, simulate
+from tests.cli import mmsclean
 
 
 @pytest.fixture(scope="module")
-def survey_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("evaluate") / "sim"
-    simulate(
-        SimulationConfig(scene="mixed", length=20.0, seed=5, scanner="profile", camera=False), out
-    )
-    return out
-
-
-@pytest.fixture(scope="module")
-def survey(survey_dir: Path) -> Survey:
-    return open_survey(survey_dir, "sim")
+def survey(profile_street: Path) -> Survey:
+    return open_survey(profile_street, "sim")
 
 
 def reference_labels(survey: Survey, pipeline: str) -> dict[str, np.ndarray]:
@@ -63,10 +48,10 @@ def test_perfect_clutter_and_guardrail_labels(survey: Survey, tmp_path: Path) ->
     assert point["support"] > 0 and point["precision"] == point["recall"] == 100.0
 
 
-def test_phantom_scores_equal_the_run_report(survey: Survey, tmp_path: Path) -> None:
-    torch.manual_seed(0)
-    model = save_model(tmp_path / "net.pt", PillarCNN(), {"name": "random"})
-    report = run_phantom_to_folder(survey, tmp_path / "run", model_path=model)
+def test_phantom_scores_equal_the_run_report(
+    survey: Survey, random_phantom_model: Path, tmp_path: Path
+) -> None:
+    report = run_phantom_to_folder(survey, tmp_path / "run", model_path=random_phantom_model)
     scored = evaluate_labels(
         survey, "phantom", read_frame_labels(tmp_path / "run", survey, "phantom")
     )
@@ -74,25 +59,17 @@ def test_phantom_scores_equal_the_run_report(survey: Survey, tmp_path: Path) -> 
     assert scored["phantom_points"] == report["metrics"]["phantom_points"]["mmsclean"]
 
 
-def test_cli_prints_tables_and_writes_json(survey_dir: Path, survey: Survey, tmp_path: Path):
+def test_cli_prints_tables_and_writes_json(profile_street: Path, survey: Survey, tmp_path: Path):
     write_frame_labels(tmp_path / "run", reference_labels(survey, "clutter"))
-    result = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "app",
-            "evaluate",
-            "clutter",
-            str(tmp_path / "run"),
-            str(survey_dir),
-            "--format",
-            "sim",
-            "--json",
-            str(tmp_path / "metrics.json"),
-        ],  # fmt: skip
-        capture_output=True,
-        text=True,
-        env=os.environ.copy(),
+    result = mmsclean(
+        "evaluate",
+        "clutter",
+        str(tmp_path / "run"),
+        str(profile_street),
+        "--format",
+        "sim",
+        "--json",
+        str(tmp_path / "metrics.json"),
         timeout=300,
     )
     assert result.returncode == 0, result.stderr

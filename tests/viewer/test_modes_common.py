@@ -83,6 +83,16 @@ class Connection:
         assert self.mode is not None and self.mode.name == mode_name
         return self.mode
 
+    def reloaded(self, mode: Any, timeout: float = 30.0) -> Any:
+        """The fresh mode the session entered in place of `mode` (a live reload), once its
+        entering is done."""
+        deadline = time.monotonic() + timeout
+        while self.mode is mode:
+            assert time.monotonic() < deadline, "the mode was not reloaded"
+            time.sleep(0.05)
+        self.call(lambda: None)
+        return self.mode
+
     def mark(self) -> int:
         with self.lock:
             return len(self.messages)

@@ -271,11 +271,7 @@ def test_labels_by_someone_else_recolour_live(street: Street) -> None:
         run = session.get(AuditEvent, latest_run(session, street.survey_id).event_id)
         audit(session, None, run.action, "survey", street.survey_id, **run.payload)
         session.commit()
-    deadline = time.monotonic() + 30
-    while connection.mode is mode:
-        assert time.monotonic() < deadline, "the mode was not reloaded"
-        time.sleep(0.05)
-    connection.call(lambda: None)
+    connection.reloaded(mode)
     assert isinstance(connection.mode, GuardrailMode) and "slices" in connection.mode.clouds
     connection.wait(lambda m: is_point_cloud(m) and m["name"] == "/guardrails/slices", mark)
     assert not connection.since(mark, lambda m: m.get("type") == "SetCameraLookAtMessage")

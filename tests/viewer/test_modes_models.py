@@ -182,12 +182,7 @@ def test_decisions_by_someone_else_show_up_live(street: Street) -> None:
     with Session(street.engine) as session:
         audit(session, None, "guardrail.rebuild", "survey", street.survey_id)
         session.commit()
-    deadline = time.monotonic() + 30
-    while connection.mode is mode:
-        assert time.monotonic() < deadline, "the mode was not reloaded"
-        time.sleep(0.05)
-    connection.call(lambda: None)
-    fresh = connection.mode
+    fresh = connection.reloaded(mode)
     assert isinstance(fresh, ModelMode) and fresh.selected == chosen.id
     assert fresh._model(target.id).status == new
     connection.wait(lambda m: m.get("name") == f"/models/mesh/{target.id}", mark)

@@ -5,7 +5,6 @@ removed points red, the metrics panel from the newest jobs' results, the export 
 from __future__ import annotations
 
 import os
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -216,12 +215,7 @@ def test_the_newest_clutter_job_is_shown(street: Street) -> None:
         "clutter:recompute",
         {},
     )
-    deadline = time.monotonic() + 30
-    while connection.mode is mode:
-        assert time.monotonic() < deadline, "the QA mode was not reloaded"
-        time.sleep(0.05)
-    connection.call(lambda: None)
-    mode = connection.mode
+    mode = connection.reloaded(mode)
     assert isinstance(mode, QAMode)
     connection.wait(
         lambda m: (

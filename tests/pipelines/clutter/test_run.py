@@ -4,9 +4,6 @@ surveys, and the pipeline removes what it should on a simulated street (syntheti
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -22,6 +19,7 @@ from app.pipelines.clutter.evaluate import MOVABLE_IDS, removal_metrics
 from app.pipelines.clutter.pipeline import ClutterPipeline
 from app.pipelines.clutter.run import run_clutter_to_folder
 from app.simulate.survey import SimulationConfig, simulate
+from tests.cli import mmsclean
 
 
 @pytest.fixture(scope="module")
@@ -55,26 +53,18 @@ def check_contract(out: Path, survey: Survey, report: dict) -> None:
 
 def test_run_clutter_cli_on_a_simulated_survey(sim_dir: Path, weights_dir: Path, tmp_path: Path):
     out = tmp_path / "out"
-    result = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "app",
-            "run",
-            "clutter",
-            str(sim_dir),
-            "--format",
-            "sim",
-            "--out",
-            str(out),
-            "--mode",
-            "dynamic",
-            "--overlays",
-            "1",
-        ],  # fmt: skip
-        capture_output=True,
-        text=True,
-        env=os.environ.copy(),
+    result = mmsclean(
+        "run",
+        "clutter",
+        str(sim_dir),
+        "--format",
+        "sim",
+        "--out",
+        str(out),
+        "--mode",
+        "dynamic",
+        "--overlays",
+        "1",
         timeout=600,
     )
     assert result.returncode == 0, result.stderr
@@ -146,23 +136,16 @@ def test_run_clutter_on_real_kitti_raw(real_data: Path, weights_dir: Path, tmp_p
 
 
 def test_bad_mode_is_one_clear_line(tmp_path: Path) -> None:
-    result = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "app",
-            "run",
-            "clutter",
-            str(tmp_path),
-            "--format",
-            "sim",
-            "--out",
-            str(tmp_path / "out"),
-            "--mode",
-            "sometimes",
-        ],  # fmt: skip
-        capture_output=True,
-        text=True,
+    result = mmsclean(
+        "run",
+        "clutter",
+        str(tmp_path),
+        "--format",
+        "sim",
+        "--out",
+        str(tmp_path / "out"),
+        "--mode",
+        "sometimes",
         timeout=120,
     )
     assert result.returncode != 0

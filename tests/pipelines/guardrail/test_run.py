@@ -4,9 +4,6 @@ simulated guardrails with the shipped classifier (synthetic)."""
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import laspy
@@ -16,6 +13,7 @@ import trimesh
 
 from app.io import open_survey
 from app.simulate.survey import SimulationConfig, simulate
+from tests.cli import mmsclean
 
 
 @pytest.fixture(scope="module")
@@ -28,22 +26,14 @@ def sim_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_run_guardrail_cli_on_a_simulated_street(sim_dir: Path, tmp_path: Path) -> None:
     out = tmp_path / "out"
-    result = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "app",
-            "run",
-            "guardrail",
-            str(sim_dir),
-            "--format",
-            "sim",
-            "--out",
-            str(out),
-        ],  # fmt: skip
-        capture_output=True,
-        text=True,
-        env=os.environ.copy(),
+    result = mmsclean(
+        "run",
+        "guardrail",
+        str(sim_dir),
+        "--format",
+        "sim",
+        "--out",
+        str(out),
         timeout=900,
     )
     assert result.returncode == 0, result.stderr
@@ -69,23 +59,16 @@ def test_run_guardrail_cli_on_a_simulated_street(sim_dir: Path, tmp_path: Path) 
 
 
 def test_bad_head_is_one_clear_line(tmp_path: Path) -> None:
-    result = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "app",
-            "run",
-            "guardrail",
-            str(tmp_path),
-            "--format",
-            "sim",
-            "--out",
-            str(tmp_path / "out"),
-            "--head",
-            "colour",
-        ],  # fmt: skip
-        capture_output=True,
-        text=True,
+    result = mmsclean(
+        "run",
+        "guardrail",
+        str(tmp_path),
+        "--format",
+        "sim",
+        "--out",
+        str(tmp_path / "out"),
+        "--head",
+        "colour",
         timeout=120,
     )
     assert result.returncode != 0

@@ -3,62 +3,34 @@
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import laspy
 import numpy as np
-import pytest
-import torch
 
 from app.io import open_survey
-from app.pipelines.phantom.model import save_model
-from app.pipelines.phantom.network import PillarCNN
-from app.simulate.survey import SimulationConfig, simulate
+from tests.cli import mmsclean
 
 
-@pytest.fixture(scope="module")
-def survey_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("phantom") / "sim"
-    simulate(
-        SimulationConfig(scene="mixed", length=20.0, seed=5, scanner="profile", camera=False), out
-    )
-    return out
-
-
-@pytest.fixture(scope="module")
-def model(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    torch.manual_seed(0)
-    return save_model(tmp_path_factory.mktemp("model") / "net.pt", PillarCNN(), {"name": "random"})
-
-
-def test_run_phantom_contract(survey_dir: Path, model: Path, tmp_path: Path) -> None:
+def test_run_phantom_contract(
+    profile_street: Path, random_phantom_model: Path, tmp_path: Path
+) -> None:
     out = tmp_path / "out"
-    result = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "app",
-            "run",
-            "phantom",
-            str(survey_dir),
-            "--format",
-            "sim",
-            "--out",
-            str(out),
-            "--model",
-            str(model),
-            "--baselines",
-        ],  # fmt: skip
-        capture_output=True,
-        text=True,
-        env=os.environ.copy(),
+    result = mmsclean(
+        "run",
+        "phantom",
+        str(profile_street),
+        "--format",
+        "sim",
+        "--out",
+        str(out),
+        "--model",
+        str(random_phantom_model),
+        "--baselines",
         timeout=600,
     )
     assert result.returncode == 0, result.stderr
-    survey = open_survey(survey_dir, "sim")
+    survey = open_survey(profile_street, "sim")
     for frame in survey.frames:
         labels = np.load(out / "labels" / f"{frame.frame_id}.npy")
         assert labels.dtype == np.uint8 and labels.shape == (frame.point_count,)
@@ -82,13 +54,17 @@ def test_run_phantom_contract(survey_dir: Path, model: Path, tmp_path: Path) -> 
     assert (out / "confusion_pillar.png").is_file() and (out / "pillars.npz").is_file()
 
 
-def test_dense_and_windows_agree_on_a_survey(survey_dir: Path, model: Path, tmp_path: Path) -> None:
+def test_dense_and_windows_agree_on_a_survey(
+    profile_street: Path, random_phantom_model: Path, tmp_path: Path
+) -> None:
     from app.pipelines.phantom.run import run_phantom_to_folder
 
-    survey = open_survey(survey_dir, "sim")
-    dense = run_phantom_to_folder(survey, tmp_path / "d", model_path=model, refine=False)
+    survey = open_survey(profile_street, "sim")
+    dense = run_phantom_to_folder(
+        survey, tmp_path / "d", model_path=random_phantom_model, refine=False
+    )
     windows = run_phantom_to_folder(
-        survey, tmp_path / "w", model_path=model, dense=False, refine=False
+        survey, tmp_path / "w", model_path=random_phantom_model, dense=False, refine=False
     )
     a = np.load(tmp_path / "d" / "pillars.npz")
     b = np.load(tmp_path / "w" / "pillars.npz")
@@ -100,39 +76,34 @@ def test_dense_and_windows_agree_on_a_survey(survey_dir: Path, model: Path, tmp_
     assert dense["counts"]["pillars"] == windows["counts"]["pillars"]
 
 
-def test_missing_model_is_one_line(survey_dir: Path, tmp_path: Path) -> None:
+def test_missing_model_is_one_line(profile_street: Path, tmp_path: Path) -> None:
     missing = tmp_path / "none.pt"
-    result = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "app",
-            "run",
-            "phantom",
-            str(survey_dir),
-            "--format",
-            "sim",
-            "--out",
-            str(tmp_path / "o"),
-            "--model",
-            str(missing),
-        ],  # fmt: skip
-        capture_output=True,
-        text=True,
+    result = mmsclean(
+        "run",
+        "phantom",
+        str(profile_street),
+        "--format",
+        "sim",
+        "--out",
+        str(tmp_path / "o"),
+        "--model",
+        str(missing),
         timeout=120,
     )
     assert result.returncode != 0 and "Traceback" not in result.stderr
     assert str(missing) in result.stderr and len(result.stderr.strip().splitlines()) == 1
 
 
-def test_run_on_a_las_map(survey_dir: Path, model: Path, tmp_path: Path) -> None:
+def test_run_on_a_las_map(profile_street: Path, random_phantom_model: Path, tmp_path: Path) -> None:
     """An accumulated map without SemanticKITTI labels: labels for frame `map`, no metrics."""
     from app.io.las import write_laz
     from app.pipelines.phantom.run import run_phantom_to_folder
 
-    survey = open_survey(survey_dir, "sim")
+    survey = open_survey(profile_street, "sim")
     xyz = np.concatenate([f.world_points().xyz for f in survey.frames[:5]])
     las = write_laz(tmp_path / "map.laz", xyz, classification=np.full(len(xyz), 2, np.uint8))
-    report = run_phantom_to_folder(open_survey(las, "las"), tmp_path / "out", model_path=model)
+    report = run_phantom_to_folder(
+        open_survey(las, "las"), tmp_path / "out", model_path=random_phantom_model
+    )
     labels = np.load(tmp_path / "out" / "labels" / "map.npy")
     assert labels.shape == (len(xyz),) and "metrics" not in report
