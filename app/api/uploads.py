@@ -1,13 +1,13 @@
-"""Getting survey files onto the server safely: import paths confined to the import root,
-uploads streamed to disk under a size limit, zip archives unpacked without escaping their folder.
+"""Getting survey files onto the server safely: uploads streamed to disk under a size limit,
+zip archives unpacked without escaping their folder (import paths are confined to the import
+root by `app.io.import_root`).
 
-Every refusal is one line naming the path, upload or zip member: a path outside the root (400),
-an upload or unpacked archive over `max_upload_mb` (413), a malformed archive (422).
+Every refusal is one line naming the upload or zip member: an upload or unpacked archive over
+`max_upload_mb` (413), a malformed archive (422).
 """
 
 from __future__ import annotations
 
-import os
 import shutil
 import stat
 import zipfile
@@ -16,42 +16,13 @@ from pathlib import Path, PurePosixPath
 
 from fastapi import Request
 
-from app.core.errors import ConfigError, InputError, PathOutsideRootError, UploadTooLargeError
+from app.core.errors import ConfigError, InputError, UploadTooLargeError
 from app.io.detect import FILE_SUFFIXES, detect_format
 
 UPLOAD_SUFFIXES = (*sorted(FILE_SUFFIXES), ".zip")
 MAX_ZIP_MEMBERS = 500_000  # a 5,000-frame KITTI drive with images has ~30,000
 COPY_CHUNK = 1 << 20
 SKIPPED_ZIP_FOLDERS = ("__MACOSX/",)  # resource forks macOS adds to archives
-
-
-def resolve_import_path(raw: str, root: Path) -> Path:
-    """RAW (absolute, or relative to ROOT) with symlinks resolved; it and every link inside it
-    must stay within ROOT (PathOutsideRootError), and it must exist (InputError)."""
-    if not raw.strip():
-        raise ConfigError("path", "must not be empty")
-    root = root.resolve()
-    try:
-        given = Path(raw)
-        resolved = (given if given.is_absolute() else root / given).resolve()
-    except (ValueError, OSError) as exc:
-        raise ConfigError("path", f"{raw!r} is not a usable path ({exc})") from None
-    if not resolved.is_relative_to(root):
-        raise PathOutsideRootError(raw, root)
-    if not resolved.exists():
-        raise InputError(raw, "does not exist")
-    if resolved.is_dir():
-        check_links_inside(resolved, root)
-    return resolved
-
-
-def check_links_inside(folder: Path, root: Path) -> None:
-    """A reader follows links, so a folder inside ROOT holding a link to /etc is refused."""
-    for dirpath, dirnames, filenames in os.walk(folder, followlinks=False):
-        for name in (*dirnames, *filenames):
-            entry = Path(dirpath) / name
-            if entry.is_symlink() and not entry.resolve().is_relative_to(root):
-                raise PathOutsideRootError(entry, root)
 
 
 def check_upload_name(filename: str) -> str:

@@ -31,6 +31,7 @@ TASK_MODULES = (
     "app.jobs.clutter_tasks",
     "app.jobs.guardrail_tasks",
     "app.jobs.training_tasks",
+    "app.jobs.survey_tasks",
 )
 EXTRA_TASK_MODULES_ENV = "MMSCLEAN_EXTRA_TASK_MODULES"
 

@@ -7,6 +7,7 @@ import io
 import os
 import shutil
 import stat
+import time
 import zipfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -328,3 +329,41 @@ def test_needs_login(server: Server) -> None:
     assert httpx.get(f"{server.url}/surveys").status_code == 401
     response = httpx.post(f"{server.url}/surveys/import", json={"path": "x"})
     assert response.status_code == 401
+
+
+def test_import_as_a_job(server: Server, sim_dir: Path, annotator: httpx.Client) -> None:
+    """`import:survey` through /jobs: the path is checked when queued (400 / 422 at once), the
+    worker registers the survey (audited with the job), a folder with nothing readable fails
+    the job with the reader's message."""
+    body = {"kind": "import:survey", "config": {"path": "incoming/sim-street", "name": "by job"}}
+    queued = annotator.post("/jobs", json=body)
+    assert queued.status_code == 201, queued.text
+    job = wait_job_done(annotator, queued.json()["id"])
+    assert job["status"] == "succeeded", job
+    survey = annotator.get(f"/surveys/{job['result']['survey_id']}").json()
+    assert survey["name"] == "by job" and survey["frame_count"] == 5
+    assert job["result"] == {"survey_id": survey["id"], "name": "by job", "frames": 5}
+    assert audit_actions(server, survey["id"])[-1] == "survey.import"
+
+    outside = annotator.post("/jobs", json={"kind": "import:survey", "config": {"path": "/etc"}})
+    assert outside.status_code == 400
+    assert outside.json()["detail"].startswith("/etc: outside the allowed import root")
+    for config, field in (({}, "config.path"), ({"path": "x", "speed": 1}, "config.speed")):
+        refused = annotator.post("/jobs", json={"kind": "import:survey", "config": config})
+        assert refused.status_code == 422 and refused.json()["detail"].startswith(field)
+
+    empty = server.data_dir / "incoming" / "empty-drive"
+    (empty / "velodyne_points" / "data").mkdir(parents=True)
+    failing = {"kind": "import:survey", "config": {"path": str(empty), "format": "kitti-raw"}}
+    job = wait_job_done(annotator, annotator.post("/jobs", json=failing).json()["id"])
+    assert job["status"] == "failed" and "empty-drive" in job["message"]
+
+
+def wait_job_done(client: httpx.Client, job_id: int, timeout: float = 120.0) -> dict:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        job = client.get(f"/jobs/{job_id}").json()
+        if job["status"] in ("succeeded", "failed", "cancelled", "interrupted"):
+            return job
+        time.sleep(0.2)
+    raise AssertionError(f"job {job_id} still not finished after {timeout} s")

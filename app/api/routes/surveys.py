@@ -3,7 +3,8 @@
 Imports read only inside `allowed_import_root` (symlinks resolved); uploads are streamed under
 `surveys_dir/<uuid>/` and registered like imports. A survey is opened with its reader before it
 is registered, so bad data answers 422 with the reader's one-line message and leaves nothing
-behind.
+behind. A drive that takes long to open (LiDAR odometry for a KITTI raw drive without OXTS) can
+be imported by a worker instead: `POST /jobs` with kind `import:survey` (app.jobs.survey_tasks).
 """
 
 from __future__ import annotations
@@ -16,22 +17,14 @@ from typing import Any
 
 from fastapi import APIRouter, Query, Request, Response
 from pydantic import BaseModel, Field
-from sqlmodel import Session
 from starlette.concurrency import run_in_threadpool
 
 from app.api.deps import Annotator, CurrentUser, Reviewer, SessionDep, SettingsDep
 from app.api.errors import errors
-from app.api.uploads import (
-    check_upload_name,
-    extract_zip,
-    receive_upload,
-    remove_tree,
-    resolve_import_path,
-)
-from app.core.errors import InputError, MmscleanError
-from app.io import open_survey
-from app.io.detect import detect_format
-from app.io.point_files import one_line
+from app.api.uploads import check_upload_name, extract_zip, receive_upload, remove_tree
+from app.core.errors import InputError
+from app.io.import_root import resolve_import_path
+from app.jobs.survey_tasks import import_source
 from app.store.models import Job, JobStatus, Survey
 from app.store.pillar_labels import label_counts
 from app.store.surveys import (
@@ -40,7 +33,6 @@ from app.store.surveys import (
     get_survey,
     latest_jobs,
     list_surveys,
-    register_opened_survey,
     surveys_using,
 )
 
@@ -115,37 +107,6 @@ class SurveyImport(BaseModel):
     path: str = Field(min_length=1, max_length=4096, description="inside the import root")
     format: str | None = Field(None, description="reader name; detected when absent")
     name: str | None = Field(None, min_length=1, max_length=255)
-
-
-def import_source(
-    session: Session,
-    source: Path,
-    fmt: str | None,
-    name: str | None,
-    user_id: int | None,
-    action: str,
-    **payload: Any,
-) -> Survey:
-    """Open SOURCE with its reader (format detected when not given) and register it."""
-    fmt = fmt or detect_format(source)
-    try:
-        opened = open_survey(source, fmt)
-        if not len(opened):
-            raise InputError(source, "holds no frames")
-        return register_opened_survey(
-            session,
-            opened,
-            format=fmt,
-            source_path=source,
-            name=name,
-            created_by=user_id,
-            action=action,
-            **payload,
-        )
-    except MmscleanError:
-        raise
-    except (OSError, ValueError) as exc:
-        raise InputError(source, one_line(exc)) from exc
 
 
 @router.get("", response_model=list[SurveyPublic])

@@ -1,0 +1,91 @@
+"""`import:survey`: register a survey from a server path as a job, for drives whose opening takes
+long (a KITTI raw drive without OXTS gets its poses from LiDAR odometry first, about 50 ms a
+frame). The import route of the API does the same in the request; both go through
+`import_source`. Config: `path` (inside the import root), optional `format` and `name`; result:
+the new survey's id and name.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from sqlmodel import Session
+
+from app.core.errors import ConfigError, InputError, MmscleanError
+from app.core.settings import Settings
+from app.io import open_survey
+from app.io.detect import detect_format
+from app.io.import_root import resolve_import_path
+from app.io.point_files import one_line
+from app.jobs.registry import JobContext, task
+from app.store.models import Survey
+from app.store.surveys import register_opened_survey
+
+KIND = "import:survey"
+FIELDS = ("path", "format", "name")
+
+
+def import_source(
+    session: Session,
+    source: Path,
+    fmt: str | None,
+    name: str | None,
+    user_id: int | None,
+    action: str,
+    **payload: Any,
+) -> Survey:
+    """Open SOURCE with its reader (format detected when not given) and register it."""
+    fmt = fmt or detect_format(source)
+    try:
+        opened = open_survey(source, fmt)
+        if not len(opened):
+            raise InputError(source, "holds no frames")
+        return register_opened_survey(
+            session,
+            opened,
+            format=fmt,
+            source_path=source,
+            name=name,
+            created_by=user_id,
+            action=action,
+            **payload,
+        )
+    except MmscleanError:
+        raise
+    except (OSError, ValueError) as exc:
+        raise InputError(source, one_line(exc)) from exc
+
+
+def check_import_config(config: dict[str, Any], settings: Settings) -> None:
+    """Refused when queued: unknown options, a path outside the import root or missing."""
+    unknown = sorted(set(config) - set(FIELDS))
+    if unknown:
+        raise ConfigError(f"config.{unknown[0]}", f"{KIND} takes {', '.join(FIELDS)}")
+    path = config.get("path")
+    if not isinstance(path, str):
+        raise ConfigError("config.path", "must be the survey's path inside the import root")
+    for key in ("format", "name"):
+        value = config.get(key)
+        if value is not None and (not isinstance(value, str) or not value.strip()):
+            raise ConfigError(f"config.{key}", "must be a non-empty string when given")
+    resolve_import_path(path, settings.allowed_import_root)
+
+
+@task(KIND, check=check_import_config)
+def import_survey(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
+    check_import_config(config, context.settings)
+    source = resolve_import_path(config["path"], context.settings.allowed_import_root)
+    context.progress(0.05, f"opening {source.name}")
+    with Session(context.engine) as session:
+        survey = import_source(
+            session,
+            source,
+            config.get("format"),
+            config.get("name"),
+            context.user_id,
+            "survey.import",
+            requested=config["path"],
+            job_id=context.job_id,
+        )
+        return {"survey_id": survey.id, "name": survey.name, "frames": survey.frame_count}
