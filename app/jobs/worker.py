@@ -13,6 +13,7 @@ import ctypes
 import json
 import logging
 import os
+import shutil
 import signal
 import sys
 import time
@@ -120,6 +121,11 @@ def run_job(
 ) -> JobStatus:
     """Run one claimed job to its end state; returns that state."""
     workdir = (settings.jobs_dir / str(job.id)).resolve()
+    if job.attempts <= 1 and workdir.exists():
+        # a first attempt owns nothing yet: this folder is a deleted job's whose id SQLite
+        # handed out again (a survey's deletion takes its jobs with it); its files must not
+        # show up as this job's
+        shutil.rmtree(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     log_path = workdir / "job.log"
     set_workdir(engine, job.id, str(log_path), str(workdir))

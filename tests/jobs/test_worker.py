@@ -20,9 +20,9 @@ import app.jobs.pool as pool_module
 import app.jobs.worker as worker_module
 from app.core.settings import Settings
 from app.jobs.pool import WorkerPool
-from app.jobs.queue import enqueue, request_cancel, resume
-from app.jobs.registry import EXTRA_TASK_MODULES_ENV
-from app.jobs.worker import ProgressReporter, one_line
+from app.jobs.queue import claim_next, enqueue, request_cancel, resume
+from app.jobs.registry import EXTRA_TASK_MODULES_ENV, load_tasks
+from app.jobs.worker import ProgressReporter, one_line, run_job
 from app.store.db import init_db, make_engine
 from app.store.models import Job, JobStatus
 from tests.jobs.sample_tasks import MODULE as SAMPLE_TASKS
@@ -248,3 +248,22 @@ def test_workers_die_with_a_killed_server(tmp_path: Path) -> None:
     while any(_alive(p) for p in pids):
         assert time.monotonic() < deadline, "workers outlived their server"
         time.sleep(0.1)
+
+
+def test_a_first_attempt_starts_in_an_empty_folder(tmp_path: Path, monkeypatch) -> None:
+    """A job id SQLite hands out again (its job was deleted with its survey) finds the old
+    job's folder: the first attempt clears it, so no stale file passes for the new job's."""
+    monkeypatch.setenv(EXTRA_TASK_MODULES_ENV, SAMPLE_TASKS)
+    settings = make_settings(tmp_path / "var", 1)
+    engine = make_engine(settings.database_url)
+    init_db(engine)
+    with Session(engine) as session:
+        job = enqueue(session, "test:steps", {"steps": 1}, None, None, settings)
+    stale = settings.jobs_dir / str(job.id) / "cleaned.laz"
+    stale.parent.mkdir(parents=True)
+    stale.write_bytes(b"an older job's map")
+    claimed = claim_next(engine, os.getpid())
+    assert claimed is not None and claimed.attempts == 1
+    assert run_job(engine, settings, claimed, load_tasks(), os.getppid()) == JobStatus.succeeded
+    assert not stale.exists() and (stale.parent / "job.log").is_file()
+    engine.dispose()
