@@ -22,7 +22,10 @@ Changing the schema later:
    them again). `add_column` covers the common case; new tables are `CREATE TABLE` statements.
    SQLite cannot drop constraints or change a column's type in place: rebuild the table
    (create `x_new`, copy, drop `x`, rename); `PRAGMA defer_foreign_keys = ON` inside the
-   migration keeps foreign keys from firing mid-rebuild.
+   migration keeps foreign key *checks* from firing mid-rebuild, but not their *actions*: never
+   rebuild a table other tables reference with ON DELETE CASCADE this way (DROP TABLE deletes
+   its rows first, cascading into the children, and `PRAGMA foreign_keys` cannot be switched
+   off inside the migration's transaction).
 3. add a test that builds a version N-1 database with rows and migrates it.
 """
 
