@@ -28,6 +28,14 @@ TOKEN_COOKIE = "mmsclean_token"
 SAFE_METHODS = {"GET", "HEAD"}
 
 
+def wake_viewer(request: Request) -> None:
+    """After a label or review write: open viewers follow it now, not at the next poll of their
+    feed (`app.viewer.label_feed`, which also sees writes from other processes)."""
+    viewer = getattr(request.app.state, "viewer", None)
+    if viewer is not None:
+        viewer.labels_written()
+
+
 def get_settings_dep(request: Request) -> Settings:
     return request.app.state.settings
 

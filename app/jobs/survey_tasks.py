@@ -57,8 +57,9 @@ def import_source(
         raise InputError(source, one_line(exc)) from exc
 
 
-def check_import_config(config: dict[str, Any], settings: Settings) -> None:
-    """Refused when queued: unknown options, a path outside the import root or missing."""
+def check_import_config(config: dict[str, Any], settings: Settings) -> Path:
+    """Refused when queued: unknown options, a path outside the import root or missing; the
+    path resolved inside the root."""
     unknown = sorted(set(config) - set(FIELDS))
     if unknown:
         raise ConfigError(f"config.{unknown[0]}", f"{KIND} takes {', '.join(FIELDS)}")
@@ -69,13 +70,12 @@ def check_import_config(config: dict[str, Any], settings: Settings) -> None:
         value = config.get(key)
         if value is not None and (not isinstance(value, str) or not value.strip()):
             raise ConfigError(f"config.{key}", "must be a non-empty string when given")
-    resolve_import_path(path, settings.allowed_import_root)
+    return resolve_import_path(path, settings.allowed_import_root)
 
 
 @task(KIND, check=check_import_config)
 def import_survey(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
-    check_import_config(config, context.settings)
-    source = resolve_import_path(config["path"], context.settings.allowed_import_root)
+    source = check_import_config(config, context.settings)  # again: the folder may have changed
     context.progress(0.05, f"opening {source.name}")
     with Session(context.engine) as session:
         survey = import_source(

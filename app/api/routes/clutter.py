@@ -18,7 +18,7 @@ from fastapi import APIRouter, Query, Request
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field
 
-from app.api.deps import CurrentUser, Reviewer, SessionDep, SettingsDep
+from app.api.deps import CurrentUser, Reviewer, SessionDep, SettingsDep, wake_viewer
 from app.api.errors import errors
 from app.api.routes.jobs import JobPublic
 from app.core.errors import ConflictError, NotFoundError
@@ -155,14 +155,6 @@ def read_frames(survey_id: int, _: CurrentUser, session: SessionDep) -> list[Fra
     return [FrameReview(**c.__dict__) for c in frame_counts(session, survey_id)]
 
 
-def _wake_viewer(request: Request) -> None:
-    """Viewer hook (as pillars.py): open viewer modes on the survey follow this write now, not
-    at the next poll of their feed (`app.viewer.label_feed`, which also sees other processes)."""
-    viewer = getattr(request.app.state, "viewer", None)
-    if viewer is not None:
-        viewer.labels_written()
-
-
 @router.post("/decisions", response_model=list[InstancePublic], responses=errors(403, 409, 422))
 def post_decisions(
     survey_id: int, body: DecisionBatch, user: Reviewer, session: SessionDep, request: Request
@@ -173,7 +165,7 @@ def post_decisions(
     get_survey(session, survey_id)
     writes = [DecisionWrite(d.instance_id, d.version, d.decision) for d in body.decisions]
     states = decide(session, survey_id, writes, user.id)
-    _wake_viewer(request)
+    wake_viewer(request)
     return [InstancePublic.of(s) for s in states]
 
 

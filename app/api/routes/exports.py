@@ -155,7 +155,16 @@ def mesh_file(model: GuardrailModel, fmt: str) -> Path:
 
 def write_guardrails_zip(session: Session, survey: Survey, fmt: str, archive: Path) -> int:
     """The approved guardrail models' meshes in FMT and a manifest.json of their parameters,
-    zipped to ARCHIVE (whole or not at all); the number of models."""
+    zipped to ARCHIVE (whole or not at all: on any failure ARCHIVE is removed); the number of
+    models."""
+    try:
+        return _write_guardrails_zip(session, survey, fmt, archive)
+    except BaseException:
+        archive.unlink(missing_ok=True)
+        raise
+
+
+def _write_guardrails_zip(session: Session, survey: Survey, fmt: str, archive: Path) -> int:
     rows = session.exec(
         select(GuardrailModel, User.username)
         .outerjoin(User, col(User.id) == col(GuardrailModel.decided_by))
@@ -190,15 +199,11 @@ def write_guardrails_zip(session: Session, survey: Survey, fmt: str, archive: Pa
                 "params": {k: v for k, v in model.params.items() if k != "files"},
             }
         )
-    try:
-        with zipfile.ZipFile(archive, "w", zipfile.ZIP_DEFLATED) as zf:
-            for path, arcname in members:
-                zf.write(path, arcname)
-            info = {"survey": survey.name, "survey_id": survey.id, "format": fmt}
-            zf.writestr("manifest.json", json.dumps({**info, "models": manifest}, indent=1))
-    except BaseException:
-        archive.unlink(missing_ok=True)
-        raise
+    with zipfile.ZipFile(archive, "w", zipfile.ZIP_DEFLATED) as zf:
+        for path, arcname in members:
+            zf.write(path, arcname)
+        info = {"survey": survey.name, "survey_id": survey.id, "format": fmt}
+        zf.writestr("manifest.json", json.dumps({**info, "models": manifest}, indent=1))
     return len(members)
 
 
@@ -213,11 +218,7 @@ def guardrails_zip(
     """The approved guardrail models as meshes, with a manifest.json of their parameters."""
     survey = get_survey(session, survey_id)
     archive = temp_file(settings, ".zip")
-    try:
-        count = write_guardrails_zip(session, survey, format, archive)
-    except BaseException:
-        archive.unlink(missing_ok=True)
-        raise
+    count = write_guardrails_zip(session, survey, format, archive)
     exported(session, user.id, survey, "guardrails_zip", format=format, models=count)
     return FileResponse(
         archive,

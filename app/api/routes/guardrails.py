@@ -15,7 +15,7 @@ from fastapi import APIRouter, Query, Request
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field
 
-from app.api.deps import Annotator, CurrentUser, Reviewer, SessionDep
+from app.api.deps import Annotator, CurrentUser, Reviewer, SessionDep, wake_viewer
 from app.api.errors import errors
 from app.core.errors import ConflictError, NotFoundError
 from app.jobs.guardrail_tasks import preview_correction, slice_position
@@ -115,14 +115,6 @@ class JobRef(BaseModel):
     status: str
 
 
-def _wake_viewer(request: Request) -> None:
-    """Viewer hook (as pillars.py): open viewer modes on the survey follow this write now, not
-    at the next poll of their feed (`app.viewer.label_feed`, which also sees other processes)."""
-    viewer = getattr(request.app.state, "viewer", None)
-    if viewer is not None:
-        viewer.labels_written()
-
-
 @router.get("/slices", response_model=SlicePage, responses=errors(422))
 def get_slices(
     survey_id: int,
@@ -153,7 +145,7 @@ def put_slices(
     """Label many slices at once (all or nothing); 409 with `current` on a stale version."""
     edits = [SliceLabelEdit(s.id, s.version, s.label) for s in body.slices]
     rows = put_slice_labels(session, survey_id, edits, user)
-    _wake_viewer(request)
+    wake_viewer(request)
     return [GuardrailSlicePublic.of(r) for r in rows]
 
 
@@ -230,7 +222,7 @@ def post_decision(
     """Approve or reject a reconstructed guardrail (reviewer); 409 with `current` when stale."""
     status = ModelStatus(body.status)
     row = decide_model(session, survey_id, model_id, body.version, status, user)
-    _wake_viewer(request)
+    wake_viewer(request)
     return GuardrailModelPublic.of(row)
 
 

@@ -12,7 +12,7 @@ import numpy as np
 from fastapi import APIRouter, BackgroundTasks, Query, Request, Response
 from pydantic import BaseModel, Field, model_validator
 
-from app.api.deps import Annotator, CurrentUser, SessionDep
+from app.api.deps import Annotator, CurrentUser, SessionDep, wake_viewer
 from app.api.errors import errors
 from app.store.models import LabelSource, PillarClass
 from app.store.pillar_labels import (
@@ -106,14 +106,6 @@ def _write_out(result: LabelWrite) -> LabelWriteOut:
     )
 
 
-def _wake_viewer(request: Request) -> None:
-    """Viewer hook: open viewers recolour the written pillars now, not at the next poll of
-    their label feed (`app.viewer.label_feed`, which also sees writes from other processes)."""
-    viewer = getattr(request.app.state, "viewer", None)
-    if viewer is not None:
-        viewer.labels_written()
-
-
 def _after_write(request: Request, background: BackgroundTasks) -> None:
     """Reviewed labels count towards the retraining trigger, checked after the answer is sent."""
     trigger = getattr(request.app.state, "retraining_trigger", None)
@@ -145,7 +137,7 @@ def put_labels(
     versions = [i.version for i in items]
     checked = versions if any(v is not None for v in versions) else None
     result = write_labels(session, survey_id, user.id, cell_ids, labels, checked)
-    _wake_viewer(request)
+    wake_viewer(request)
     _after_write(request, background)
     return _write_out(result)
 
@@ -180,7 +172,7 @@ def undo_labels(
     when someone changed those pillars since)."""
     get_survey(session, survey_id)
     result = undo(session, survey_id, user.id)
-    _wake_viewer(request)
+    wake_viewer(request)
     return _write_out(result)
 
 
@@ -191,7 +183,7 @@ def redo_labels(
     """Re-apply this user's most recently undone action (gone once they label anew)."""
     get_survey(session, survey_id)
     result = redo(session, survey_id, user.id)
-    _wake_viewer(request)
+    wake_viewer(request)
     return _write_out(result)
 
 

@@ -62,8 +62,8 @@ class _Stacked:
     SPACING = 1000.0  # metres: far beyond an object plus its motion
 
     def __init__(self, previous: list[np.ndarray], current: list[np.ndarray]):
-        self.centre = np.stack([p.mean(axis=0) for p in previous])
-        place = self.centre - np.arange(len(previous))[:, None] * [self.SPACING, 0.0, 0.0]
+        centre = np.stack([p.mean(axis=0) for p in previous])
+        place = centre - np.arange(len(previous))[:, None] * [self.SPACING, 0.0, 0.0]
         self.target_owner = np.repeat(np.arange(len(previous)), [len(p) for p in previous])
         self.source_owner = np.repeat(np.arange(len(current)), [len(c) for c in current])
         self.target = np.concatenate(previous) - place[self.target_owner]
