@@ -41,15 +41,21 @@ COMMAND = (
     "MMSCLEAN_DATA_DIR=/tmp/mmsvar .venv/bin/python -m bench.clutter"
 )
 
-# grid of the fused method: expansion thresholds need a pipeline run, fusion ones a re-fusion
-EXPANSION_GRID = {"min_mask_fraction": (0.3, 0.5, 0.7), "min_seed_share": (0.1, 0.2, 0.4)}
+# grid of the fused method: cluster and expansion settings need a pipeline run, fusion ones a
+# re-fusion
+RUN_GRID = {
+    "ground_tolerance": (0.1, 0.15, 0.25),
+    "cluster_voxel": (0.3, 0.4, 0.5),
+    "min_mask_fraction": (0.3, 0.7),
+    "min_seed_share": (0.1, 0.4),
+}
 FUSION_GRID = {
     "free_in_view": ("all", "masked"),
     "min_free_fraction": (0.1, 0.3, 0.5),
     "min_speed": (0.5, 1.0, 2.0, 4.0),
 }
-# only the clutter mode holds a track's class through missed masks
-CLUTTER_FUSION_GRID = {"min_class_share": (0.5, 1.0)}
+# only the clutter mode holds a track's class through missed masks (and outvotes stray ones)
+CLUTTER_FUSION_GRID = {"min_class_share": (0.5, 1.0), "outvote_masks": (False, True)}
 
 
 def fusion_grid(mode: str) -> dict[str, tuple]:
@@ -102,15 +108,15 @@ def run(seq: Sequence, config: ClutterConfig) -> ClutterResult:
 def fused_grid(seqs: list[Sequence], mode: str) -> dict[tuple, dict[str, dict]]:
     """metrics[(grid point)][sequence] for every grid point of the fused method."""
     out: dict[tuple, dict[str, dict]] = {}
-    for expansion in itertools.product(*EXPANSION_GRID.values()):
-        base = ClutterConfig(mode=mode, **dict(zip(EXPANSION_GRID, expansion, strict=True)))
+    for settings in itertools.product(*RUN_GRID.values()):
+        base = ClutterConfig(mode=mode, **dict(zip(RUN_GRID, settings, strict=True)))
         for seq in seqs:
             result = run(seq, base)
             grid = fusion_grid(mode)
             for fusion in itertools.product(*grid.values()):
                 cfg = base.model_copy(update=dict(zip(grid, fusion, strict=True)))
                 removed = fuse(result.evidence, result.tracks, cfg)
-                out.setdefault(expansion + fusion, {})[seq.name] = score(
+                out.setdefault(settings + fusion, {})[seq.name] = score(
                     seq, removed, result.in_view
                 )
     return out
@@ -132,7 +138,7 @@ def chosen_on_all(grid: dict[tuple, dict[str, dict]], mode: str, names: list[str
 
 
 def describe(point: tuple, mode: str) -> str:
-    keys = list(EXPANSION_GRID) + list(fusion_grid(mode))
+    keys = list(RUN_GRID) + list(fusion_grid(mode))
     return ", ".join(f"{k}={v}" for k, v in zip(keys, point, strict=True))
 
 
@@ -346,7 +352,7 @@ def main() -> int:
             rows.append(rows_for(mode, seq.name, "**mmsclean fused (LOSO)**", pick["metrics"]))
             choices.append(f"{seq.name}: {describe(pick['point'], mode)}")
             if mode == "clutter":
-                keys = list(EXPANSION_GRID) + list(fusion_grid(mode))
+                keys = list(RUN_GRID) + list(fusion_grid(mode))
                 cfg = ClutterConfig(mode=mode, **dict(zip(keys, pick["point"], strict=True)))
                 t0 = time.perf_counter()
                 run(seq, cfg)

@@ -9,7 +9,11 @@
 - `clutter` (the paper's definition, for HD maps): every movable object, parked ones included:
   the camera's expanded instances, every frame of a track the camera ever classified (after the
   object left the view; in the view when the camera classed it in at least `min_class_share` of
-  the frames where it saw it), and everything the dynamic mode removes.
+  the frames where it saw it), and everything the dynamic mode removes. With `outvote_masks`
+  the vote also goes the other way: a track the camera saw in some frames but classed in fewer
+  than `min_class_share` of them is background a mask grazed now and then (a kiosk, an awning,
+  a column beside a car): only the points on its camera instances go, not its whole cluster,
+  and its class is not carried anywhere.
 """
 
 from __future__ import annotations
@@ -32,14 +36,22 @@ class FrameEvidence:
     cluster: np.ndarray  # (N,) int32 cluster id, -1 = ground / out of range
     free: np.ndarray  # (N,) bool: DUFOMap free-space flag
     ground: np.ndarray | None = None  # (N,) bool: within ground_tolerance of the frame's ground
-    # kept for review (which camera instance a removed point came from); fusion ignores them
+    # which camera instance a point lies on (review; fusion keeps only these of outvoted tracks)
     instance: np.ndarray | None = None  # (N,) int32 camera instance id, -1 = none
     mask_class: np.ndarray | None = None  # (N,) uint8 clutter class under the unpadded mask
 
 
+def outvoted(tracks: TrackEvidence, config: ClutterConfig) -> np.ndarray:
+    """(T,) bool: clutter mode, the camera classed the track in a minority of the frames that
+    saw it."""
+    if config.mode != "clutter" or not config.outvote_masks:
+        return np.zeros(len(tracks.class_share), dtype=bool)
+    return (tracks.seen_frames > 0) & (tracks.class_share < config.min_class_share)
+
+
 def track_decisions(tracks: TrackEvidence, config: ClutterConfig) -> tuple[np.ndarray, np.ndarray]:
     """(moving, movable) per track."""
-    movable = tracks.camera_class > 0
+    movable = (tracks.camera_class > 0) & ~outvoted(tracks, config)
     moving = movable & (tracks.speed >= config.min_speed)
     if config.use_free_space:
         moving |= tracks.free_fraction >= config.min_free_fraction
@@ -60,6 +72,7 @@ def fuse(
     """Per frame, (N,) bool removed."""
     if tracks is not None:
         moving, movable = track_decisions(tracks, config)
+        background = outvoted(tracks, config)
     removed = []
     for i, ev in enumerate(evidence):
         gone = np.zeros(len(ev.free), dtype=bool)
@@ -67,13 +80,19 @@ def fuse(
             # in the view the camera vouches for objects: a free-space point it sees as background
             # (no padded mask on it) is DUFOMap's noise at surfaces grazed by rays
             gone |= ev.free & (~ev.in_view | ev.padded | (config.free_in_view == "all"))
-        if config.mode == "clutter" and config.use_camera:
-            gone |= ev.camera_removed
         if tracks is not None:
             point_track = np.full(len(ev.cluster), -1, dtype=np.int64)
             clustered = ev.cluster >= 0
             point_track[clustered] = tracks.cluster_track[i][ev.cluster[clustered]]
             tracked = point_track >= 0
+        if config.mode == "clutter" and config.use_camera:
+            camera = ev.camera_removed
+            if tracks is not None and ev.instance is not None and background.any():
+                voted = np.zeros(len(camera), dtype=bool)
+                voted[tracked] = background[point_track[tracked]]
+                camera = camera & ~(voted & (ev.instance < 0))
+            gone |= camera
+        if tracks is not None:
             gone[tracked] |= moving[point_track[tracked]]
             if config.mode == "clutter":
                 # a classified object keeps its class where the camera cannot see it; in the view

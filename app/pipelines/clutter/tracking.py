@@ -109,6 +109,7 @@ class TrackEvidence:
     camera_class: np.ndarray  # (T,) uint8 most frequent class of its camera instances
     free_fraction: np.ndarray  # (T,)
     class_share: np.ndarray  # (T,) of the frames whose camera saw the object, those that classed it
+    seen_frames: np.ndarray  # (T,) frames whose camera saw most of the object
     cluster_track: list[np.ndarray]  # per frame, (C,) int32 track id, -1 = untracked
 
 
@@ -235,4 +236,6 @@ def _evidence(
     with np.errstate(invalid="ignore", divide="ignore"):
         free_fraction = np.where(points > 0, free / points, 0.0)
         class_share = np.where(seen > 0, classed / seen, 0.0)
-    return TrackEvidence(tracks, speed, camera_class, free_fraction, class_share, cluster_track)
+    return TrackEvidence(
+        tracks, speed, camera_class, free_fraction, class_share, seen, cluster_track
+    )

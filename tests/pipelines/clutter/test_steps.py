@@ -191,3 +191,34 @@ def test_clutter_mode_holds_a_class_through_a_missed_mask() -> None:
     strict = fuse(evidence, tracks, ClutterConfig(mode="clutter", min_class_share=1.0))
     assert all(r.all() for r in held)
     assert not strict[2].any() and strict[1].all()
+
+
+def test_clutter_mode_outvotes_a_mask_the_track_rarely_had() -> None:
+    """A kiosk the camera sees in 4 frames and calls a car in 1: with outvote_masks only the
+    points on that frame's instance go (not its whole cluster), and it is not carried out of
+    the view; without, the whole cluster goes there and in the frame the camera cannot see it."""
+    observations = _observations([[[20, 5, 1]] for _ in range(5)])
+    for i, obs in enumerate(observations):
+        obs.seen = np.array([i < 4])
+        obs.camera_class = np.array([3 if i == 1 else 0], np.uint8)
+    tracks = track_clusters(observations, gate=2.5, min_frames=3)
+    assert tracks.class_share.tolist() == [0.25]
+    assert tracks.seen_frames.tolist() == [4]
+    evidence = [
+        FrameEvidence(
+            in_view=np.full(4, i < 4),
+            camera_removed=np.full(4, i == 1),  # the whole cluster, grown from one instance
+            padded=np.full(4, i == 1),
+            cluster=np.zeros(4, np.int32),
+            free=np.zeros(4, bool),
+            instance=np.array([0, 0, -1, -1] if i == 1 else [-1] * 4, np.int32),
+        )
+        for i in range(5)
+    ]
+    kept = fuse(evidence, tracks, ClutterConfig(mode="clutter", outvote_masks=False))
+    voted = fuse(evidence, tracks, ClutterConfig(mode="clutter", outvote_masks=True))
+    assert kept[1].all() and kept[4].all()  # whole cluster, and carried out of the view
+    assert voted[1].tolist() == [True, True, False, False]
+    assert not voted[4].any() and not voted[0].any()
+    dynamic = fuse(evidence, tracks, ClutterConfig(mode="dynamic", outvote_masks=True))
+    assert not any(r.any() for r in dynamic)  # the vote is a clutter-mode rule
