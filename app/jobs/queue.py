@@ -22,7 +22,7 @@ from sqlmodel import Session
 from app.core.errors import ConfigError, ConflictError, NotFoundError
 from app.core.settings import Settings, get_settings
 from app.jobs.registry import check_config, task_for
-from app.store.audit import audit
+from app.store.audit import audit, unused_id
 from app.store.db import commit
 from app.store.models import Job, JobStatus, Survey, utcnow
 
@@ -64,6 +64,7 @@ def _new_job(
     job = Job(
         kind=kind, config=dict(config), survey_id=survey_id, created_by=user_id, message=message
     )
+    job.id = unused_id(Job, "job")  # type: ignore[assignment]
     session.add(job)
     session.flush()
     return job

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from sqlmodel import Session
+import sqlalchemy as sa
+from sqlmodel import Session, SQLModel
 
 from app.store.models import AuditEvent
 
@@ -27,3 +28,20 @@ def audit(
             payload=payload,
         )
     )
+
+
+def unused_id(model: type[SQLModel], entity: str) -> sa.ColumnElement[int]:
+    """SQL for a new id of `model` that no live row and no audit event of `entity` has used.
+
+    The tables have no AUTOINCREMENT (rebuilding them would cascade into their children), so
+    SQLite hands the highest id out again after that row's deletion: a survey registered after
+    the newest one was deleted would inherit its audit history, a job its events. Assign it to
+    the new record's id: it is evaluated inside the INSERT, so two writers cannot draw one id.
+    """
+    live = sa.select(sa.func.max(model.id)).scalar_subquery()  # type: ignore[attr-defined]
+    audited = (
+        sa.select(sa.func.max(sa.cast(AuditEvent.entity_id, sa.Integer)))
+        .where(AuditEvent.entity == entity)
+        .scalar_subquery()
+    )
+    return sa.func.max(sa.func.coalesce(live, 0), sa.func.coalesce(audited, 0)) + 1

@@ -15,7 +15,7 @@ import numpy as np
 from sqlmodel import Session, col, func, select
 
 from app.core.errors import ConflictError, NotFoundError
-from app.store.audit import audit
+from app.store.audit import audit, unused_id
 from app.store.db import commit
 from app.store.models import Frame, Job, JobStatus, Survey
 
@@ -101,6 +101,7 @@ def register_survey(
         origin_z=origin[2],
         created_by=created_by,
     )
+    survey.id = unused_id(Survey, "survey")  # type: ignore[assignment]
     session.add(survey)
     session.flush()
     session.add_all(

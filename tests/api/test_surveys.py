@@ -324,6 +324,12 @@ def test_delete(
     engine.dispose()
     assert frames == []  # cascaded
 
+    # the next survey does not get the deleted newest one's id (nor its history)
+    again = annotator.post("/surveys/upload", params={"filename": "new.laz"}, content=data)
+    assert again.json()["id"] > imported["id"]
+    assert audit_actions(server, again.json()["id"]) == ["survey.upload"]
+    assert reviewer.delete(f"/surveys/{again.json()['id']}").status_code == 204
+
 
 def test_needs_login(server: Server) -> None:
     assert httpx.get(f"{server.url}/surveys").status_code == 401

@@ -50,6 +50,17 @@ def test_enqueue_records_and_audits(session: Session, settings: Settings) -> Non
     assert [e.entity_id for e in events] == [str(job.id)]
 
 
+def test_a_deleted_jobs_id_is_not_handed_out_again(session: Session, settings: Settings) -> None:
+    """SQLite would reuse the highest rowid; the new job must not inherit the old one's events."""
+    old = enqueue(session, "test:steps", {"steps": 2}, None, None, settings)
+    session.delete(old)
+    session.commit()
+    new = enqueue(session, "test:steps", {"steps": 2}, None, None, settings)
+    assert new.id == old.id + 1
+    events = session.exec(select(AuditEvent.entity_id).where(AuditEvent.entity == "job")).all()
+    assert events == [str(old.id), str(new.id)]
+
+
 @pytest.mark.parametrize(
     ("kind", "config", "survey_id", "field"),
     [
