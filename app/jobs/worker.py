@@ -122,9 +122,9 @@ def run_job(
     """Run one claimed job to its end state; returns that state."""
     workdir = (settings.jobs_dir / str(job.id)).resolve()
     if job.attempts <= 1 and workdir.exists():
-        # a first attempt owns nothing yet: this folder is a deleted job's whose id SQLite
-        # handed out again (a survey's deletion takes its jobs with it); its files must not
-        # show up as this job's
+        # a first attempt owns nothing yet: this folder belongs to a job of an earlier
+        # database (ids are never reused within one, `unused_id`); its files must not show up
+        # as this job's
         shutil.rmtree(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     log_path = workdir / "job.log"
