@@ -138,6 +138,7 @@ function importForm(ctx, refresh) {
   const format = formatSelect("import-format");
   const name = h("input", { id: "import-name", name: "name", placeholder: "optional" });
   const submit = h("button", { type: "submit", class: "primary" }, "Import");
+  const status = h("p", { class: "note", id: "import-status", hidden: true });
   const form = h(
     "form",
     { class: "card form", id: "import-form" },
@@ -145,21 +146,46 @@ function importForm(ctx, refresh) {
     h("p", { class: "note" }, "A path inside the server's import root (MMSCLEAN_IMPORT_ROOT)."),
     h("label", {}, "Path", path),
     h("div", { class: "row" }, h("label", {}, "Format", format), h("label", {}, "Name", name)),
+    status,
     submit,
   );
   form.addEventListener("submit", (event) => {
     event.preventDefault();
     ctx.act(submit, async () => {
-      const body = { path: path.value.trim() };
-      if (format.value) body.format = format.value;
-      if (name.value.trim()) body.name = name.value.trim();
-      const survey = await api("/surveys/import", { method: "POST", json: body });
-      ctx.notice(`Imported survey ${survey.name} (${num(survey.frame_count)} frames).`);
+      const config = { path: path.value.trim() };
+      if (format.value) config.format = format.value;
+      if (name.value.trim()) config.name = name.value.trim();
+      // a worker opens the drive (odometry can take minutes); a bad path is refused at once
+      const job = await api("/jobs", { method: "POST", json: { kind: "import:survey", config } });
       form.reset();
-      await refresh();
+      followImport(ctx, job, config.path, status, refresh);
     });
   });
   return form;
+}
+
+/** Show the import job's progress under the form until it ends, then list the new survey or
+ * say why it failed. */
+function followImport(ctx, job, path, status, refresh) {
+  const link = h("a", { href: `#/jobs/${job.id}` }, `job ${job.id}`);
+  const text = h("span");
+  status.replaceChildren("Importing ", path, " (", link, "): ", text);
+  status.hidden = false;
+  ctx.poll(async () => {
+    const j = await api(`/jobs/${job.id}`);
+    if (ACTIVE.has(j.status)) {
+      text.textContent = `${j.message || j.status} (${Math.round(j.progress * 100)} %)`;
+      return 1000;
+    }
+    status.hidden = true;
+    if (j.status === "succeeded") {
+      ctx.notice(`Imported survey ${j.result.name} (${num(j.result.frames)} frames).`);
+      await refresh();
+    } else {
+      ctx.error(new Error(`Import of ${path} ${j.status}: ${j.message}`));
+    }
+    return null;
+  });
 }
 
 function uploadForm(ctx, refresh) {

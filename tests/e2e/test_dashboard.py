@@ -4,8 +4,8 @@ Plain tests check that the page and every asset it loads are served, and that no
 another host (no CDN: the app must work offline). Browser tests drive Debian's Chromium with
 Playwright: log in, find the sample survey, start `run:phantom` from the survey page and watch
 its progress bar reach 100 %, open its metrics (heat map cells = the job's confusion matrix),
-cancel a running `run:guardrail` from the jobs page, upload and delete a survey, check what an
-annotator is not shown, log out.
+cancel a running `run:guardrail` from the jobs page, upload and delete a survey, import one
+from the server as a job, check what an annotator is not shown, log out.
 
 Screenshots go to the test's tmp dir; `MMSCLEAN_UPDATE_SCREENSHOTS=1` (or a missing file) also
 writes `docs/dashboard.png`, so ordinary runs leave the checkout clean.
@@ -334,6 +334,35 @@ def test_upload_a_survey_with_progress_then_delete_it(page, tmp_path: Path) -> N
     row.locator("button[data-action='delete']").click()
     row.wait_for(state="detached")
     assert page.locator("#surveys tr[data-survey]", has_text="sim-urban-60m").count() == 1
+
+
+@pytest.mark.e2e
+def test_import_from_the_server_runs_as_a_job(page, dashboard_server: Server) -> None:
+    """The import form queues `import:survey`, follows the job under the form and lists the
+    survey when it succeeds; a path outside the import root is refused at once."""
+    rng = np.random.default_rng(5)
+    xyz = rng.uniform([0, 0, 0], [30, 10, 3], size=(5_000, 3)) + [512_000.0, 5_400_000.0, 300]
+    (dashboard_server.data_dir / "imports").mkdir(exist_ok=True)
+    write_laz(dashboard_server.data_dir / "imports" / "street-import.laz", xyz)
+    log_in(page)
+    page.fill("#import-path", "/etc")
+    page.click("#import-form button[type=submit]")
+    page.wait_for_selector("#flash:not([hidden])")
+    assert "import root" in page.locator("#flash").inner_text()
+    assert page.locator("#import-status").is_hidden()
+
+    page.fill("#import-path", "imports/street-import.laz")
+    page.fill("#import-name", "imported street")
+    page.click("#import-form button[type=submit]")
+    page.wait_for_selector("#import-status:not([hidden]) a[href^='#/jobs/']")
+    row = page.locator("#surveys tr[data-survey]", has_text="imported street")
+    row.wait_for(timeout=JOB_TIMEOUT_S * 1000)
+    assert "5,000" in row.inner_text()
+    assert page.locator("#import-status").is_hidden()
+    assert "Imported survey imported street" in page.locator("#flash").inner_text()
+    page.once("dialog", lambda dialog: dialog.accept())
+    row.locator("button[data-action='delete']").click()
+    row.wait_for(state="detached")
 
 
 @pytest.mark.e2e
