@@ -38,10 +38,14 @@ def unused_id(model: type[SQLModel], entity: str) -> sa.ColumnElement[int]:
     the newest one was deleted would inherit its audit history, a job its events. Assign it to
     the new record's id: it is evaluated inside the INSERT, so two writers cannot draw one id.
     """
-    live = sa.select(sa.func.max(model.id)).scalar_subquery()  # type: ignore[attr-defined]
-    audited = (
+    live = sa.func.coalesce(
+        sa.select(sa.func.max(model.id)).scalar_subquery(),  # type: ignore[attr-defined]
+        0,
+    )
+    audited = sa.func.coalesce(
         sa.select(sa.func.max(sa.cast(AuditEvent.entity_id, sa.Integer)))
         .where(AuditEvent.entity == entity)
-        .scalar_subquery()
+        .scalar_subquery(),
+        0,
     )
-    return sa.func.max(sa.func.coalesce(live, 0), sa.func.coalesce(audited, 0)) + 1
+    return sa.case((live >= audited, live), else_=audited) + 1
