@@ -257,7 +257,11 @@ def test_decisions_by_someone_else_show_up_live(review: Review) -> None:
     assert "rejected" in mode.rows[mode.states.index(now)].label
     assert (mode.state[mode.owner == target.instance_index] == REJECTED).all()
     connection.wait(lambda m: is_color_update(m) and m["name"] == "/clutter/frame", mark)
-    colors = cloud_colors(connection, mark)
     mine = shown_owner == target.instance_index
-    assert (colors[mine] == STATE_RGB[REJECTED]).all()
+    # the first update after the mark may still be the selection's highlight: wait for the newest
+    deadline = time.monotonic() + 10
+    while not (cloud_colors(connection, mark)[mine] == STATE_RGB[REJECTED]).all():
+        assert time.monotonic() < deadline, "the client's colours never showed the decision"
+        time.sleep(0.05)
+    colors = cloud_colors(connection, mark)
     assert (colors[shown_owner == chosen.instance_index] == SELECTED_RGB).all()

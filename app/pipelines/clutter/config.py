@@ -41,8 +41,8 @@ class ClutterConfig(BaseModel):
     # per-frame 3D clusters
     max_range: float = Field(80.0, gt=0, description="points farther from the sensor: untouched")
     ground_cell: float = Field(1.0, gt=0, description="metres: cells of the per-frame ground")
-    ground_tolerance: float = Field(0.25, ge=0, description="points this close above: ground")
-    cluster_voxel: float = Field(0.3, gt=0, description="voxel edge of the Euclidean clustering")
+    ground_tolerance: float = Field(0.1, ge=0, description="points this close above: ground")
+    cluster_voxel: float = Field(0.4, gt=0, description="voxel edge of the Euclidean clustering")
     min_mask_fraction: float = Field(
         0.3, ge=0, le=1, description="share of a cluster's seen points on instances to expand it"
     )
@@ -61,7 +61,7 @@ class ClutterConfig(BaseModel):
     dufomap_d_s: float = Field(0.2, ge=0, description="DUFOMap d_s: hit inflation, metres")
     dufomap_d_p: int = Field(1, ge=0, description="DUFOMap d_p: unknown inflation, voxels")
     free_in_view: Literal["all", "masked"] = Field(
-        "all",
+        "masked",
         description="free-space points inside the camera view: all go, or only under a padded mask",
     )
     free_ground: Literal["near_objects", "all"] = Field(
@@ -70,7 +70,7 @@ class ClutterConfig(BaseModel):
         "point above the ground (feet, wheels), or all (DUFOMap's own decision)",
     )
     min_free_fraction: float = Field(
-        0.1, ge=0, le=1, description="share of a track's points in free space to call it moving"
+        0.3, ge=0, le=1, description="share of a track's points in free space to call it moving"
     )
     # tracking
     track_gate: float = Field(2.5, gt=0, description="metres a cluster may be from its prediction")
