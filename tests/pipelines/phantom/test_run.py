@@ -12,23 +12,19 @@ from app.io import open_survey
 from tests.cli import mmsclean
 
 
+def run_phantom(survey: Path, out: Path, model: Path, *extra: str, timeout: float):
+    """`mmsclean run phantom` on a simulated survey folder."""
+    return mmsclean(
+        "run", "phantom", str(survey), "--format", "sim", "--out", str(out),
+        "--model", str(model), *extra, timeout=timeout,
+    )  # fmt: skip
+
+
 def test_run_phantom_contract(
     profile_street: Path, random_phantom_model: Path, tmp_path: Path
 ) -> None:
     out = tmp_path / "out"
-    result = mmsclean(
-        "run",
-        "phantom",
-        str(profile_street),
-        "--format",
-        "sim",
-        "--out",
-        str(out),
-        "--model",
-        str(random_phantom_model),
-        "--baselines",
-        timeout=600,
-    )
+    result = run_phantom(profile_street, out, random_phantom_model, "--baselines", timeout=600)
     assert result.returncode == 0, result.stderr
     survey = open_survey(profile_street, "sim")
     for frame in survey.frames:
@@ -78,18 +74,7 @@ def test_dense_and_windows_agree_on_a_survey(
 
 def test_missing_model_is_one_line(profile_street: Path, tmp_path: Path) -> None:
     missing = tmp_path / "none.pt"
-    result = mmsclean(
-        "run",
-        "phantom",
-        str(profile_street),
-        "--format",
-        "sim",
-        "--out",
-        str(tmp_path / "o"),
-        "--model",
-        str(missing),
-        timeout=120,
-    )
+    result = run_phantom(profile_street, tmp_path / "o", missing, timeout=120)
     assert result.returncode != 0 and "Traceback" not in result.stderr
     assert str(missing) in result.stderr and len(result.stderr.strip().splitlines()) == 1
 
