@@ -127,7 +127,8 @@ def test_a_silent_job_is_cancelled_by_stopping_its_worker(
     pool, engine = running
     monkeypatch.setattr(pool_module, "CANCEL_GRACE_S", 1.0)
     job_id = submit(engine, "test:silent", {"seconds": 120})
-    started = wait_for(engine, job_id, lambda j: j.status == JobStatus.running)
+    # Wait for its one progress report: a cancel asked before it is honoured by that write.
+    started = wait_for(engine, job_id, lambda j: j.status == JobStatus.running and j.progress > 0)
     with Session(engine) as session:
         request_cancel(session, job_id, None)
     done = wait_for(engine, job_id, ended, timeout=15)
