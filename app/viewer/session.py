@@ -23,7 +23,12 @@ import numpy as np
 from sqlmodel import Session, select
 from viser import CameraHandle, ClientHandle, SceneClickEvent, SceneRectSelectEvent
 
-from app.core.errors import MmscleanError, NotFoundError, PermissionDeniedError
+from app.core.errors import (
+    MmscleanError,
+    NotFoundError,
+    PermissionDeniedError,
+    StaleWriteError,
+)
 from app.store import pillar_labels
 from app.store.models import Role, Survey, User
 from app.store.users import has_role
@@ -284,25 +289,37 @@ class ViewerSession:
     def write_pillar_labels(
         self, cell_ids: np.ndarray, labels: np.ndarray
     ) -> pillar_labels.LabelWrite:
-        """One labelling action (store cell ids; NO_LABEL erases) as one undoable batch."""
-        with self.db() as session:
-            self._check_user(session)
-            result = pillar_labels.write_labels(
-                session, self.view.survey_id, self.user_id, cell_ids, labels
-            )
-        self.viewer.labels_written()
-        return result
+        """One labelling action (store cell ids; NO_LABEL erases) as one undoable batch,
+        checked against the label versions the view shows: a pillar someone else labelled
+        since raises `StaleWriteError`, nothing is written and the view shows their label."""
+        view = self.view
+        expected = view.human_versions(cell_ids)
+        try:
+            with self.db() as session:
+                self._check_user(session)
+                result = pillar_labels.write_labels(
+                    session, view.survey_id, self.user_id, cell_ids, labels, expected
+                )
+        except StaleWriteError as exc:
+            view.refresh_human(np.array([c["cell_id"] for c in exc.current], dtype=np.int64))
+            raise
+        return self._written(result)
 
     def undo_pillars(self) -> pillar_labels.LabelWrite:
         with self.db() as session:
             self._check_user(session)
             result = pillar_labels.undo(session, self.view.survey_id, self.user_id)
-        self.viewer.labels_written()
-        return result
+        return self._written(result)
 
     def redo_pillars(self) -> pillar_labels.LabelWrite:
         with self.db() as session:
             self._check_user(session)
             result = pillar_labels.redo(session, self.view.survey_id, self.user_id)
+        return self._written(result)
+
+    def _written(self, result: pillar_labels.LabelWrite) -> pillar_labels.LabelWrite:
+        """The view takes our write (and its versions) at once, before our next action can
+        be checked against it; the label feed then tells the other clients and views."""
+        self.view.refresh_human(result.cell_ids)
         self.viewer.labels_written()
         return result

@@ -5,6 +5,10 @@ Labels are read from the store once when the first client opens the survey, then
 label feed reports which pillars changed (whoever changed them: this viewer, the REST API, a
 job, another process) and the view re-reads just those and tells its listeners which pillars
 now look different, so each client resends colours, never positions.
+
+The view also keeps the version of each human label it shows: a client's label write passes
+them as the versions it saw, so a label someone else wrote after this view last read it is
+never overwritten unseen (the store refuses the batch and the view re-reads those pillars).
 """
 
 from __future__ import annotations
@@ -32,7 +36,8 @@ log = logging.getLogger(__name__)
 # covering index ix_pillar_label_tile.
 _ALL_LABELS = (
     "SELECT json_group_array(cell_id), json_group_array(source = 'human'), "
-    "json_group_array(label), json_group_array(confidence) FROM pillar_label "
+    "json_group_array(label), json_group_array(confidence), json_group_array(version) "
+    "FROM pillar_label "
     "WHERE survey_id = :s"
 )
 
@@ -47,11 +52,15 @@ class SurveyView:
         self.map = survey_map
         m = len(survey_map.cells)
         self.human = np.full(m, -1, dtype=np.int8)
+        self.version = np.zeros(m, dtype=np.int64)  # of the human label shown; 0: none
         self.model = np.full(m, -1, dtype=np.int8)
         self.confidence = np.full(m, np.nan, dtype=np.float32)
         self.rgb = pillar_colors(self.human, self.model, self.confidence)
         self.klass = display_class(self.human, self.model)
         self.lock = threading.Lock()  # guards the label arrays; held briefly
+        # One re-read at a time (the label feed's and a client's own), so an older read can
+        # never be applied after a newer one.
+        self._reading = threading.Lock()
         self._listeners: list[Listener] = []
 
     # --- listeners ---------------------------------------------------------------------------
@@ -80,27 +89,35 @@ class SurveyView:
 
     def load_all(self) -> np.ndarray:
         """Re-read every label of the survey; returns the pillars whose colour changed."""
-        with Session(self.engine) as session:
-            row = session.connection().execute(text(_ALL_LABELS), {"s": self.survey_id}).one()
+        with self._reading:
+            with Session(self.engine) as session:
+                query = session.connection().execute(text(_ALL_LABELS), {"s": self.survey_id})
+                row = query.one()
+            changed = self._set_all(row)
+        self._announce(changed)
+        return changed
+
+    def _set_all(self, row: tuple) -> np.ndarray:
         cell_ids = np.array(json.loads(row[0]), dtype=np.int64)
         is_human = np.array(json.loads(row[1]), dtype=bool)
         labels = np.array(json.loads(row[2]), dtype=np.int8)
         confidence = np.array(
             [np.nan if c is None else c for c in json.loads(row[3])], dtype=np.float32
         )
+        versions = np.array(json.loads(row[4]), dtype=np.int64)
         k, found = self.map.cell_index(cell_ids)
         human = np.full(len(self.map.cells), -1, dtype=np.int8)
+        version = np.zeros(len(self.map.cells), dtype=np.int64)
         model = np.full(len(self.map.cells), -1, dtype=np.int8)
         conf = np.full(len(self.map.cells), np.nan, dtype=np.float32)
         h, m = found & is_human, found & ~is_human
         human[k[h]] = labels[h]
+        version[k[h]] = versions[h]
         model[k[m]] = labels[m]
         conf[k[m]] = confidence[m]
         with self.lock:
-            self.human, self.model, self.confidence = human, model, conf
-            changed = self._recolor(np.arange(len(self.map.cells)))
-        self._announce(changed)
-        return changed
+            self.human, self.version, self.model, self.confidence = human, version, model, conf
+            return self._recolor(np.arange(len(self.map.cells)))
 
     def refresh_human(self, cell_ids: np.ndarray) -> np.ndarray:
         """Re-read the human labels of these pillars (store cell ids); returns those that now
@@ -109,17 +126,26 @@ class SurveyView:
         k = np.unique(k[found])
         if not len(k):
             return k
-        with Session(self.engine) as session:
-            current = current_human(session, self.survey_id, self.map.cells[k])
-        labels = np.array(
-            [current[c][0] if c in current else -1 for c in self.map.cells[k].tolist()],
-            dtype=np.int8,
-        )
-        with self.lock:
-            self.human[k] = labels
-            changed = self._recolor(k)
+        with self._reading:
+            with Session(self.engine) as session:
+                current = current_human(session, self.survey_id, self.map.cells[k])
+            rows = [current.get(c, (-1, 0)) for c in self.map.cells[k].tolist()]
+            with self.lock:
+                self.human[k] = np.array([r[0] for r in rows], dtype=np.int8)
+                self.version[k] = np.array([r[1] for r in rows], dtype=np.int64)
+                changed = self._recolor(k)
         self._announce(changed)
         return changed
+
+    def human_versions(self, cell_ids: np.ndarray) -> list[int | None]:
+        """The versions of the human labels shown on these pillars (store cell ids; 0: no
+        label): what a client of this view saw before its write. None for a pillar without
+        points, which the view does not show (nothing seen, nothing to check)."""
+        k, found = self.map.cell_index(cell_ids)
+        versions = np.full(len(found), None, dtype=object)
+        with self.lock:
+            versions[found] = self.version[k[found]].tolist()
+        return versions.tolist()
 
     def _recolor(self, k: np.ndarray) -> np.ndarray:
         """Recompute the colour and class of pillars k (lock held); the ones that changed."""

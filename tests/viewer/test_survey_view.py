@@ -1,22 +1,34 @@
 """Shared survey views follow the store through the label feed: human labels in full colour,
-model pre-labels lighter by confidence, undo restores, writes from any session are seen."""
+model pre-labels lighter by confidence, undo restores, writes from any session are seen; a
+client's label write is checked against the label versions its view shows."""
 
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
+import pytest
 from sqlalchemy.engine import Engine
 from sqlmodel import Session
 
+from app.core.errors import StaleWriteError
 from app.jobs.phantom_tasks import store_model_labels
 from app.store.model_versions import register_version
 from app.store.models import Pipeline, Role, Survey
-from app.store.pillar_labels import NO_LABEL, undo, write_labels
+from app.store.pillar_labels import (
+    NO_LABEL,
+    STORE_GRID,
+    current_human,
+    undo,
+    write_labels,
+)
 from app.store.users import create_user
 from app.viewer.label_feed import LabelFeed, read_changes
 from app.viewer.pillar_colors import PALETTE, UNLABELLED
+from app.viewer.session import ViewerSession
 from app.viewer.survey_view import SurveyViews
+from app.viewer.tickets import Ticket
 
 
 def open_view(engine: Engine, survey: Survey, tmp_path: Path):
@@ -125,3 +137,60 @@ def test_views_are_shared_and_dropped_with_the_last_client(
     assert views.get(ply_survey.id) is first
     views.release(second)
     assert views.get(ply_survey.id) is None
+
+
+class ViewerStandIn:
+    """What a ViewerSession's label writes use of the viewer server: its engine and the
+    wake-up of the label feed (not polled here: the view must not rely on it)."""
+
+    def __init__(self, engine: Engine):
+        self.engine = engine
+        self.wakes = 0
+
+    def labels_written(self) -> None:
+        self.wakes += 1
+
+
+def test_a_client_never_overwrites_a_label_it_has_not_seen(
+    engine: Engine, ply_survey: Survey, tmp_path: Path
+) -> None:
+    views, view = open_view(engine, ply_survey, tmp_path)
+    viewer = ViewerStandIn(engine)
+    ticket = Ticket(user_id(engine, "alice"), "alice", ply_survey.id)
+    alice = ViewerSession(viewer, SimpleNamespace(client_id=1), ticket)
+    alice.view = view
+    cells = box_cells(view)
+    first = alice.write_pillar_labels(cells, np.full(len(cells), 2))
+    k, _ = view.map.cell_index(cells)
+    # her own write is in the view at once, with its versions: her next action is not refused
+    assert (view.human[k] == 2).all() and view.human_versions(cells) == first.versions.tolist()
+    alice.write_pillar_labels(cells[:5], np.full(5, 1))
+
+    # bob labels some of the same pillars; the label feed has not told her view yet
+    bob = user_id(engine, "bob")
+    with Session(engine) as session:
+        bobs = write_labels(session, ply_survey.id, bob, cells[3:8], np.full(5, 3))
+    with pytest.raises(StaleWriteError) as refused:
+        alice.write_pillar_labels(cells[:10], np.full(10, 0))
+    assert sorted(c["cell_id"] for c in refused.value.current) == sorted(cells[3:8].tolist())
+    with Session(engine) as session:
+        stored = current_human(session, ply_survey.id, cells[:10])
+    assert [stored[c][0] for c in cells[:10].tolist()] == [1, 1, 1, 3, 3, 3, 3, 3, 2, 2]
+    # nothing written, and her view now shows bob's labels: a second try is her own choice
+    assert (view.human[k[3:8]] == 3).all()
+    assert view.human_versions(cells[3:8]) == bobs.versions.tolist()
+    alice.write_pillar_labels(cells[:10], np.full(10, 0))
+    with Session(engine) as session:
+        stored = current_human(session, ply_survey.id, cells[:10])
+    assert {stored[c][0] for c in cells[:10].tolist()} == {0}
+
+    # undo and redo keep the view's versions current too
+    alice.undo_pillars()
+    assert view.human[k[:10]].tolist() == [1, 1, 1, 3, 3, 3, 3, 3, 2, 2]
+    alice.write_pillar_labels(cells[:2], np.full(2, 3))
+    # a pillar without points is not shown, so not checked
+    empty = STORE_GRID.point_cell_ids(view.map.origin[:2] + np.array([[-50.0, -50.0]]))
+    assert view.human_versions(empty) == [None]
+    alice.write_pillar_labels(empty, [1])
+    assert viewer.wakes == 6
+    views.release(view)

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from app.core.errors import StaleWriteError
 from app.store.models import PillarClass
 from app.store.pillar_labels import NO_LABEL, uncertain_areas
 from app.viewer.modes.base import Mode
@@ -227,7 +228,16 @@ class PillarMode(Mode):
 
     def _label(self, cells: np.ndarray, how: str) -> None:
         value = self.label_value
-        result = self.session.write_pillar_labels(cells, np.full(len(cells), value))
+        try:
+            result = self.session.write_pillar_labels(cells, np.full(len(cells), value))
+        except StaleWriteError as exc:
+            self.session.notify("Changed meanwhile", f"{exc.message} (now shown)", error=True)
+            self.status.content = (
+                f"Nothing written: {len(exc.current):,} of the {len(cells):,} pillars were "
+                "labelled by someone else since you saw them. Their labels are shown now; "
+                "label again to overwrite them."
+            )
+            return
         what = ERASE.lower() + "d" if value == NO_LABEL else CLASS_NAMES[PillarClass(value)]
         self.status.content = f"{len(cells):,} pillars: {what} ({how}, batch {result.batch_id})"
 
