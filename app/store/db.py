@@ -165,6 +165,28 @@ def as_conflict(exc: BaseException) -> ConflictError | None:
     return None
 
 
+@contextmanager
+def write_transaction(session: Session) -> Iterator[None]:
+    """Take the database's write lock now, before reading what a write depends on; roll back
+    if the block raises (a refused write must not keep the lock).
+
+    pysqlite opens a transaction only at the first INSERT / UPDATE / DELETE, so the reads
+    before it (a version check, the "before" of an undo record) would run outside the write's
+    transaction and another writer could commit in between. `BEGIN IMMEDIATE` makes the
+    read-check-write one transaction; concurrent writers wait behind `busy_timeout`. Nothing
+    to begin when the transaction already wrote (it holds the lock). SQLite is the store
+    mmsclean ships with; another backend would need row locks here instead.
+    """
+    conn = session.connection()
+    if conn.dialect.name == "sqlite" and not conn.connection.driver_connection.in_transaction:
+        conn.exec_driver_sql("BEGIN IMMEDIATE")
+    try:
+        yield
+    except BaseException:
+        session.rollback()
+        raise
+
+
 def commit(session: Session) -> None:
     """`session.commit()`, raising `ConflictError` for a stale version or a duplicate."""
     try:

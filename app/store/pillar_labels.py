@@ -27,7 +27,7 @@ from sqlmodel import Session
 from app.core.errors import ConfigError, ConflictError, StaleWriteError
 from app.geometry.pillars import PillarGrid
 from app.store.audit import audit
-from app.store.db import commit
+from app.store.db import commit, write_transaction
 from app.store.models import EditState, LabelSource, PillarClass, PillarEditBatch, utcnow
 
 STORE_GRID = PillarGrid(0.0, 0.0, 0.2)  # s_c = 0.2 m (Nagy & Benedek)
@@ -170,36 +170,37 @@ def write_labels(
     validate_batch(cell_ids, labels)
     if len(cell_ids) == 0:
         return LabelWrite(None, cell_ids, np.zeros(0, dtype=np.int64))
-    before = current_human(session, survey_id, cell_ids)
-    if expected_versions is not None:
-        stale = [
-            _state(c, before.get(c))
-            for c, expected in zip(cell_ids.tolist(), expected_versions, strict=True)
-            if expected is not None and (before[c][1] if c in before else 0) != expected
-        ]
-        if stale:
-            raise StaleWriteError(
-                f"{len(stale)} pillar label(s) were changed by someone else; reload and retry",
-                current=stale,
-            )
-    now = utcnow()
-    _apply(session, survey_id, user_id, cell_ids, labels, now)
-    batch = _record_batch(session, survey_id, user_id, cell_ids, before, labels)
-    classes = np.bincount(labels[labels != NO_LABEL], minlength=4).tolist()
-    audit(
-        session,
-        user_id,
-        "pillar.label",
-        "pillar_edit_batch",
-        batch.id,
-        survey_id=survey_id,
-        pillars=len(cell_ids),
-        per_class=classes,
-        erased=int((labels == NO_LABEL).sum()),
-    )
-    versions = _versions_after(session, survey_id, cell_ids)
-    commit(session)
-    return LabelWrite(batch.id, cell_ids, versions)
+    with write_transaction(session):  # the check, the undo record's "before" and the write
+        before = current_human(session, survey_id, cell_ids)
+        if expected_versions is not None:
+            stale = [
+                _state(c, before.get(c))
+                for c, expected in zip(cell_ids.tolist(), expected_versions, strict=True)
+                if expected is not None and (before[c][1] if c in before else 0) != expected
+            ]
+            if stale:
+                raise StaleWriteError(
+                    f"{len(stale)} pillar label(s) were changed by someone else; reload and retry",
+                    current=stale,
+                )
+        now = utcnow()
+        _apply(session, survey_id, user_id, cell_ids, labels, now)
+        batch = _record_batch(session, survey_id, user_id, cell_ids, before, labels)
+        classes = np.bincount(labels[labels != NO_LABEL], minlength=4).tolist()
+        audit(
+            session,
+            user_id,
+            "pillar.label",
+            "pillar_edit_batch",
+            batch.id,
+            survey_id=survey_id,
+            pillars=len(cell_ids),
+            per_class=classes,
+            erased=int((labels == NO_LABEL).sum()),
+        )
+        versions = _versions_after(session, survey_id, cell_ids)
+        commit(session)
+        return LabelWrite(batch.id, cell_ids, versions)
 
 
 def _record_batch(
@@ -251,38 +252,39 @@ def _batch_edits(session: Session, batch_id: int) -> tuple[np.ndarray, np.ndarra
 def _step(session: Session, survey_id: int, user_id: int | None, undo: bool) -> LabelWrite:
     """Undo the newest done batch, or redo the most recently undone one."""
     state, order = (EditState.done, "DESC") if undo else (EditState.undone, "ASC")
-    row = (
-        session.connection()
-        .execute(
-            text(
-                f"SELECT id FROM pillar_edit_batch WHERE survey_id = :s AND user_id IS :u "
-                f"AND state = :state ORDER BY id {order} LIMIT 1"
-            ),
-            {"s": survey_id, "u": user_id, "state": state.value},
+    with write_transaction(session):  # nobody changed the pillars since? then the write
+        row = (
+            session.connection()
+            .execute(
+                text(
+                    f"SELECT id FROM pillar_edit_batch WHERE survey_id = :s AND user_id IS :u "
+                    f"AND state = :state ORDER BY id {order} LIMIT 1"
+                ),
+                {"s": survey_id, "u": user_id, "state": state.value},
+            )
+            .first()
         )
-        .first()
-    )
-    what = "undo" if undo else "redo"
-    if row is None:
-        raise ConflictError(f"nothing to {what} for this user on survey {survey_id}")
-    batch = session.get(PillarEditBatch, int(row[0]))
-    cells, before, after = _batch_edits(session, batch.id)
-    expected, target = (after, before) if undo else (before, after)
-    current = current_human(session, survey_id, cells)
-    now_labels = np.array([current[c][0] if c in current else NO_LABEL for c in cells.tolist()])
-    changed = now_labels != expected
-    if changed.any():
-        raise StaleWriteError(
-            f"cannot {what}: {int(changed.sum())} of its pillar labels were changed since",
-            current=[_state(c, current.get(c)) for c in cells[changed].tolist()],
-        )
-    _apply(session, survey_id, user_id, cells, target, utcnow())
-    batch.state = EditState.undone if undo else EditState.done
-    session.add(batch)
-    audit(session, user_id, f"pillar.{what}", "pillar_edit_batch", batch.id, pillars=len(cells))
-    versions = _versions_after(session, survey_id, cells)
-    commit(session)
-    return LabelWrite(batch.id, cells, versions)
+        what = "undo" if undo else "redo"
+        if row is None:
+            raise ConflictError(f"nothing to {what} for this user on survey {survey_id}")
+        batch = session.get(PillarEditBatch, int(row[0]))
+        cells, before, after = _batch_edits(session, batch.id)
+        expected, target = (after, before) if undo else (before, after)
+        current = current_human(session, survey_id, cells)
+        now_labels = np.array([current[c][0] if c in current else NO_LABEL for c in cells.tolist()])
+        changed = now_labels != expected
+        if changed.any():
+            raise StaleWriteError(
+                f"cannot {what}: {int(changed.sum())} of its pillar labels were changed since",
+                current=[_state(c, current.get(c)) for c in cells[changed].tolist()],
+            )
+        _apply(session, survey_id, user_id, cells, target, utcnow())
+        batch.state = EditState.undone if undo else EditState.done
+        session.add(batch)
+        audit(session, user_id, f"pillar.{what}", "pillar_edit_batch", batch.id, pillars=len(cells))
+        versions = _versions_after(session, survey_id, cells)
+        commit(session)
+        return LabelWrite(batch.id, cells, versions)
 
 
 def undo(session: Session, survey_id: int, user_id: int | None) -> LabelWrite:

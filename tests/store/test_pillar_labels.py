@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import json
+import threading
 
 import numpy as np
 import pytest
+from sqlalchemy.engine import Engine
 from sqlmodel import Session, select
 
+import app.store.pillar_labels as pillar_labels
 from app.core.errors import ConfigError, ConflictError, StaleWriteError
 from app.store.models import AuditEvent, LabelSource, PillarLabel, Survey, User
 from app.store.pillar_labels import (
@@ -117,6 +120,66 @@ def test_undo_refuses_when_someone_changed_the_pillars_since(session: Session, i
     with pytest.raises(StaleWriteError, match="cannot undo: 1 of its pillar labels"):
         undo(session, s, ids["anna"])
     assert human(session, s) == {a: 0}
+
+
+def test_the_version_check_and_the_write_are_one_transaction(
+    engine: Engine, ids: dict, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two writers that both saw version 1: the one that checks second must see the first's
+    write, even when it checks while the first is between its check and its write."""
+    s = ids["survey"]
+    (a,) = cells([(4.0, 4.0)])
+    with Session(engine) as session:
+        write_labels(session, s, ids["anna"], [a], [3])
+    checked, release = threading.Event(), threading.Event()
+    apply = pillar_labels._apply
+
+    def slow_apply(*args, **kwargs):  # anna's write pauses after her check passed
+        if threading.current_thread().name == "anna":
+            checked.set()
+            release.wait(10)
+        return apply(*args, **kwargs)
+
+    monkeypatch.setattr(pillar_labels, "_apply", slow_apply)
+    outcome: dict[str, str] = {}
+
+    def writer(user: str, label: int) -> None:
+        try:
+            with Session(engine) as session:
+                write_labels(session, s, ids[user], [a], [label], expected_versions=[1])
+            outcome[user] = "written"
+        except StaleWriteError:
+            outcome[user] = "stale"
+
+    anna = threading.Thread(target=writer, args=("anna", 1), name="anna")
+    anna.start()
+    assert checked.wait(10)
+    bob = threading.Thread(target=writer, args=("bob", 2), name="bob")
+    bob.start()
+    bob.join(0.5)  # before the fix bob wrote here, then anna overwrote him unseen
+    release.set()
+    anna.join(10)
+    bob.join(10)
+    assert outcome == {"anna": "written", "bob": "stale"}
+    with Session(engine) as session:
+        assert human(session, s) == {a: 1}
+        query = select(PillarLabel.version).where(PillarLabel.cell_id == int(a))
+        assert session.exec(query).all() == [2]
+
+
+def test_a_refused_write_does_not_keep_the_write_lock(engine: Engine, ids: dict) -> None:
+    s = ids["survey"]
+    (a,) = cells([(5.0, 5.0)])
+    with Session(engine) as first, Session(engine) as second:
+        write_labels(first, s, ids["anna"], [a], [3])
+        with pytest.raises(StaleWriteError):
+            write_labels(first, s, ids["anna"], [a], [0], expected_versions=[0])
+        with pytest.raises(ConflictError, match="nothing to redo"):
+            redo(first, s, ids["anna"])
+        # `first` stays open: had it kept the lock, this would wait for the busy timeout
+        second.connection().exec_driver_sql("PRAGMA busy_timeout = 200")
+        write_labels(second, s, ids["bob"], [a], [1], expected_versions=[1])
+        assert human(second, s) == {a: 1}
 
 
 def test_box_reads_exactly_the_pillars_inside(session: Session, ids: dict) -> None:
