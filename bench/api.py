@@ -15,6 +15,8 @@
    in the database: the final label of each cell is the last acknowledged one (0 lost), its
    version equals the number of acknowledged writes to it and the edit log holds exactly one
    row per acknowledged label (0 duplicated). p50 / p99 latency of the writes.
+4. Contention: the same clients all label the same 100 pillars with the versions they saw;
+   no acknowledged write may overwrite a label its client never saw (0 overwritten unseen).
 
     .venv/bin/python -m bench.api [--batches 20] [--clients 20] [--seconds 60] [--no-record]
 """
@@ -228,6 +230,90 @@ def bench_concurrency(server: Server, clients: int, seconds: float) -> tuple[lis
     return [row], {"failures": failures[:5]}
 
 
+def bench_contention(server: Server, clients: int, seconds: float) -> tuple[list[list[str]], dict]:
+    """Every client labels the same 100 pillars (5 per batch), each write carrying the versions
+    the client last saw; a 409 tells it the current ones. Afterwards: no two acknowledged
+    writes of a pillar may have seen the same version (that would be an overwrite nobody saw),
+    each pillar's version is its number of acknowledged writes and its label the last one's."""
+    survey = new_survey(server.data_dir / "mmsclean.sqlite3", "contention")
+    sessions = [server.add_user(f"contender{i}", "annotator") for i in range(clients)]
+    shared = grid_cells(20_000, 0, 10, 10)
+    acked: list[tuple[int, int, int]] = []  # (cell, version seen, label)
+    refused: list[int] = [0]
+    latencies: list[float] = []
+    failures: list[str] = []
+    lock = threading.Lock()
+    stop = time.monotonic() + seconds
+
+    def writer(k: int) -> None:
+        rng = np.random.default_rng(100 + k)
+        seen = dict.fromkeys(shared.tolist(), 0)
+        url = f"/surveys/{survey}/pillars/labels"
+        while time.monotonic() < stop:
+            cells = rng.choice(shared, size=5, replace=False).tolist()
+            labels = rng.integers(0, 4, size=5).tolist()
+            body = [
+                {"cell_id": c, "label": v, "version": seen[c]}
+                for c, v in zip(cells, labels, strict=True)
+            ]
+            t0 = time.perf_counter()
+            try:
+                response = sessions[k].put(url, json={"labels": body})
+            except httpx.HTTPError as exc:
+                failures.append(f"client {k}: {exc}")
+                continue
+            ms = (time.perf_counter() - t0) * 1e3
+            if response.status_code == 409:
+                for current in response.json()["current"]:
+                    seen[current["cell_id"]] = current["version"]
+                with lock:
+                    refused[0] += 1
+                    latencies.append(ms)
+                continue
+            if response.status_code != 200:
+                failures.append(f"client {k}: {response.status_code} {response.text[:200]}")
+                continue
+            out = response.json()
+            with lock:
+                acked.extend((c, seen[c], v) for c, v in zip(cells, labels, strict=True))
+                latencies.append(ms)
+            seen.update(zip(out["cell_id"], out["version"], strict=True))
+
+    threads = [threading.Thread(target=writer, args=(k,)) for k in range(clients)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for session in sessions:
+        session.close()
+
+    with sqlite3.connect(server.data_dir / "mmsclean.sqlite3") as conn:
+        stored = {
+            c: (label, version)
+            for c, label, version in conn.execute(
+                "SELECT cell_id, label, version FROM pillar_label WHERE survey_id = ? AND "
+                "source = 'human'",
+                (survey,),
+            )
+        }
+    seen_twice = len(acked) - len({(c, v) for c, v, _ in acked})
+    last = {c: (v + 1, label) for c, v, label in sorted(acked, key=lambda a: a[1])}
+    writes = {c: sum(1 for a in acked if a[0] == c) for c in last}
+    wrong = sum(
+        1 for c, (version, label) in last.items() if stored.get(c) != (label, version)
+    ) + sum(1 for c, n in writes.items() if last[c][0] != n)
+    row = [
+        f"{clients} clients x {seconds:g} s on the same 100 pillars, batches of 5 with versions",
+        f"{len(acked) // 5:,} writes acknowledged, {refused[0]:,} refused (409)",
+        f"{statistics.median(latencies):.0f}",
+        f"{percentile(latencies, 99):.0f}",
+        str(seen_twice),
+        str(wrong),
+        str(len(failures)),
+    ]
+    return [row], {"failures": failures[:5]}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--batches", type=int, default=20)
@@ -246,6 +332,7 @@ def main() -> None:
             tile = bench_tile(server, args.repeats)
             speed = upsert + [r[:4] for r in tile]
             concurrency, info = bench_concurrency(server, args.clients, args.seconds)
+            contention, contention_info = bench_contention(server, args.clients, args.seconds)
         finally:
             server.stop()
 
@@ -254,9 +341,14 @@ def main() -> None:
     concurrency_table = markdown_table(
         ["load", "acknowledged", "p50 ms", "p99 ms", "lost", "duplicated", "failed"], concurrency
     )
-    print(speed_table, "\n", baseline_lines, "\n\n", concurrency_table, sep="")
-    if info["failures"]:
-        print("first failures:", *info["failures"], sep="\n  ")
+    contention_table = markdown_table(
+        ["load", "writes", "p50 ms", "p99 ms", "overwritten unseen", "wrong", "failed"],
+        contention,
+    )
+    print(speed_table, baseline_lines, concurrency_table, contention_table, sep="\n\n")
+    for failures in (info["failures"], contention_info["failures"]):
+        if failures:
+            print("first failures:", *failures, sep="\n  ")
     if not args.no_record:
         command = (
             f".venv/bin/python -m bench.api --batches {args.batches} --repeats {args.repeats} "
@@ -269,7 +361,13 @@ def main() -> None:
             f"{baseline_lines}\n\n{concurrency_table}\n\n"
             "Lost: acknowledged labels whose cell does not hold the last acknowledged value. "
             "Duplicated: edit-log rows beyond the acknowledged labels, stored labels nobody "
-            "acknowledged, and cells whose version differs from their acknowledged writes."
+            "acknowledged, and cells whose version differs from their acknowledged writes.\n\n"
+            f"{contention_table}\n\n"
+            "Overwritten unseen: acknowledged writes of a pillar that saw the same version as "
+            "another acknowledged write of it (the later one replaced a label its client never "
+            "saw). Wrong: pillars whose stored label / version is not the last acknowledged "
+            "write's / their number of acknowledged writes. p50 / p99 over all answers, 409 "
+            "included."
         )
         append_results("Web app backend: pillar label API", command, speed_table, notes)
 
