@@ -55,8 +55,13 @@ _DELETE = text(
 )
 _RECORD_EDITS = text(
     "INSERT INTO pillar_edit (batch_id, cell_id, before_label, after_label) "
-    "SELECT :batch, json_extract(value, '$[0]'), json_extract(value, '$[1]'), "
-    "json_extract(value, '$[2]') FROM json_each(:rows)"
+    "SELECT :batch, json_extract(value, '$[0]'), nullif(json_extract(value, '$[1]'), -1), "
+    "nullif(json_extract(value, '$[2]'), -1) FROM json_each(:rows)"
+)
+_HUMAN_COLUMNS = text(
+    "SELECT json_group_array(cell_id), json_group_array(label), json_group_array(version) "
+    "FROM pillar_label WHERE survey_id = :s AND source = 'human' "
+    "AND cell_id IN (SELECT value FROM json_each(:ids))"
 )
 
 
@@ -93,6 +98,30 @@ def current_human(session: Session, survey_id: int, cell_ids: np.ndarray) -> dic
         .all()
     )
     return {int(r[0]): (int(r[1]), int(r[2]), r[3], r[4]) for r in rows}
+
+
+def human_columns(
+    session: Session, survey_id: int, cell_ids: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(label, version) of each pillar's human label, NO_LABEL / 0 where it has none: one row of
+    JSON arrays built by SQLite, no Python object per label. `cell_ids` must be unique."""
+    cell_ids = np.asarray(cell_ids, dtype=np.int64)
+    query = session.connection().execute(
+        _HUMAN_COLUMNS, {"s": survey_id, "ids": _ids_json(cell_ids)}
+    )
+    found, found_labels, found_versions = (np.array(json.loads(a), np.int64) for a in query.one())
+    order = np.argsort(cell_ids)
+    at = order[np.searchsorted(cell_ids[order], found)]
+    labels = np.full(len(cell_ids), NO_LABEL, dtype=np.int64)
+    versions = np.zeros(len(cell_ids), dtype=np.int64)
+    labels[at], versions[at] = found_labels, found_versions
+    return labels, versions
+
+
+def _stale(session: Session, survey_id: int, cell_ids: np.ndarray) -> list[dict]:
+    """The current state of these pillars, for a StaleWriteError."""
+    current = current_human(session, survey_id, cell_ids)
+    return [_state(c, current.get(c)) for c in cell_ids.tolist()]
 
 
 def _state(cell_id: int, row: tuple | None) -> dict:
@@ -146,9 +175,10 @@ def _apply(
         conn.execute(_DELETE, {"survey_id": survey_id, "ids": _ids_json(cell_ids[~keep])})
 
 
-def _versions_after(session: Session, survey_id: int, cell_ids: np.ndarray) -> np.ndarray:
-    now = current_human(session, survey_id, cell_ids)
-    return np.array([now[c][1] if c in now else 0 for c in cell_ids.tolist()], dtype=np.int64)
+def _versions_after(versions_before: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """What `_apply` leaves: an upsert adds one to the version (a new label: 1), an erase
+    deletes the row (0). Exact inside the write's transaction."""
+    return np.where(labels == NO_LABEL, 0, versions_before + 1)
 
 
 def write_labels(
@@ -171,17 +201,17 @@ def write_labels(
     if len(cell_ids) == 0:
         return LabelWrite(None, cell_ids, np.zeros(0, dtype=np.int64))
     with write_transaction(session):  # the check, the undo record's "before" and the write
-        before = current_human(session, survey_id, cell_ids)
+        before, versions_before = human_columns(session, survey_id, cell_ids)
         if expected_versions is not None:
-            stale = [
-                _state(c, before.get(c))
-                for c, expected in zip(cell_ids.tolist(), expected_versions, strict=True)
-                if expected is not None and (before[c][1] if c in before else 0) != expected
-            ]
-            if stale:
+            if len(expected_versions) != len(cell_ids):
+                raise ConfigError("versions", "one expected version (or None) per pillar needed")
+            expected = np.array([-1 if v is None else v for v in expected_versions])
+            stale = (expected >= 0) & (expected != versions_before)
+            if stale.any():
                 raise StaleWriteError(
-                    f"{len(stale)} pillar label(s) were changed by someone else; reload and retry",
-                    current=stale,
+                    f"{int(stale.sum())} pillar label(s) were changed by someone else; "
+                    "reload and retry",
+                    current=_stale(session, survey_id, cell_ids[stale]),
                 )
         now = utcnow()
         _apply(session, survey_id, user_id, cell_ids, labels, now)
@@ -198,7 +228,7 @@ def write_labels(
             per_class=classes,
             erased=int((labels == NO_LABEL).sum()),
         )
-        versions = _versions_after(session, survey_id, cell_ids)
+        versions = _versions_after(versions_before, labels)
         commit(session)
         return LabelWrite(batch.id, cell_ids, versions)
 
@@ -208,7 +238,7 @@ def _record_batch(
     survey_id: int,
     user_id: int | None,
     cell_ids: np.ndarray,
-    before: dict[int, tuple],
+    before: np.ndarray,
     after: np.ndarray,
 ) -> PillarEditBatch:
     """The undo record; the user's undone batches stop being redoable."""
@@ -223,29 +253,22 @@ def _record_batch(
     batch = PillarEditBatch(survey_id=survey_id, user_id=user_id, size=len(cell_ids))
     session.add(batch)
     session.flush()
-    rows = [
-        [c, before[c][0] if c in before else None, None if a == NO_LABEL else a]
-        for c, a in zip(cell_ids.tolist(), after.tolist(), strict=True)
-    ]
+    rows = np.stack([cell_ids, before, after], axis=1).tolist()  # NO_LABEL -> NULL in SQL
     conn.execute(_RECORD_EDITS, {"batch": batch.id, "rows": json.dumps(rows)})
     return batch
 
 
 def _batch_edits(session: Session, batch_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    rows = (
-        session.connection()
-        .execute(
-            text(
-                "SELECT cell_id, before_label, after_label FROM pillar_edit WHERE batch_id = :b "
-                "ORDER BY id"
-            ),
-            {"b": batch_id},
-        )
-        .all()
+    """(cell ids, labels before, labels after) of a batch, NO_LABEL for none; columnar."""
+    query = session.connection().execute(
+        text(
+            "SELECT json_group_array(cell_id), json_group_array(coalesce(before_label, -1)), "
+            "json_group_array(coalesce(after_label, -1)) FROM "
+            "(SELECT * FROM pillar_edit WHERE batch_id = :b ORDER BY id)"
+        ),
+        {"b": batch_id},
     )
-    cells = np.array([r[0] for r in rows], dtype=np.int64)
-    before = np.array([NO_LABEL if r[1] is None else r[1] for r in rows], dtype=np.int64)
-    after = np.array([NO_LABEL if r[2] is None else r[2] for r in rows], dtype=np.int64)
+    cells, before, after = (np.array(json.loads(a), dtype=np.int64) for a in query.one())
     return cells, before, after
 
 
@@ -270,19 +293,18 @@ def _step(session: Session, survey_id: int, user_id: int | None, undo: bool) -> 
         batch = session.get(PillarEditBatch, int(row[0]))
         cells, before, after = _batch_edits(session, batch.id)
         expected, target = (after, before) if undo else (before, after)
-        current = current_human(session, survey_id, cells)
-        now_labels = np.array([current[c][0] if c in current else NO_LABEL for c in cells.tolist()])
+        now_labels, now_versions = human_columns(session, survey_id, cells)
         changed = now_labels != expected
         if changed.any():
             raise StaleWriteError(
                 f"cannot {what}: {int(changed.sum())} of its pillar labels were changed since",
-                current=[_state(c, current.get(c)) for c in cells[changed].tolist()],
+                current=_stale(session, survey_id, cells[changed]),
             )
         _apply(session, survey_id, user_id, cells, target, utcnow())
         batch.state = EditState.undone if undo else EditState.done
         session.add(batch)
         audit(session, user_id, f"pillar.{what}", "pillar_edit_batch", batch.id, pillars=len(cells))
-        versions = _versions_after(session, survey_id, cells)
+        versions = _versions_after(now_versions, target)
         commit(session)
         return LabelWrite(batch.id, cells, versions)
 

@@ -26,7 +26,7 @@ from sqlmodel import Session
 
 from app.core.errors import NotFoundError
 from app.store.models import Survey
-from app.store.pillar_labels import current_human
+from app.store.pillar_labels import human_columns
 from app.viewer.pillar_colors import display_class, pillar_colors
 from app.viewer.survey_map import MapSource, SurveyMap, load_map
 
@@ -128,11 +128,10 @@ class SurveyView:
             return k
         with self._reading:
             with Session(self.engine) as session:
-                current = current_human(session, self.survey_id, self.map.cells[k])
-            rows = [current.get(c, (-1, 0)) for c in self.map.cells[k].tolist()]
+                labels, versions = human_columns(session, self.survey_id, self.map.cells[k])
             with self.lock:
-                self.human[k] = np.array([r[0] for r in rows], dtype=np.int8)
-                self.version[k] = np.array([r[1] for r in rows], dtype=np.int64)
+                self.human[k] = labels
+                self.version[k] = versions
                 changed = self._recolor(k)
         self._announce(changed)
         return changed
