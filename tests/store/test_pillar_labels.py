@@ -95,18 +95,21 @@ def test_undo_redo_are_per_user_and_a_new_edit_clears_redo(session: Session, ids
     write_labels(session, s, anna, [a], [1])
     write_labels(session, s, bob, [c], [2])
     assert human(session, s) == {a: 1, b: 3, c: 2}
-    undo(session, s, anna)  # anna's newest: a 3 -> 1 reverted, bob's label untouched
+    undone = undo(session, s, anna)  # anna's newest: a 3 -> 1 reverted, bob's untouched
     assert human(session, s) == {a: 3, b: 3, c: 2}
-    undo(session, s, anna)
+    assert undone.cell_ids.tolist() == [a] and undone.versions.tolist() == [3]
+    undone = undo(session, s, anna)
     assert human(session, s) == {c: 2}
+    assert undone.versions.tolist() == [0, 0]  # erased
     with pytest.raises(ConflictError, match="nothing to undo"):
         undo(session, s, anna)
-    redo(session, s, anna)
+    assert redo(session, s, anna).versions.tolist() == [1, 1]  # new rows again
     assert human(session, s) == {a: 3, b: 3, c: 2}
     redo(session, s, anna)
     assert human(session, s) == {a: 1, b: 3, c: 2}
     undo(session, s, anna)
-    write_labels(session, s, anna, [b], [NO_LABEL])  # erase: a new action
+    erased = write_labels(session, s, anna, [b], [NO_LABEL])  # erase: a new action
+    assert erased.versions.tolist() == [0]
     with pytest.raises(ConflictError, match="nothing to redo"):
         redo(session, s, anna)
     assert human(session, s) == {a: 3, c: 2}
