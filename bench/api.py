@@ -29,6 +29,7 @@ import statistics
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import httpx
@@ -161,6 +162,28 @@ def _baseline_read_ms(database: Path, survey: int, repeats: int) -> float:
     return statistics.median(times)
 
 
+def run_clients(writer: Callable[[int], None], sessions: list[httpx.Client]) -> None:
+    """writer(k) for every client k on its own thread; then the clients are closed."""
+    threads = [threading.Thread(target=writer, args=(k,)) for k in range(len(sessions))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for session in sessions:
+        session.close()
+
+
+def stored_human_labels(database: Path, survey: int) -> dict[int, tuple[int, int]]:
+    """cell_id -> (label, version) of the survey's human labels, read straight from SQLite."""
+    with sqlite3.connect(database) as conn:
+        rows = conn.execute(
+            "SELECT cell_id, label, version FROM pillar_label WHERE survey_id = ? AND "
+            "source = 'human'",
+            (survey,),
+        )
+        return {c: (label, version) for c, label, version in rows}
+
+
 def bench_concurrency(server: Server, clients: int, seconds: float) -> tuple[list[list[str]], dict]:
     database = server.data_dir / "mmsclean.sqlite3"
     survey = new_survey(database, "concurrency")
@@ -183,13 +206,7 @@ def bench_concurrency(server: Server, clients: int, seconds: float) -> tuple[lis
             except httpx.HTTPError as exc:  # a failed write is reported, not counted as acked
                 failures.append(f"client {k}: {exc}")
 
-    threads = [threading.Thread(target=writer, args=(k,)) for k in range(clients)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    for s in sessions:
-        s.close()
+    run_clients(writer, sessions)
 
     expected_label: dict[int, int] = {}
     expected_writes: dict[int, int] = {}
@@ -200,15 +217,8 @@ def bench_concurrency(server: Server, clients: int, seconds: float) -> tuple[lis
             for c, v in zip(cells.tolist(), labels.tolist(), strict=True):
                 expected_label[c] = v
                 expected_writes[c] = expected_writes.get(c, 0) + 1
+    stored = stored_human_labels(database, survey)
     with sqlite3.connect(database) as conn:
-        stored = {
-            c: (label, version)
-            for c, label, version in conn.execute(
-                "SELECT cell_id, label, version FROM pillar_label WHERE survey_id = ? AND "
-                "source = 'human'",
-                (survey,),
-            )
-        }
         edits = conn.execute(
             "SELECT count(*) FROM pillar_edit JOIN pillar_edit_batch b ON b.id = batch_id "
             "WHERE b.survey_id = ?",
@@ -279,23 +289,9 @@ def bench_contention(server: Server, clients: int, seconds: float) -> tuple[list
                 latencies.append(ms)
             seen.update(zip(out["cell_id"], out["version"], strict=True))
 
-    threads = [threading.Thread(target=writer, args=(k,)) for k in range(clients)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    for session in sessions:
-        session.close()
+    run_clients(writer, sessions)
 
-    with sqlite3.connect(server.data_dir / "mmsclean.sqlite3") as conn:
-        stored = {
-            c: (label, version)
-            for c, label, version in conn.execute(
-                "SELECT cell_id, label, version FROM pillar_label WHERE survey_id = ? AND "
-                "source = 'human'",
-                (survey,),
-            )
-        }
+    stored = stored_human_labels(server.data_dir / "mmsclean.sqlite3", survey)
     seen_twice = len(acked) - len({(c, v) for c, v, _ in acked})
     last = {c: (v + 1, label) for c, v, label in sorted(acked, key=lambda a: a[1])}
     writes = {c: sum(1 for a in acked if a[0] == c) for c in last}
