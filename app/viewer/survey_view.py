@@ -36,7 +36,8 @@ log = logging.getLogger(__name__)
 # covering index ix_pillar_label_tile.
 _ALL_LABELS = (
     "SELECT json_group_array(cell_id), json_group_array(source = 'human'), "
-    "json_group_array(label), json_group_array(confidence), json_group_array(version) "
+    "json_group_array(label), json_group_array(coalesce(confidence, -1.0)), "
+    "json_group_array(version) "
     "FROM pillar_label "
     "WHERE survey_id = :s"
 )
@@ -101,9 +102,8 @@ class SurveyView:
         cell_ids = np.array(json.loads(row[0]), dtype=np.int64)
         is_human = np.array(json.loads(row[1]), dtype=bool)
         labels = np.array(json.loads(row[2]), dtype=np.int8)
-        confidence = np.array(
-            [np.nan if c is None else c for c in json.loads(row[3])], dtype=np.float32
-        )
+        confidence = np.array(json.loads(row[3]), dtype=np.float32)
+        confidence[confidence < 0] = np.nan  # none (human labels): -1 in the query
         versions = np.array(json.loads(row[4]), dtype=np.int64)
         k, found = self.map.cell_index(cell_ids)
         human = np.full(len(self.map.cells), -1, dtype=np.int8)
