@@ -10,7 +10,7 @@ from sqlmodel import Session, func, select
 from app.core.errors import ConfigError, ConflictError, NotFoundError
 from app.core.security import hash_password, verify_password
 from app.store.audit import audit
-from app.store.db import commit
+from app.store.db import commit, write_transaction
 from app.store.models import Role, User
 
 USERNAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
@@ -70,24 +70,38 @@ def update_user(
     password: str | None = None,
     is_active: bool | None = None,
 ) -> User:
-    """Change a user's role, password or active flag; every change invalidates their tokens."""
-    user = session.get(User, user_id)
-    if user is None:
-        raise NotFoundError(f"user {user_id} not found")
-    changes: dict[str, object] = {}
-    if role is not None and role != user.role:
-        user.role = Role(role)
-        changes["role"] = str(role)
-    if password is not None:
-        check_new_credentials(user.username, password)
-        user.hashed_password = hash_password(password)
-        changes["password"] = "changed"
-    if is_active is not None and is_active != user.is_active:
-        user.is_active = is_active
-        changes["is_active"] = is_active
-    if changes:
-        audit(session, by, "user.update", "user", user.id, **changes)
+    """Change a user's role, password or active flag; every change invalidates their tokens.
+
+    The last active admin cannot lose the role or be deactivated: nobody could manage users
+    then. Checked in the write's transaction, so two admins demoting each other at once
+    cannot both succeed.
+    """
+    hashed = None if password is None else hash_password(password)  # slow: not under the lock
+    with write_transaction(session):
+        user = session.get(User, user_id, populate_existing=True)
+        if user is None:
+            raise NotFoundError(f"user {user_id} not found")
+        demoted = role is not None and Role(role) != Role.admin
+        loses_admin = user.role == Role.admin and user.is_active and (demoted or is_active is False)
+        if loses_admin and admin_count(session) <= 1:
+            raise ConflictError(
+                f"user {user.username!r} is the last active admin; make another user admin first"
+            )
+        changes: dict[str, object] = {}
+        if role is not None and role != user.role:
+            user.role = Role(role)
+            changes["role"] = str(role)
+        if password is not None:
+            check_new_credentials(user.username, password)
+            user.hashed_password = hashed
+            changes["password"] = "changed"
+        if is_active is not None and is_active != user.is_active:
+            user.is_active = is_active
+            changes["is_active"] = is_active
+        if changes:
+            audit(session, by, "user.update", "user", user.id, **changes)
         commit(session)
+    if changes:
         session.refresh(user)
     return user
 

@@ -51,6 +51,27 @@ def test_admin_creates_users_and_roles_are_enforced(server: Server) -> None:
     annotator.close()
 
 
+def test_the_last_active_admin_stays_an_admin(server: Server) -> None:
+    with server.client() as admin:
+        me = admin.get("/auth/me").json()["id"]
+        for change in ({"role": "reviewer"}, {"is_active": False}):
+            refused = admin.patch(f"/users/{me}", json=change)
+            assert refused.status_code == 409
+            assert refused.json()["detail"] == (
+                "user 'admin' is the last active admin; make another user admin first"
+            )
+        assert admin.get("/auth/me").json()["role"] == "admin"  # nothing changed, still logged in
+        second = admin.post(
+            "/users", json={"username": "root2", "password": "password-123", "role": "admin"}
+        ).json()["id"]
+        # with another admin either may go; then the other is the last one
+        assert admin.patch(f"/users/{second}", json={"is_active": False}).status_code == 200
+        assert admin.patch(f"/users/{me}", json={"role": "reviewer"}).status_code == 409
+        assert admin.patch(f"/users/{second}", json={"is_active": True}).status_code == 200
+        assert admin.patch(f"/users/{second}", json={"role": "annotator"}).status_code == 200
+        assert admin.patch(f"/users/{second}", json={"password": "password-456"}).status_code == 200
+
+
 def test_cookie_is_accepted_for_reads_only(server: Server) -> None:
     client = httpx.Client(base_url=server.url)
     client.post("/auth/login", json={"username": "admin", "password": ADMIN_PASSWORD})

@@ -38,9 +38,10 @@ def add_user(body: UserCreate, admin: Admin, session: SessionDep) -> UserPublic:
     return UserPublic.of(create_user(session, body.username, body.password, body.role, admin.id))
 
 
-@router.patch("/{user_id}", response_model=UserPublic, responses=errors(403, 404, 422))
+@router.patch("/{user_id}", response_model=UserPublic, responses=errors(403, 404, 409, 422))
 def change_user(user_id: int, body: UserUpdate, admin: Admin, session: SessionDep) -> UserPublic:
-    """Change role, password or active flag (admin only); the user's tokens stop working."""
+    """Change role, password or active flag (admin only); the user's tokens stop working. The
+    last active admin cannot be demoted or deactivated (409)."""
     user = update_user(
         session,
         user_id,
