@@ -29,6 +29,7 @@ import statistics
 import tempfile
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 
@@ -294,7 +295,7 @@ def bench_contention(server: Server, clients: int, seconds: float) -> tuple[list
     stored = stored_human_labels(server.data_dir / "mmsclean.sqlite3", survey)
     seen_twice = len(acked) - len({(c, v) for c, v, _ in acked})
     last = {c: (v + 1, label) for c, v, label in sorted(acked, key=lambda a: a[1])}
-    writes = {c: sum(1 for a in acked if a[0] == c) for c in last}
+    writes = Counter(c for c, _, _ in acked)
     wrong = sum(
         1 for c, (version, label) in last.items() if stored.get(c) != (label, version)
     ) + sum(1 for c, n in writes.items() if last[c][0] != n)
