@@ -44,7 +44,7 @@ from app.store import models  # noqa: F401  (registers every table on SQLModel.m
 
 log = logging.getLogger(__name__)
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 
 
 def _to_v2(conn: Connection) -> None:
@@ -93,8 +93,39 @@ def _to_v2(conn: Connection) -> None:
     add_column(conn, "job", "result JSON NOT NULL DEFAULT '{}'")
 
 
+def _to_v3(conn: Connection) -> None:
+    """Version 3: server-side login sessions (revocable tokens) and login throttling."""
+    conn.exec_driver_sql(
+        """CREATE TABLE auth_session (
+            id INTEGER NOT NULL PRIMARY KEY AUTOINCREMENT,
+            created_at DATETIME NOT NULL,
+            user_id INTEGER NOT NULL,
+            expires_at DATETIME NOT NULL,
+            last_seen_at DATETIME NOT NULL,
+            ended_at DATETIME,
+            end_reason VARCHAR(32),
+            client_address VARCHAR(64),
+            user_agent VARCHAR(255),
+            FOREIGN KEY(user_id) REFERENCES user (id) ON DELETE CASCADE
+        )"""
+    )
+    conn.exec_driver_sql("CREATE INDEX ix_auth_session_user ON auth_session (user_id, ended_at)")
+    conn.exec_driver_sql(
+        """CREATE TABLE login_throttle (
+            id INTEGER NOT NULL,
+            kind VARCHAR(16) NOT NULL,
+            "key" VARCHAR(255) NOT NULL,
+            failures INTEGER NOT NULL,
+            last_failure_at DATETIME NOT NULL,
+            locked_until DATETIME,
+            PRIMARY KEY (id),
+            CONSTRAINT uq_login_throttle_key UNIQUE (kind, "key")
+        )"""
+    )
+
+
 # target version -> function upgrading a database from version - 1 to it (runs in a transaction)
-MIGRATIONS: dict[int, Callable[[Connection], None]] = {2: _to_v2}
+MIGRATIONS: dict[int, Callable[[Connection], None]] = {2: _to_v2, 3: _to_v3}
 
 _VERSION_TABLE = sa.Table(
     "schema_version",

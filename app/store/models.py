@@ -192,6 +192,39 @@ class User(Versioned, table=True):
     is_active: bool = Field(default=True)
 
 
+class AuthSession(Created, table=True):
+    """One login: its id rides in the signed token and is checked on every request, so logout,
+    revocation and changes to the user end it at once. AUTOINCREMENT: an ended session's id is
+    never handed out again (its old token must not come back to life)."""
+
+    __tablename__ = "auth_session"
+    __table_args__ = (
+        sa.Index("ix_auth_session_user", "user_id", "ended_at"),
+        {"sqlite_autoincrement": True},
+    )
+
+    user_id: int = Field(foreign_key="user.id", ondelete="CASCADE", nullable=False)
+    expires_at: datetime = Field(sa_type=UTCDateTime, nullable=False)
+    last_seen_at: datetime = Field(default_factory=utcnow, sa_type=UTCDateTime, nullable=False)
+    ended_at: datetime | None = Field(default=None, sa_type=UTCDateTime)
+    end_reason: str | None = Field(default=None, max_length=32)  # logout, revoked, password, ...
+    client_address: str | None = Field(default=None, max_length=64)
+    user_agent: str | None = Field(default=None, max_length=255)
+
+
+class LoginThrottle(Record, table=True):
+    """Recent failed logins of one user name or one client address, and its lock-out."""
+
+    __tablename__ = "login_throttle"
+    __table_args__ = (sa.UniqueConstraint("kind", "key", name="uq_login_throttle_key"),)
+
+    kind: str = Field(max_length=16)  # "user" or "address"
+    key: str = Field(max_length=255)
+    failures: int = Field(default=0, ge=0)
+    last_failure_at: datetime = Field(sa_type=UTCDateTime, nullable=False)
+    locked_until: datetime | None = Field(default=None, sa_type=UTCDateTime)
+
+
 class Survey(Versioned, table=True):
     __tablename__ = "survey"
 
@@ -436,6 +469,8 @@ class AuditEvent(Record, table=True):
 
 TABLES: tuple[type[SQLModel], ...] = (
     User,
+    AuthSession,
+    LoginThrottle,
     Survey,
     Frame,
     Job,

@@ -234,6 +234,9 @@ def test_concurrent_first_starts_create_the_database_once(db_path: Path) -> None
         engine.dispose()
 
 
+V3_TABLES = ("auth_session", "login_throttle")
+
+
 def test_version_1_database_is_upgraded_to_2_keeping_labels(
     db_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -243,7 +246,7 @@ def test_version_1_database_is_upgraded_to_2_keeping_labels(
     old = make_engine(f"sqlite:///{db_path}")
     with old.begin() as conn:  # the version 1 tables: today's minus what version 2 added
         for table in SQLModel.metadata.sorted_tables:
-            if table.name not in ("pillar_edit_batch", "pillar_edit"):
+            if table.name not in ("pillar_edit_batch", "pillar_edit", *V3_TABLES):
                 table.create(conn)
         conn.exec_driver_sql("DROP INDEX ix_pillar_label_tile")
         conn.exec_driver_sql("DROP INDEX ix_pillar_label_source_updated")
@@ -264,7 +267,7 @@ def test_version_1_database_is_upgraded_to_2_keeping_labels(
     old.dispose()
     monkeypatch.undo()
     engine = make_engine(f"sqlite:///{db_path}")
-    assert init_db(engine) == 2
+    assert init_db(engine) == SCHEMA_VERSION
     with Session(engine) as session:
         job = session.get(Job, 1)
         assert (job.cancel_requested, job.attempts, job.result) == (False, 0, {})
@@ -273,5 +276,51 @@ def test_version_1_database_is_upgraded_to_2_keeping_labels(
     with engine.connect() as conn:
         indexes = {r[1] for r in conn.exec_driver_sql("PRAGMA index_list(pillar_label)")}
         assert {"ix_pillar_label_tile", "ix_pillar_label_source_updated"} <= indexes
+        assert conn.exec_driver_sql("PRAGMA foreign_key_check").all() == []
+    engine.dispose()
+
+
+def _columns(engine: Engine, table: str) -> list[tuple]:
+    with engine.connect() as conn:
+        return [tuple(r) for r in conn.exec_driver_sql(f"PRAGMA table_info({table})")]
+
+
+def test_version_2_database_gets_login_sessions_and_throttling(
+    db_path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The real version 3 migration: the new tables have the shape a new database gets, a
+    session row goes with its user, and an ended session's id is never reused."""
+    monkeypatch.setattr(migrations, "SCHEMA_VERSION", 2)
+    monkeypatch.setattr(migrations, "MIGRATIONS", {2: MIGRATIONS[2]})
+    old = make_engine(f"sqlite:///{db_path}")
+    with old.begin() as conn:
+        for table in SQLModel.metadata.sorted_tables:
+            if table.name not in V3_TABLES:
+                table.create(conn)
+        conn.exec_driver_sql("PRAGMA user_version = 2")
+        conn.exec_driver_sql(
+            "INSERT INTO user (id, created_at, updated_at, version, username, hashed_password,"
+            " role, is_active) VALUES (1, '2026-01-01', '2026-01-01', 1, 'ann', 'x',"
+            " 'annotator', 1)"
+        )
+    old.dispose()
+    monkeypatch.undo()
+    engine = make_engine(f"sqlite:///{db_path}")
+    assert init_db(engine) == SCHEMA_VERSION
+    fresh = make_engine(f"sqlite:///{tmp_path / 'fresh.sqlite3'}")
+    init_db(fresh)
+    for table in V3_TABLES:
+        assert _columns(engine, table) == _columns(fresh, table)
+    fresh.dispose()
+    with engine.begin() as conn:
+        insert = (
+            "INSERT INTO auth_session (created_at, user_id, expires_at, last_seen_at)"
+            " VALUES ('2026-01-01', 1, '2026-01-02', '2026-01-01')"
+        )
+        first = conn.exec_driver_sql(insert).lastrowid
+        conn.exec_driver_sql("DELETE FROM auth_session")
+        assert conn.exec_driver_sql(insert).lastrowid == first + 1
+        conn.exec_driver_sql("DELETE FROM user WHERE id = 1")
+        assert conn.exec_driver_sql("SELECT count(*) FROM auth_session").scalar() == 0
         assert conn.exec_driver_sql("PRAGMA foreign_key_check").all() == []
     engine.dispose()

@@ -12,6 +12,7 @@ from sqlmodel import Session, func, select
 from app.store.models import (
     TABLES,
     AuditEvent,
+    AuthSession,
     ClutterDecision,
     ClutterInstance,
     Decision,
@@ -22,6 +23,7 @@ from app.store.models import (
     Job,
     JobStatus,
     LabelSource,
+    LoginThrottle,
     ModelStatus,
     ModelVersion,
     PillarClass,
@@ -145,6 +147,9 @@ def _populate(session: Session) -> dict[str, int]:
     session.add_all([human, predicted, instance, slice_, rail, event, batch])
     session.flush()
     session.add(PillarEdit(batch_id=batch.id, cell_id=42, before_label=None, after_label=3))
+    now = datetime.now(UTC)
+    session.add(AuthSession(user_id=user.id, expires_at=now + timedelta(hours=1)))
+    session.add(LoginThrottle(kind="user", key="ann", failures=1, last_failure_at=now))
     session.commit()
     return {
         "user": user.id,
