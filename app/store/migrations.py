@@ -44,7 +44,7 @@ from app.store import models  # noqa: F401  (registers every table on SQLModel.m
 
 log = logging.getLogger(__name__)
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 
 
 def _to_v2(conn: Connection) -> None:
@@ -124,8 +124,34 @@ def _to_v3(conn: Connection) -> None:
     )
 
 
+def _to_v4(conn: Connection) -> None:
+    """Version 4: versions only grow. Erased pillar labels leave a tombstone holding the
+    pillar's version, edits remember the version their last step left (undo / redo check it),
+    and replaced review rows never get an id back (`issued_id`)."""
+    conn.exec_driver_sql(
+        """CREATE TABLE pillar_tombstone (
+            survey_id INTEGER NOT NULL,
+            cell_id BIGINT NOT NULL,
+            version INTEGER NOT NULL,
+            user_id INTEGER,
+            updated_at DATETIME NOT NULL,
+            PRIMARY KEY (survey_id, cell_id),
+            FOREIGN KEY(survey_id) REFERENCES survey (id) ON DELETE CASCADE,
+            FOREIGN KEY(user_id) REFERENCES user (id) ON DELETE SET NULL
+        ) WITHOUT ROWID"""
+    )
+    conn.exec_driver_sql(
+        """CREATE TABLE issued_id (
+            name VARCHAR(64) NOT NULL,
+            last_id INTEGER NOT NULL,
+            PRIMARY KEY (name)
+        )"""
+    )
+    add_column(conn, "pillar_edit", "version INTEGER")
+
+
 # target version -> function upgrading a database from version - 1 to it (runs in a transaction)
-MIGRATIONS: dict[int, Callable[[Connection], None]] = {2: _to_v2, 3: _to_v3}
+MIGRATIONS: dict[int, Callable[[Connection], None]] = {2: _to_v2, 3: _to_v3, 4: _to_v4}
 
 _VERSION_TABLE = sa.Table(
     "schema_version",

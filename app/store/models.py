@@ -351,6 +351,35 @@ class PillarEdit(Record, table=True):
     cell_id: int = Field(sa_type=sa.BigInteger, nullable=False)
     before_label: int | None = None
     after_label: int | None = None
+    # the pillar's version after this edit's latest step (the write, an undo, a redo): undo /
+    # redo go ahead only if the pillar is still at it. None: written before schema version 4.
+    version: int | None = None
+
+
+class PillarTombstone(SQLModel, table=True):
+    """An erased human pillar label. An erase is a new version of the pillar, not the end of its
+    history: the next label written there takes version + 1 and replaces the tombstone, so a
+    version a client once saw never comes back with another label (no ABA)."""
+
+    __tablename__ = "pillar_tombstone"
+    __table_args__ = {"sqlite_with_rowid": False}  # clustered on the key: tile reads scan it
+
+    survey_id: int = Field(foreign_key="survey.id", ondelete="CASCADE", primary_key=True)
+    cell_id: int = Field(sa_type=sa.BigInteger, primary_key=True)
+    version: int = Field(ge=1)
+    user_id: int | None = _user_fk()  # who erased it
+    updated_at: datetime = Field(default_factory=utcnow, sa_type=UTCDateTime, nullable=False)
+
+
+class IssuedId(SQLModel, table=True):
+    """The highest id ever handed out in a table whose rows a run replaces wholesale (clutter
+    instances, guardrail slices and models). SQLite hands the highest id out again once its row
+    is deleted; a client still holding (old id, version 1) would then write to a new row."""
+
+    __tablename__ = "issued_id"
+
+    name: str = Field(primary_key=True, max_length=64)  # the table
+    last_id: int = Field(ge=0)
 
 
 class ClutterInstance(Created, table=True):
@@ -478,6 +507,8 @@ TABLES: tuple[type[SQLModel], ...] = (
     PillarLabel,
     PillarEditBatch,
     PillarEdit,
+    PillarTombstone,
+    IssuedId,
     ClutterInstance,
     ClutterDecision,
     GuardrailSlice,
