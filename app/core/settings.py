@@ -28,6 +28,18 @@ class Settings(BaseSettings):
         1_000_000, ge=1000, description="most points of the full-resolution tile in focus"
     )
     admin_password: str | None = None
+    login_free_failures: int = Field(
+        5, ge=1, le=1000, description="failed logins (per user name / address) before lock-outs"
+    )
+    login_window_s: float = Field(
+        900, ge=1, le=86_400, description="a quiet time this long forgets the failed logins"
+    )
+    login_first_delay_s: float = Field(
+        1.0, gt=0, le=3600, description="the first lock-out; each further failure doubles it"
+    )
+    login_max_delay_s: float = Field(
+        900, gt=0, le=86_400, description="the longest lock-out after failed logins"
+    )
     import_root: Path | None = Field(
         None, description="surveys may be imported from paths inside it; empty = data_dir"
     )
