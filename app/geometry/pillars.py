@@ -43,6 +43,11 @@ class PillarGrid:
         """(2,) float64 origin."""
         return np.array([self.origin_x, self.origin_y])
 
+    def addressable(self) -> tuple[np.ndarray, np.ndarray]:
+        """(2,) lowest and highest world x, y whose cell index fits the 32 bits `cell_id` packs
+        per axis: a coordinate outside this range has no cell id."""
+        return self.origin + _MIN_INDEX * self.cell_size, self.origin + _MAX_INDEX * self.cell_size
+
     def cell_index(self, xy: np.ndarray) -> np.ndarray:
         """(N, 2) int64 cell indices (floor); extra columns (z) are ignored."""
         xy = _xy(xy)

@@ -335,7 +335,7 @@ def box_cell_ranges(x0: float, y0: float, x1: float, y1: float) -> list[tuple[in
     if not (x1 > x0 and y1 > y0):
         raise ConfigError("box", f"x1 > x0 and y1 > y0 needed, got ({x0}, {y0}, {x1}, {y1})")
     (ix0, iy0), (ix1, iy1) = STORE_GRID.cell_index(np.array([[x0, y0], [x1, y1]]))
-    if (ix1 - ix0 + 1) * (iy1 - iy0 + 1) > MAX_BOX_CELLS:
+    if (int(ix1) - int(ix0) + 1) * (int(iy1) - int(iy0) + 1) > MAX_BOX_CELLS:  # no int64 wrap
         raise ConfigError("box", "larger than 1 km x 1 km; ask for smaller tiles")
     columns = np.arange(ix0, ix1 + 1)
     lo = STORE_GRID.cell_id(columns, np.full(len(columns), iy0))

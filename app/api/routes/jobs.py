@@ -19,6 +19,7 @@ from sqlmodel import select
 
 from app.api.deps import Annotator, CurrentUser, SessionDep, SettingsDep
 from app.api.errors import errors
+from app.api.types import FilePath, Id, Offset
 from app.core.errors import MmscleanError, NotFoundError, PermissionDeniedError
 from app.core.settings import Settings
 from app.jobs.queue import enqueue, get_job, request_cancel, requeue, resume
@@ -32,7 +33,7 @@ MAX_TAIL = 100_000
 
 class JobCreate(BaseModel):
     kind: str = Field(min_length=1, max_length=64, description="e.g. run:phantom, train:phantom")
-    survey_id: int | None = Field(None, description="the survey a run:* job works on")
+    survey_id: Id | None = Field(None, description="the survey a run:* job works on")
     config: dict[str, Any] = Field(default_factory=dict, description="the kind's options")
 
 
@@ -129,10 +130,10 @@ def list_jobs(
     _: CurrentUser,
     session: SessionDep,
     status: JobStatus | None = None,
-    survey_id: int | None = None,
+    survey_id: Id | None = None,
     kind: str | None = None,
     limit: Annotated[int, Query(ge=1, le=500)] = 50,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    offset: Offset = 0,
 ) -> list[JobPublic]:
     """Jobs, newest first."""
     query = select(Job)
@@ -147,7 +148,7 @@ def list_jobs(
 
 
 @router.get("/{job_id}", response_model=JobPublic, responses=errors(404))
-def read_job(job_id: int, _: CurrentUser, session: SessionDep) -> JobPublic:
+def read_job(job_id: Id, _: CurrentUser, session: SessionDep) -> JobPublic:
     """Status, progress, message, timings and (once succeeded) the result summary."""
     return JobPublic.of(get_job(session, job_id))
 
@@ -161,7 +162,7 @@ def read_job(job_id: int, _: CurrentUser, session: SessionDep) -> JobPublic:
     },
 )
 def read_log(
-    job_id: int,
+    job_id: Id,
     _: CurrentUser,
     session: SessionDep,
     settings: SettingsDep,
@@ -178,7 +179,7 @@ def read_log(
 
 
 @router.post("/{job_id}/cancel", response_model=JobPublic, responses=errors(403, 404, 409))
-def cancel_job(job_id: int, user: Annotator, session: SessionDep) -> JobPublic:
+def cancel_job(job_id: Id, user: Annotator, session: SessionDep) -> JobPublic:
     """Cancel: a queued job at once, a running one at its next progress report (409 when it
     already ended)."""
     may_control(user, get_job(session, job_id))
@@ -186,7 +187,7 @@ def cancel_job(job_id: int, user: Annotator, session: SessionDep) -> JobPublic:
 
 
 @router.post("/{job_id}/resume", response_model=JobPublic, responses=errors(403, 404, 409))
-def resume_job(job_id: int, user: Annotator, session: SessionDep) -> JobPublic:
+def resume_job(job_id: Id, user: Annotator, session: SessionDep) -> JobPublic:
     """Queue an interrupted, failed or cancelled job again under the same id and config."""
     may_control(user, get_job(session, job_id))
     return JobPublic.of(resume(session, job_id, user.id))
@@ -199,7 +200,7 @@ def resume_job(job_id: int, user: Annotator, session: SessionDep) -> JobPublic:
     responses=errors(403, 404, 409, 422),
 )
 def requeue_job(
-    job_id: int, user: Annotator, session: SessionDep, settings: SettingsDep
+    job_id: Id, user: Annotator, session: SessionDep, settings: SettingsDep
 ) -> JobPublic:
     """A new job with the same kind, survey and config (409 while the old one is active)."""
     may_start(user, get_job(session, job_id).kind)
@@ -208,7 +209,7 @@ def requeue_job(
 
 @router.get("/{job_id}/results", response_model=JobResults, responses=errors(404))
 def read_results(
-    job_id: int, _: CurrentUser, session: SessionDep, settings: SettingsDep
+    job_id: Id, _: CurrentUser, session: SessionDep, settings: SettingsDep
 ) -> JobResults:
     """The result summary and every file the job wrote (download with /files/{name})."""
     job = get_job(session, job_id)
@@ -224,7 +225,7 @@ def read_results(
     responses={**errors(400, 404), 200: {"content": {"application/octet-stream": {}}}},
 )
 def download_file(
-    job_id: int, name: str, _: CurrentUser, session: SessionDep, settings: SettingsDep
+    job_id: Id, name: FilePath, _: CurrentUser, session: SessionDep, settings: SettingsDep
 ) -> FileResponse:
     """One file of the job's folder; a name leading outside it is refused (400)."""
     workdir = workdir_of(get_job(session, job_id), settings)

@@ -14,6 +14,7 @@ from pydantic import BaseModel, Field, model_validator
 
 from app.api.deps import Annotator, CurrentUser, SessionDep, wake_viewer
 from app.api.errors import errors
+from app.api.types import CellId, Coordinate, Id, Version
 from app.store.models import LabelSource, PillarClass
 from app.store.pillar_labels import (
     NO_LABEL,
@@ -39,14 +40,14 @@ CLASS_NAMES = [c.name for c in PillarClass]
 class PillarLabelIn(BaseModel):
     """One pillar by `cell_id`, or by a world position `x`, `y` inside it."""
 
-    cell_id: int | None = None
-    x: float | None = None
-    y: float | None = None
+    cell_id: CellId | None = None
+    x: Coordinate | None = None
+    y: Coordinate | None = None
     label: Annotated[int, Field(ge=0, le=3)] | None = Field(
         ..., description="0 ground, 1 high object, 2 short object, 3 phantom; null erases"
     )
-    version: int | None = Field(
-        None, ge=0, description="version the client saw (0: unlabelled); mismatch -> 409"
+    version: Version | None = Field(
+        None, description="version the client saw (0: unlabelled); mismatch -> 409"
     )
 
     @model_validator(mode="after")
@@ -115,7 +116,7 @@ def _after_write(request: Request, background: BackgroundTasks) -> None:
 
 @router.put("/labels", response_model=LabelWriteOut, responses=errors(403, 409, 422))
 def put_labels(
-    survey_id: int,
+    survey_id: Id,
     batch: LabelBatch,
     user: Annotator,
     session: SessionDep,
@@ -148,13 +149,13 @@ def put_labels(
     responses={200: {"model": TileOut, "description": "columnar labels"}, **errors(422)},
 )
 def get_labels(
-    survey_id: int,
+    survey_id: Id,
     user: CurrentUser,
     session: SessionDep,
-    x0: Annotated[float, Query(description="box in world coordinates (metres)")],
-    y0: float,
-    x1: float,
-    y1: float,
+    x0: Annotated[Coordinate, Query(description="box in world coordinates (metres)")],
+    y0: Coordinate,
+    x1: Coordinate,
+    y1: Coordinate,
     source: LabelSource | None = None,
 ) -> Response:
     """Labels of the pillars in a world box (at most 1 km x 1 km), human and model, columnar
@@ -166,7 +167,7 @@ def get_labels(
 
 @router.post("/undo", response_model=LabelWriteOut, responses=errors(403, 409))
 def undo_labels(
-    survey_id: int, user: Annotator, session: SessionDep, request: Request
+    survey_id: Id, user: Annotator, session: SessionDep, request: Request
 ) -> LabelWriteOut:
     """Revert this user's newest labelling action on the survey (409 when there is none, or
     when someone changed those pillars since)."""
@@ -178,7 +179,7 @@ def undo_labels(
 
 @router.post("/redo", response_model=LabelWriteOut, responses=errors(403, 409))
 def redo_labels(
-    survey_id: int, user: Annotator, session: SessionDep, request: Request
+    survey_id: Id, user: Annotator, session: SessionDep, request: Request
 ) -> LabelWriteOut:
     """Re-apply this user's most recently undone action (gone once they label anew)."""
     get_survey(session, survey_id)
@@ -189,7 +190,7 @@ def redo_labels(
 
 @router.get("/uncertain", response_model=list[UncertainAreaOut], responses=errors(422))
 def uncertain(
-    survey_id: int,
+    survey_id: Id,
     user: CurrentUser,
     session: SessionDep,
     threshold: Annotated[float, Query(gt=0, le=1)] = 0.9,
@@ -204,7 +205,7 @@ def uncertain(
 
 
 @router.get("/stats", response_model=LabelStats)
-def stats(survey_id: int, user: CurrentUser, session: SessionDep) -> LabelStats:
+def stats(survey_id: Id, user: CurrentUser, session: SessionDep) -> LabelStats:
     """Pillars per class, human labels and model pre-labels."""
     get_survey(session, survey_id)
     counts = label_counts(session, survey_id)

@@ -21,6 +21,7 @@ from starlette.concurrency import run_in_threadpool
 
 from app.api.deps import Annotator, CurrentUser, Reviewer, SessionDep, SettingsDep
 from app.api.errors import errors
+from app.api.types import FileName, Id, ImportPath
 from app.api.uploads import check_upload_name, extract_zip, receive_upload, remove_tree
 from app.core.errors import InputError
 from app.io.import_root import resolve_import_path
@@ -104,7 +105,7 @@ class SurveyDetail(SurveyPublic):
 
 
 class SurveyImport(BaseModel):
-    path: str = Field(min_length=1, max_length=4096, description="inside the import root")
+    path: ImportPath = Field(description="inside the import root")
     format: str | None = Field(None, description="reader name; detected when absent")
     name: str | None = Field(None, min_length=1, max_length=255)
 
@@ -116,7 +117,7 @@ def surveys(_: CurrentUser, session: SessionDep) -> list[SurveyPublic]:
 
 
 @router.get("/{survey_id}", response_model=SurveyDetail, responses=errors(404))
-def survey_detail(survey_id: int, _: CurrentUser, session: SessionDep) -> SurveyDetail:
+def survey_detail(survey_id: Id, _: CurrentUser, session: SessionDep) -> SurveyDetail:
     """One survey: its frames summarised, the newest job of each kind, pillar label counts."""
     survey = get_survey(session, survey_id)
     return SurveyDetail(
@@ -158,7 +159,7 @@ async def upload_survey(
     user: Annotator,
     session: SessionDep,
     settings: SettingsDep,
-    filename: str = Query(..., max_length=255, description="survey.laz, or drive.zip"),
+    filename: FileName = Query(..., description="survey.laz, or drive.zip"),
     format: str | None = Query(None, description="reader name; detected when absent"),
     name: str | None = Query(None, min_length=1, max_length=255),
 ) -> SurveyPublic:
@@ -220,7 +221,7 @@ def upload_folder(surveys_dir: Path, source_path: str) -> Path | None:
 
 @router.delete("/{survey_id}", status_code=204, responses=errors(403, 404, 409))
 def remove_survey(
-    survey_id: int, user: Reviewer, session: SessionDep, settings: SettingsDep
+    survey_id: Id, user: Reviewer, session: SessionDep, settings: SettingsDep
 ) -> Response:
     """Delete a survey with its frames, labels, decisions and models (reviewer role); an
     uploaded survey's files go too, files imported from elsewhere stay."""
