@@ -148,6 +148,10 @@ def _to_v4(conn: Connection) -> None:
         )"""
     )
     add_column(conn, "pillar_edit", "version INTEGER")
+    add_column(conn, "pillar_edit", "version_before INTEGER")
+    conn.exec_driver_sql(
+        "CREATE INDEX IF NOT EXISTS ix_pillar_edit_cell_version ON pillar_edit (cell_id, version)"
+    )
 
 
 # target version -> function upgrading a database from version - 1 to it (runs in a transaction)

@@ -346,14 +346,19 @@ class PillarEdit(Record, table=True):
     """One pillar's human label before and after a batch (None: no human label)."""
 
     __tablename__ = "pillar_edit"
+    # the edits that expect a pillar's version, found when an undo / redo restores it
+    __table_args__ = (sa.Index("ix_pillar_edit_cell_version", "cell_id", "version"),)
 
     batch_id: int = Field(foreign_key="pillar_edit_batch.id", ondelete="CASCADE", index=True)
     cell_id: int = Field(sa_type=sa.BigInteger, nullable=False)
     before_label: int | None = None
     after_label: int | None = None
-    # the pillar's version after this edit's latest step (the write, an undo, a redo): undo /
-    # redo go ahead only if the pillar is still at it. None: written before schema version 4.
+    # Versions (None: written before schema version 4, checked by label instead): `version` is
+    # the one this edit's latest step (write, undo, redo) left, which its next undo / redo
+    # expects; `version_before` is the one that step replaced, whose content the next step
+    # restores (see app.store.versions).
     version: int | None = None
+    version_before: int | None = None
 
 
 class PillarTombstone(SQLModel, table=True):
