@@ -6,7 +6,7 @@ column, array or file system can hold is a 422 naming the field, never an Overfl
 
 - `Id`: a record id, 1 .. 2**63 - 1 (SQLite INTEGER PRIMARY KEY).
 - `CellId`: a packed pillar id, any signed 64-bit integer (`app.geometry.pillars`).
-- `Version`, `Offset`: non-negative 64-bit counters.
+- `Version`, `Offset`: non-negative 64-bit counters; `Int64` any other stored integer.
 - `Coordinate`: world metres, finite and inside the store's pillar grid, whose cell ids pack a
   32-bit cell index per axis (about +-429,000 km around the origin).
 - `FileName`, `FilePath` (`ImportPath`): names of at most 255 bytes, paths of at most 4096.
@@ -26,8 +26,9 @@ _LOWEST, _HIGHEST = STORE_GRID.addressable()
 WORLD_MIN = float(_LOWEST.max())  # metres, on both axes
 WORLD_MAX = float(_HIGHEST.min())
 
+Int64 = Annotated[int, Ge(INT64_MIN), Le(INT64_MAX)]
 Id = Annotated[int, Ge(1), Le(INT64_MAX)]
-CellId = Annotated[int, Ge(INT64_MIN), Le(INT64_MAX)]
+CellId = Int64
 Version = Annotated[int, Ge(0), Le(INT64_MAX)]
 Offset = Annotated[int, Ge(0), Le(INT64_MAX)]
 Coordinate = Annotated[float, AllowInfNan(False), Ge(WORLD_MIN), Le(WORLD_MAX)]

@@ -21,6 +21,7 @@ from pydantic import BaseModel, Field
 from app.api.deps import CurrentUser, Reviewer, SessionDep, SettingsDep, wake_viewer
 from app.api.errors import errors
 from app.api.routes.jobs import JobPublic
+from app.api.types import Id, Offset, Version
 from app.core.errors import ConflictError, NotFoundError
 from app.jobs.queue import enqueue
 from app.store.clutter_review import (
@@ -94,8 +95,8 @@ class FrameReview(BaseModel):
 
 
 class DecisionIn(BaseModel):
-    instance_id: int
-    version: int = Field(ge=1, description="the decision version the reviewer saw")
+    instance_id: Id
+    version: Version = Field(ge=1, description="the decision version the reviewer saw")
     decision: Decision
 
 
@@ -105,13 +106,13 @@ class DecisionBatch(BaseModel):
 
 @router.get("/instances", response_model=InstancePage, responses=errors(422))
 def read_instances(
-    survey_id: int,
+    survey_id: Id,
     _: CurrentUser,
     session: SessionDep,
     frame_id: Annotated[str | None, Query(max_length=64, description="one frame only")] = None,
     decision: Decision | None = None,
     class_name: Annotated[str | None, Query(max_length=32)] = None,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    offset: Offset = 0,
     limit: Annotated[int, Query(ge=1, le=MAX_PAGE)] = 100,
 ) -> InstancePage:
     """The survey's instances in frame order, one page at a time, with decision and version."""
@@ -126,7 +127,7 @@ def read_instances(
 
 @router.get("/instances/{instance_id}", response_model=InstancePublic)
 def read_instance(
-    survey_id: int, instance_id: int, _: CurrentUser, session: SessionDep
+    survey_id: Id, instance_id: Id, _: CurrentUser, session: SessionDep
 ) -> InstancePublic:
     """One instance (an id of another survey is not found here)."""
     get_survey(session, survey_id)
@@ -138,7 +139,7 @@ def read_instance(
     response_class=FileResponse,
     responses={200: {"content": {"image/png": {}}, "description": "the mask image"}},
 )
-def read_mask(survey_id: int, instance_id: int, _: CurrentUser, session: SessionDep):
+def read_mask(survey_id: Id, instance_id: Id, _: CurrentUser, session: SessionDep):
     """The instance's mask image: the camera image around it with its mask tinted and its
     points dotted (white: the pipeline removes them, black: keeps them), or a top view."""
     get_survey(session, survey_id)
@@ -149,7 +150,7 @@ def read_mask(survey_id: int, instance_id: int, _: CurrentUser, session: Session
 
 
 @router.get("/frames", response_model=list[FrameReview])
-def read_frames(survey_id: int, _: CurrentUser, session: SessionDep) -> list[FrameReview]:
+def read_frames(survey_id: Id, _: CurrentUser, session: SessionDep) -> list[FrameReview]:
     """Every frame with its instance count and how many still wait for a decision."""
     get_survey(session, survey_id)
     return [FrameReview(**c.__dict__) for c in frame_counts(session, survey_id)]
@@ -157,7 +158,7 @@ def read_frames(survey_id: int, _: CurrentUser, session: SessionDep) -> list[Fra
 
 @router.post("/decisions", response_model=list[InstancePublic], responses=errors(403, 409, 422))
 def post_decisions(
-    survey_id: int, body: DecisionBatch, user: Reviewer, session: SessionDep, request: Request
+    survey_id: Id, body: DecisionBatch, user: Reviewer, session: SessionDep, request: Request
 ) -> list[InstancePublic]:
     """Approve (remove the points), reject (keep them) or reset to pending, in one transaction.
     Any stale version rejects the whole batch with 409 and `current`: the decisions as they
@@ -171,7 +172,7 @@ def post_decisions(
 
 @router.post("/recompute", response_model=JobPublic, status_code=202, responses=errors(403, 409))
 def post_recompute(
-    survey_id: int, user: Reviewer, session: SessionDep, settings: SettingsDep
+    survey_id: Id, user: Reviewer, session: SessionDep, settings: SettingsDep
 ) -> JobPublic:
     """Queue `clutter:recompute`: the cleaned and removed maps from the decisions (approved:
     removed, rejected: kept, pending: as the pipeline decided). 409 before any clutter run."""

@@ -31,6 +31,7 @@ from starlette.background import BackgroundTask
 from app.api.deps import Reviewer, SessionDep, SettingsDep
 from app.api.errors import errors
 from app.api.qa_report import PIPELINE_JOBS, build_qa_report, job_file
+from app.api.types import Id
 from app.core.errors import NotFoundError
 from app.core.settings import Settings
 from app.store.audit import audit
@@ -123,7 +124,7 @@ def _clutter_download(
 
 @router.get("/cleaned.laz", response_class=FileResponse)
 def cleaned_laz(
-    survey_id: int, user: Reviewer, session: SessionDep, settings: SettingsDep
+    survey_id: Id, user: Reviewer, session: SessionDep, settings: SettingsDep
 ) -> FileResponse:
     """The cleaned map (clutter removed) of the newest finished clutter run."""
     return _clutter_download("cleaned", survey_id, user, session, settings)
@@ -131,7 +132,7 @@ def cleaned_laz(
 
 @router.get("/removed.laz", response_class=FileResponse)
 def removed_laz(
-    survey_id: int, user: Reviewer, session: SessionDep, settings: SettingsDep
+    survey_id: Id, user: Reviewer, session: SessionDep, settings: SettingsDep
 ) -> FileResponse:
     """The removed points (the clutter itself) of the newest finished clutter run."""
     return _clutter_download("removed", survey_id, user, session, settings)
@@ -209,7 +210,7 @@ def _write_guardrails_zip(session: Session, survey: Survey, fmt: str, archive: P
 
 @router.get("/guardrails.zip", response_class=FileResponse)
 def guardrails_zip(
-    survey_id: int,
+    survey_id: Id,
     user: Reviewer,
     session: SessionDep,
     settings: SettingsDep,
@@ -317,7 +318,7 @@ def write_pillars_npz(t: dict[str, np.ndarray], path: Path) -> None:
 
 @router.get("/pillars.csv", response_class=StreamingResponse)
 def pillars_csv(
-    survey_id: int,
+    survey_id: Id,
     user: Reviewer,
     session: SessionDep,
     include_model: bool = Query(False, description="add the model's pre-labels"),
@@ -339,7 +340,7 @@ def pillars_csv(
 
 @router.get("/pillars.npz", response_class=FileResponse)
 def pillars_npz(
-    survey_id: int,
+    survey_id: Id,
     user: Reviewer,
     session: SessionDep,
     settings: SettingsDep,
@@ -366,7 +367,7 @@ def pillars_npz(
 
 @router.get("/qa-report.html", response_class=Response)
 def qa_report(
-    survey_id: int, user: Reviewer, session: SessionDep, settings: SettingsDep
+    survey_id: Id, user: Reviewer, session: SessionDep, settings: SettingsDep
 ) -> Response:
     """A self-contained HTML page: survey, paper metrics of the newest runs, review state."""
     survey = get_survey(session, survey_id)

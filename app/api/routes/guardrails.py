@@ -17,6 +17,7 @@ from pydantic import BaseModel, Field
 
 from app.api.deps import Annotator, CurrentUser, Reviewer, SessionDep, wake_viewer
 from app.api.errors import errors
+from app.api.types import Id, Int64, Offset, Version
 from app.core.errors import ConflictError, NotFoundError
 from app.jobs.guardrail_tasks import preview_correction, slice_position
 from app.jobs.queue import enqueue
@@ -52,8 +53,8 @@ class SlicePage(BaseModel):
 
 
 class SliceLabelIn(BaseModel):
-    id: int
-    version: int = Field(ge=1, description="the slice's version the client saw")
+    id: Id
+    version: Version = Field(ge=1, description="the slice's version the client saw")
     label: Label
 
 
@@ -70,14 +71,14 @@ class NextUncertain(BaseModel):
 
 
 class PreviewLabel(BaseModel):
-    id: int
+    id: Id
     label: Label
 
 
 class PreviewIn(BaseModel):
     labels: list[PreviewLabel] = Field(default_factory=list, max_length=MAX_LABELS_PER_WRITE)
-    max_gap: int | None = Field(None, ge=0, description="default: the run's")
-    max_isolated: int | None = Field(None, ge=0, description="default: the run's")
+    max_gap: Offset | None = Field(None, description="default: the run's")
+    max_isolated: Offset | None = Field(None, description="default: the run's")
 
 
 class PreviewSlice(BaseModel):
@@ -98,7 +99,7 @@ class PreviewOut(BaseModel):
 
 
 class DecisionIn(BaseModel):
-    version: int = Field(ge=1, description="the model's version the client saw")
+    version: Version = Field(ge=1, description="the model's version the client saw")
     status: Literal["approved", "rejected"]
 
 
@@ -117,16 +118,16 @@ class JobRef(BaseModel):
 
 @router.get("/slices", response_model=SlicePage, responses=errors(422))
 def get_slices(
-    survey_id: int,
+    survey_id: Id,
     _: CurrentUser,
     session: SessionDep,
-    component: int | None = None,
+    component: Int64 | None = None,
     label: Annotated[int | None, Query(ge=0, le=1)] = None,
     labelled: Annotated[bool | None, Query(description="only with / without a human label")] = None,
     uncertain_first: Annotated[
         bool, Query(description="probability nearest 0.5 first; else along the road")
     ] = False,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    offset: Offset = 0,
     limit: Annotated[int, Query(ge=1, le=5000)] = 100,
 ) -> SlicePage:
     """The survey's guardrail slices, one page."""
@@ -140,7 +141,7 @@ def get_slices(
 
 @router.put("/slices", response_model=list[GuardrailSlicePublic], responses=errors(403, 409, 422))
 def put_slices(
-    survey_id: int, body: SliceLabelsIn, user: Annotator, session: SessionDep, request: Request
+    survey_id: Id, body: SliceLabelsIn, user: Annotator, session: SessionDep, request: Request
 ) -> list[GuardrailSlicePublic]:
     """Label many slices at once (all or nothing); 409 with `current` on a stale version."""
     edits = [SliceLabelEdit(s.id, s.version, s.label) for s in body.slices]
@@ -150,7 +151,7 @@ def put_slices(
 
 
 @router.get("/slices/next-uncertain", response_model=NextUncertain)
-def get_next_uncertain(survey_id: int, _: CurrentUser, session: SessionDep) -> NextUncertain:
+def get_next_uncertain(survey_id: Id, _: CurrentUser, session: SessionDep) -> NextUncertain:
     """The most uncertain slice no human labelled yet, with a world position to jump to."""
     row, remaining = next_uncertain(session, survey_id)
     if row is None:
@@ -161,7 +162,7 @@ def get_next_uncertain(survey_id: int, _: CurrentUser, session: SessionDep) -> N
 
 @router.post("/slices/preview-correction", response_model=PreviewOut, responses=errors(409, 422))
 def post_preview_correction(
-    survey_id: int, body: PreviewIn, _: CurrentUser, session: SessionDep
+    survey_id: Id, body: PreviewIn, _: CurrentUser, session: SessionDep
 ) -> PreviewOut:
     """The adjacency correction applied to these labels, nothing saved (viewer preview)."""
     labels = {p.id: p.label for p in body.labels}
@@ -171,7 +172,7 @@ def post_preview_correction(
 
 @router.get("/models", response_model=list[GuardrailModelPublic])
 def get_models(
-    survey_id: int,
+    survey_id: Id,
     _: CurrentUser,
     session: SessionDep,
     params: Annotated[bool, Query(description="include the full model parameters")] = False,
@@ -186,8 +187,8 @@ def get_models(
     responses={**errors(422), 200: {"content": {t: {} for t in MESH_TYPES.values()}}},
 )
 def get_mesh(
-    survey_id: int,
-    model_id: int,
+    survey_id: Id,
+    model_id: Id,
     _: CurrentUser,
     session: SessionDep,
     format: Literal["glb", "obj", "ply"] = "glb",
@@ -212,8 +213,8 @@ def get_mesh(
     responses=errors(403, 409, 422),
 )
 def post_decision(
-    survey_id: int,
-    model_id: int,
+    survey_id: Id,
+    model_id: Id,
     body: DecisionIn,
     user: Reviewer,
     session: SessionDep,
@@ -228,7 +229,7 @@ def post_decision(
 
 @router.post("/rebuild", response_model=JobRef, status_code=202, responses=errors(403, 409, 422))
 def post_rebuild(
-    survey_id: int, user: Reviewer, session: SessionDep, body: RebuildIn | None = None
+    survey_id: Id, user: Reviewer, session: SessionDep, body: RebuildIn | None = None
 ) -> JobRef:
     """Queue `guardrail:rebuild`: the guardrails again from the corrected slice labels
     (reviewer). Decided models whose slices did not change keep their decision."""

@@ -11,6 +11,7 @@ from sqlmodel import select
 
 from app.api.deps import Admin, CurrentUser, SessionDep, SettingsDep
 from app.api.errors import errors
+from app.api.types import Id
 from app.core.errors import ConfigError, NotFoundError
 from app.jobs.queue import enqueue
 from app.jobs.retraining import retraining_state
@@ -74,7 +75,7 @@ def retraining(_: CurrentUser, session: SessionDep, settings: SettingsDep) -> Re
 
 
 @router.get("/{model_id}", response_model=ModelVersionPublic, responses=errors(404))
-def get_model(model_id: int, _: CurrentUser, session: SessionDep) -> ModelVersionPublic:
+def get_model(model_id: Id, _: CurrentUser, session: SessionDep) -> ModelVersionPublic:
     model = session.get(ModelVersion, model_id)
     if model is None:
         raise NotFoundError(f"model version {model_id} not found")
@@ -82,7 +83,7 @@ def get_model(model_id: int, _: CurrentUser, session: SessionDep) -> ModelVersio
 
 
 @router.post("/{model_id}/promote", response_model=ModelVersionPublic, responses=errors(403, 404))
-def promote(model_id: int, admin: Admin, session: SessionDep) -> ModelVersionPublic:
+def promote(model_id: Id, admin: Admin, session: SessionDep) -> ModelVersionPublic:
     """Make this version the one its pipeline runs with (admin; metrics are not checked)."""
     return ModelVersionPublic.of(promote_version(session, model_id, admin.id))
 

@@ -24,7 +24,9 @@ from sqlmodel import Session
 
 from app.api.deps import TOKEN_COOKIE, SessionDep, token_of, user_from_token
 from app.api.errors import errors
+from app.api.types import Id
 from app.core.errors import ConfigError, NotFoundError
+from app.core.limits import INT64_MAX
 from app.store.models import Survey, User
 from app.viewer.modes import MODES
 from app.viewer.relay import relay
@@ -56,8 +58,12 @@ def relay_url(request: Request, survey: int | None, mode: str | None = None) -> 
 def _relay_params(websocket_url: str) -> tuple[int | None, str | None]:
     """(survey, mode) of a relay URL the page was pointed at."""
     query = parse_qs(urlsplit(websocket_url).query)
-    survey = query.get("survey", [""])[0]
-    return (int(survey) if survey.isdigit() else None), query.get("mode", [None])[0]
+    return survey_number(query.get("survey", [""])[0]), query.get("mode", [None])[0]
+
+
+def survey_number(text: str | None) -> int | None:
+    """A survey id given as text, None unless it is one (digits only, at most 64 bits)."""
+    return int(text) if text and text.isdigit() and int(text) <= INT64_MAX else None
 
 
 @router.get(
@@ -72,7 +78,7 @@ def _relay_params(websocket_url: str) -> tuple[int | None, str | None]:
 def viewer_page(
     request: Request,
     session: SessionDep,
-    survey: Annotated[int | None, Query(ge=1, description="survey to open")] = None,
+    survey: Annotated[Id | None, Query(description="survey to open")] = None,
     mode: Annotated[str | None, Query(description="mode to open first: " + MODE_LIST)] = None,
     websocket: Annotated[str | None, Query(description="set by the redirect")] = None,
 ) -> Response:
@@ -131,7 +137,8 @@ def _user(websocket: WebSocket, query_token: str | None) -> User | None:
         survey = websocket.query_params.get("survey")
         if survey is None:
             return user
-        exists = survey.isdigit() and session.get(Survey, int(survey)) is not None
+        number = survey_number(survey)
+        exists = number is not None and session.get(Survey, number) is not None
         return user if exists else None
 
 
