@@ -109,3 +109,15 @@ class UploadTooLargeError(MmscleanError):
     def __init__(self, name: str, limit_mb: float):
         self.limit_mb = limit_mb
         super().__init__(f"{name}: larger than the upload limit of {limit_mb:g} MB")
+
+
+class DiskFullError(MmscleanError):
+    """The data directory's disk has (almost) no space left: a write is refused (507) before it
+    half-happens; reads go on."""
+
+    exit_code = 7
+    http_status = 507
+
+    def __init__(self, free_mb: float):
+        self.free_mb = free_mb
+        super().__init__(f"the data directory's disk is full ({free_mb:.0f} MB free)")

@@ -44,6 +44,9 @@ class Settings(BaseSettings):
         None, description="surveys may be imported from paths inside it; empty = data_dir"
     )
     max_upload_mb: float = Field(4096, gt=0, description="largest survey upload accepted")
+    min_free_mb: float = Field(
+        500, ge=0, description="less free space on the data dir's disk: writes answer 507"
+    )
     workers: int = Field(2, ge=1, le=64, description="job worker processes")
     retrain_every: int = Field(
         2000, ge=0, description="newly reviewed pillar labels that queue retraining; 0 = off"
