@@ -5,7 +5,10 @@ each with a pending decision. Reviewers then approve (remove the instance's poin
 (keep them) or reset to pending (the pipeline's own decision), one or many at once in one
 transaction (`decide`). Each decision carries the version the client saw; any stale one rejects
 the whole request with the current state of the stale decisions (`StaleWriteError`, 409), so
-two reviewers never overwrite each other unseen. Writes are plain SQL executemany through the
+two reviewers never overwrite each other unseen (`app.store.versions` checks, in the write's
+transaction). A run's instances get ids no instance ever had (`fresh_ids`): a reviewer still
+holding an instance of the previous run at version 1 gets 404, never a decision on a new
+instance that happens to be at version 1 too. Writes are plain SQL executemany through the
 tables' own column types: a run's thousands of instances, or a reviewer's "approve all on this
 frame", are one statement each, not one ORM object per row.
 """
@@ -22,7 +25,7 @@ import sqlalchemy as sa
 from sqlmodel import Session, col, select
 
 from app.core.errors import ConfigError, ConflictError, NotFoundError, StaleWriteError
-from app.store.db import commit
+from app.store.db import commit, write_transaction
 from app.store.models import (
     AuditEvent,
     ClutterDecision,
@@ -33,6 +36,7 @@ from app.store.models import (
     JobStatus,
     utcnow,
 )
+from app.store.versions import check_versions, fresh_ids
 
 RUN_KIND = "run:clutter"
 RECOMPUTE_KIND = "clutter:recompute"
@@ -232,17 +236,30 @@ def decide(
         if instance_id in seen:
             raise ConfigError(f"decisions[{i}].instance_id", f"instance {instance_id} is twice")
         seen.add(instance_id)
+    with write_transaction(session):  # the version check and the update: one transaction
+        return _decide(session, survey_id, writes, ids, user_id)
+
+
+def _decide(
+    session: Session,
+    survey_id: int,
+    writes: Sequence[DecisionWrite],
+    ids: list[int],
+    user_id: int | None,
+) -> list[InstanceState]:
     before = _states(session, survey_id, ids)
     missing = [i for i in ids if i not in before]
     if missing:
         shown = ", ".join(map(str, missing[:10])) + (" ..." if len(missing) > 10 else "")
         raise NotFoundError(f"clutter instance(s) {shown} not found in survey {survey_id}")
-    stale = [before[w.instance_id] for w in writes if before[w.instance_id].version != w.version]
-    if stale:
-        raise StaleWriteError(
-            f"{len(stale)} clutter decision(s) were changed by someone else; reload and retry",
-            current=[s.current() for s in stale],
-        )
+    check_versions(
+        ids,
+        [w.version for w in writes],
+        [before[i].version for i in ids],
+        field="decisions",
+        noun="clutter instance",
+        states=lambda stale_ids: [before[int(i)].current() for i in stale_ids],
+    )
     now = utcnow()
     conn = session.connection()
     result = conn.execute(
@@ -341,6 +358,7 @@ def replace_instances(
     class_name, point_count, mask_path, bbox, moving, track_id). Returns how many."""
     now = utcnow()
     conn = session.connection()
+    first = fresh_ids(session, _INSTANCE, len(instances))  # before the replaced rows go
     replaced = conn.execute(
         sa.select(sa.func.count()).where(_INSTANCE.c.survey_id == survey_id)
     ).scalar_one()
@@ -348,7 +366,10 @@ def replace_instances(
     if instances:
         conn.execute(
             sa.insert(_INSTANCE),
-            [{**row, "survey_id": survey_id, "created_at": now} for row in instances],
+            [
+                {**row, "id": first + n, "survey_id": survey_id, "created_at": now}
+                for n, row in enumerate(instances)
+            ],
         )
         conn.execute(
             sa.insert(_DECISION).from_select(

@@ -5,8 +5,10 @@ transaction and names the file it saved for rebuilding (`ReconstructionInput`) i
 event `guardrail.ingest`, so the stage that produced the current slices is always found with
 them. Human slice labels survive a rerun when the same slice (component, slice index, about the
 same station) still exists. Label writes and decisions carry the version the client saw; a
-mismatch raises `StaleWriteError` with the records as they are now. Every user write adds an
-audit event in its transaction.
+mismatch raises `StaleWriteError` with the records as they are now (`app.store.versions`
+checks, in the write's transaction). A run's slices and models get ids no row of their table
+ever had (`fresh_ids`), so a client still holding a replaced one gets 404. Every user write adds
+an audit event in its transaction.
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ from app.core.errors import (
 )
 from app.geometry.trajectory import arc_length
 from app.store.audit import audit
-from app.store.db import commit
+from app.store.db import commit, write_transaction
 from app.store.models import (
     AuditEvent,
     Frame,
@@ -45,6 +47,7 @@ from app.store.models import (
 )
 from app.store.surveys import get_survey
 from app.store.users import has_role
+from app.store.versions import check_versions, fresh_ids
 
 INGEST_ACTION = "guardrail.ingest"
 MAX_LABELS_PER_WRITE = 5000
@@ -249,13 +252,25 @@ def put_slice_labels(
     bad = next((e for e in edits if e.label not in (0, 1)), None)
     if bad is not None:
         raise ConfigError("label", f"slice {bad.id}: label must be 0 or 1, not {bad.label}")
-    rows = {r.id: r for r in _slices_by_id(session, ids) if r.survey_id == survey_id}
+    with write_transaction(session):  # the version check and the write: one transaction
+        return _put_slice_labels(session, survey_id, edits, ids, user)
+
+
+def _put_slice_labels(
+    session: Session, survey_id: int, edits: Sequence[SliceLabelEdit], ids: list[int], user: User
+) -> list[GuardrailSlice]:
+    rows = {r.id: r for r in _slices_by_id(session, ids, True) if r.survey_id == survey_id}
     missing = next((i for i in ids if i not in rows), None)
     if missing is not None:
         raise NotFoundError(f"guardrail slice {missing} not found in survey {survey_id}")
-    stale = [rows[e.id] for e in edits if rows[e.id].version != e.version]
-    if stale:
-        raise StaleWriteError(_stale_message(stale, edits), _current(stale))
+    check_versions(
+        ids,
+        [e.version for e in edits],
+        [rows[i].version for i in ids],
+        field="slices",
+        noun="slice",
+        states=lambda stale_ids: _current([rows[int(i)] for i in stale_ids]),
+    )
     for e in edits:
         row = rows[e.id]
         before = {"label": row.label, "labelled_by": row.labelled_by}
@@ -281,16 +296,6 @@ def _slices_by_id(session: Session, ids: Sequence[int], fresh: bool = False) -> 
     return [by_id[i] for i in ids if i in by_id]
 
 
-def _stale_message(stale: Sequence[GuardrailSlice], edits: Sequence[SliceLabelEdit]) -> str:
-    sent = {e.id: e.version for e in edits}
-    first = stale[0]
-    more = f" (and {len(stale) - 1} more)" if len(stale) > 1 else ""
-    return (
-        f"slices: slice {first.id} is at version {first.version}, not {sent[first.id]}{more}; "
-        "`current` holds them as they are now"
-    )
-
-
 def list_models(session: Session, survey_id: int) -> list[GuardrailModel]:
     get_survey(session, survey_id)
     query = select(GuardrailModel).where(GuardrailModel.survey_id == survey_id)
@@ -314,12 +319,28 @@ def decide_model(
     status = ModelStatus(status)
     if status == ModelStatus.pending:
         raise ConfigError("status", "must be approved or rejected")
+    with write_transaction(session):  # the version check and the write: one transaction
+        return _decide_model(session, survey_id, model_id, version, status, user)
+
+
+def _decide_model(
+    session: Session,
+    survey_id: int,
+    model_id: int,
+    version: int,
+    status: ModelStatus,
+    user: User,
+) -> GuardrailModel:
     row = get_model(session, survey_id, model_id)
-    if row.version != version:
-        raise StaleWriteError(
-            f"version: guardrail model {model_id} is at version {row.version}, not {version}",
-            GuardrailModelPublic.of(row).model_dump(mode="json"),
-        )
+    session.refresh(row)  # as it is now, inside the transaction
+    check_versions(
+        [model_id],
+        [version],
+        [row.version],
+        field="version",
+        noun="guardrail model",
+        states=lambda _: GuardrailModelPublic.of(row).model_dump(mode="json"),
+    )
     before = row.status.value
     row.status = status
     row.decided_by = user.id
@@ -447,7 +468,9 @@ def replace_guardrail_run(
         label[at[ok]] = o[ok, 3].astype(np.int64)
         by[at[ok]] = o[ok, 4].astype(np.int64)
         kept = int(ok.sum())
-    first_slice, first_model = _next_id(session, GuardrailSlice), _next_id(session, GuardrailModel)
+    # ids no row ever had, drawn before the replaced rows go
+    first_slice = fresh_ids(session, GuardrailSlice.__table__, len(slices))
+    first_model = fresh_ids(session, GuardrailModel.__table__, len(models))
     connection = session.connection()
     connection.execute(sa.delete(GuardrailSlice).where(GuardrailSlice.survey_id == survey_id))
     connection.execute(sa.delete(GuardrailModel).where(GuardrailModel.survey_id == survey_id))
@@ -486,12 +509,6 @@ def replace_guardrail_run(
         "human_labels_dropped": len(old) - kept,
         "models": len(models),
     }
-
-
-def _next_id(session: Session, table: type[GuardrailSlice] | type[GuardrailModel]) -> int:
-    """Above every id in the table before a replacement: SQLite would hand a replaced row's id
-    to a new row, and a client holding the old id and version 1 would then write to it."""
-    return int(session.exec(select(func.max(table.id))).one() or 0) + 1
 
 
 def _model_row(survey_id: int, index: int, record: ModelRecord, id: int) -> GuardrailModel:
@@ -544,7 +561,7 @@ def replace_guardrail_models(
         else:
             keep[same.id] = same
     gone = [r for r in existing if r.id not in keep]
-    first = _next_id(session, GuardrailModel)
+    first = fresh_ids(session, GuardrailModel.__table__, len(new))
     for r in gone:
         session.delete(r)
     session.flush()  # free the guardrail indices before reusing them

@@ -33,13 +33,14 @@ from app.viewer.survey_map import MapSource, SurveyMap, load_map
 log = logging.getLogger(__name__)
 
 # All labels of a survey as one row of JSON arrays (no Python object per label), read from the
-# covering index ix_pillar_label_tile.
+# covering index ix_pillar_label_tile; erased human labels (tombstones) come as "no human label"
+# (-1) with their version, which a write over them must send.
 _ALL_LABELS = (
-    "SELECT json_group_array(cell_id), json_group_array(source = 'human'), "
-    "json_group_array(label), json_group_array(coalesce(confidence, -1.0)), "
-    "json_group_array(version) "
-    "FROM pillar_label "
-    "WHERE survey_id = :s"
+    "SELECT json_group_array(cell_id), json_group_array(human), json_group_array(label), "
+    "json_group_array(confidence), json_group_array(version) FROM "
+    "(SELECT cell_id, source = 'human' AS human, label, coalesce(confidence, -1.0) AS confidence,"
+    " version FROM pillar_label WHERE survey_id = :s "
+    "UNION ALL SELECT cell_id, 1, -1, -1.0, version FROM pillar_tombstone WHERE survey_id = :s)"
 )
 
 Listener = Callable[[np.ndarray], None]  # gets the indices (into map.cells) that changed
@@ -53,7 +54,7 @@ class SurveyView:
         self.map = survey_map
         m = len(survey_map.cells)
         self.human = np.full(m, -1, dtype=np.int8)
-        self.version = np.zeros(m, dtype=np.int64)  # of the human label shown; 0: none
+        self.version = np.zeros(m, dtype=np.int64)  # of the human label shown (or its erase)
         self.model = np.full(m, -1, dtype=np.int8)
         self.confidence = np.full(m, np.nan, dtype=np.float32)
         self.rgb = pillar_colors(self.human, self.model, self.confidence)
@@ -137,9 +138,10 @@ class SurveyView:
         return changed
 
     def human_versions(self, cell_ids: np.ndarray) -> list[int | None]:
-        """The versions of the human labels shown on these pillars (store cell ids; 0: no
-        label): what a client of this view saw before its write. None for a pillar without
-        points, which the view does not show (nothing seen, nothing to check)."""
+        """The versions of the human labels shown on these pillars (store cell ids; 0: never
+        labelled; an erased one: its erase's): what a client of this view saw before its
+        write. None for a pillar without points, which the view does not show (nothing seen,
+        nothing to check)."""
         k, found = self.map.cell_index(cell_ids)
         versions = np.full(len(found), None, dtype=object)
         with self.lock:

@@ -20,6 +20,7 @@ from app.store.models import (
     GuardrailKind,
     GuardrailModel,
     GuardrailSlice,
+    IssuedId,
     Job,
     JobStatus,
     LabelSource,
@@ -30,6 +31,7 @@ from app.store.models import (
     PillarEdit,
     PillarEditBatch,
     PillarLabel,
+    PillarTombstone,
     Pipeline,
     Role,
     Survey,
@@ -147,6 +149,8 @@ def _populate(session: Session) -> dict[str, int]:
     session.add_all([human, predicted, instance, slice_, rail, event, batch])
     session.flush()
     session.add(PillarEdit(batch_id=batch.id, cell_id=42, before_label=None, after_label=3))
+    session.add(PillarTombstone(survey_id=survey.id, cell_id=43, version=2, user_id=user.id))
+    session.add(IssuedId(name="clutter_instance", last_id=7))
     now = datetime.now(UTC)
     session.add(AuthSession(user_id=user.id, expires_at=now + timedelta(hours=1)))
     session.add(LoginThrottle(kind="user", key="ann", failures=1, last_failure_at=now))
@@ -193,7 +197,14 @@ def test_deleting_a_survey_deletes_its_frames_labels_and_results(session: Sessio
     session.commit()
     session.expire_all()
 
-    for table in (PillarLabel, ClutterInstance, ClutterDecision, GuardrailSlice, GuardrailModel):
+    for table in (
+        PillarLabel,
+        PillarTombstone,
+        ClutterInstance,
+        ClutterDecision,
+        GuardrailSlice,
+        GuardrailModel,
+    ):
         assert _count(session, table) == 0, table.__name__
     assert session.exec(select(Frame.frame_id)).all() == ["map"]  # the other survey's frame
     # history outlives the survey: the job and model version stay, unlinked

@@ -100,16 +100,16 @@ def test_undo_redo_are_per_user_and_a_new_edit_clears_redo(session: Session, ids
     assert undone.cell_ids.tolist() == [a] and undone.versions.tolist() == [3]
     undone = undo(session, s, anna)
     assert human(session, s) == {c: 2}
-    assert undone.versions.tolist() == [0, 0]  # erased
+    assert undone.versions.tolist() == [4, 2]  # erased: versions only grow
     with pytest.raises(ConflictError, match="nothing to undo"):
         undo(session, s, anna)
-    assert redo(session, s, anna).versions.tolist() == [1, 1]  # new rows again
+    assert redo(session, s, anna).versions.tolist() == [5, 3]
     assert human(session, s) == {a: 3, b: 3, c: 2}
-    redo(session, s, anna)
+    assert redo(session, s, anna).versions.tolist() == [6]
     assert human(session, s) == {a: 1, b: 3, c: 2}
     undo(session, s, anna)
     erased = write_labels(session, s, anna, [b], [NO_LABEL])  # erase: a new action
-    assert erased.versions.tolist() == [0]
+    assert erased.versions.tolist() == [4]
     with pytest.raises(ConflictError, match="nothing to redo"):
         redo(session, s, anna)
     assert human(session, s) == {a: 3, c: 2}

@@ -47,7 +47,9 @@ class PillarLabelIn(BaseModel):
         ..., description="0 ground, 1 high object, 2 short object, 3 phantom; null erases"
     )
     version: Version | None = Field(
-        None, description="version the client saw (0: unlabelled); mismatch -> 409"
+        None,
+        description="version the client saw (0: never labelled; an erased pillar is at its "
+        "erase's version, as reads return it); mismatch -> 409",
     )
 
     @model_validator(mode="after")
@@ -65,7 +67,7 @@ class LabelWriteOut(BaseModel):
     batch_id: int | None
     written: int
     cell_id: list[int]
-    version: list[int]  # per pillar after the write; 0: no human label
+    version: list[int]  # per pillar after the write (an erase's too: versions only grow)
 
 
 class TileOut(BaseModel):
@@ -82,6 +84,9 @@ class TileOut(BaseModel):
     confidence: list[float | None]
     version: list[int]
     user_id: list[int | None]
+    # erased human labels (no label, but a version a write over them must send), apart
+    erased_cell_id: list[int]
+    erased_version: list[int]
 
 
 class UncertainAreaOut(BaseModel):
