@@ -460,3 +460,47 @@ def test_command_line_export_matches_the_downloads(
         assert len(done.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "x.html").exists() and not (tmp_path / "r.laz").exists()
     assert not list(tmp_path.glob(".*.partial"))
+
+
+def test_job_files_follow_the_export_rule(
+    server: Server,
+    survey_id: int,
+    engine: Engine,
+    reviewer: httpx.Client,
+    annotator: httpx.Client,
+) -> None:
+    """A run's cleaned map is reviewer-only under /jobs/{id}/files as under the survey's
+    exports; its log and report stay readable by annotators, whose results listing shows only
+    those."""
+    folder = server.data_dir / "jobs" / "phantom-files"
+    rng = np.random.default_rng(3)
+    cleaned = write_laz(folder / "cleaned.laz", rng.uniform(0, 5, (30, 3)))
+    (folder / "job.log").write_text("started\n")
+    (folder / "report.json").write_text('{"counts": {}}')
+    (folder / "labels").mkdir()
+    np.save(folder / "labels" / "map.npy", np.zeros(30, np.uint8))
+    (folder / "pillars.npz").write_bytes(b"npz")
+    (folder / "guardrails").mkdir()
+    (folder / "guardrails" / "0.glb").write_bytes(b"glb")
+    job = succeeded_job(survey_id, "run:phantom", {"cleaned": cleaned}, folder / "report.json")
+    job.result_path = str(folder)
+    job.log_path = str(folder / "job.log")
+    add(engine, job)
+    with Session(engine) as session:
+        job_id = session.exec(select(Job.id).where(Job.result_path == str(folder))).one()
+    protected = ["cleaned.laz", "labels/map.npy", "pillars.npz", "guardrails/0.glb"]
+    assert annotator.get(f"/surveys/{survey_id}/exports/cleaned.laz").status_code == 403
+    for name in protected:
+        refused = annotator.get(f"/jobs/{job_id}/files/{name}")
+        assert refused.status_code == 403, name
+        assert "needs the reviewer role" in refused.json()["detail"]
+        assert reviewer.get(f"/jobs/{job_id}/files/{name}").status_code == 200, name
+    for name in ("job.log", "report.json"):
+        assert annotator.get(f"/jobs/{job_id}/files/{name}").status_code == 200, name
+    assert annotator.get(f"/jobs/{job_id}/log").text == "started\n"
+    listed = {
+        who: {f["name"] for f in client.get(f"/jobs/{job_id}/results").json()["files"]}
+        for who, client in (("annotator", annotator), ("reviewer", reviewer))
+    }
+    assert listed["annotator"] == {"job.log", "report.json"}
+    assert listed["reviewer"] == {"job.log", "report.json", *protected}

@@ -1,5 +1,6 @@
-"""`/surveys/{survey_id}/exports`: what leaves the product (reviewer role), each download
-audited as `export.<name>`.
+"""`/surveys/{survey_id}/exports`: what leaves the product (reviewer role, by the file-kind
+rule of `app.api.downloads` that job output files follow too), each download audited as
+`export.<name>`.
 
 - `cleaned.laz` / `removed.laz`: the maps of the newest finished clutter run.
 - `guardrails.zip?format=glb|obj`: the approved guardrail meshes and a manifest.
@@ -20,15 +21,16 @@ import zipfile
 from collections.abc import Iterator
 from datetime import datetime
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Depends, Query
 from fastapi.responses import FileResponse, Response, StreamingResponse
 from sqlmodel import Session, col, select
 from starlette.background import BackgroundTask
 
-from app.api.deps import Reviewer, SessionDep, SettingsDep
+from app.api.deps import SessionDep, SettingsDep
+from app.api.downloads import downloader
 from app.api.errors import errors
 from app.api.qa_report import PIPELINE_JOBS, build_qa_report, job_file
 from app.api.types import Id
@@ -110,7 +112,7 @@ def clutter_map(
 
 
 def _clutter_download(
-    which: str, survey_id: int, user: Reviewer, session: SessionDep, settings: SettingsDep
+    which: str, survey_id: int, user: User, session: SessionDep, settings: SettingsDep
 ) -> FileResponse:
     survey = get_survey(session, survey_id)
     path, job_id = clutter_map(session, settings, survey, which)
@@ -124,7 +126,10 @@ def _clutter_download(
 
 @router.get("/cleaned.laz", response_class=FileResponse)
 def cleaned_laz(
-    survey_id: Id, user: Reviewer, session: SessionDep, settings: SettingsDep
+    survey_id: Id,
+    user: Annotated[User, Depends(downloader("cleaned.laz"))],
+    session: SessionDep,
+    settings: SettingsDep,
 ) -> FileResponse:
     """The cleaned map (clutter removed) of the newest finished clutter run."""
     return _clutter_download("cleaned", survey_id, user, session, settings)
@@ -132,7 +137,10 @@ def cleaned_laz(
 
 @router.get("/removed.laz", response_class=FileResponse)
 def removed_laz(
-    survey_id: Id, user: Reviewer, session: SessionDep, settings: SettingsDep
+    survey_id: Id,
+    user: Annotated[User, Depends(downloader("removed.laz"))],
+    session: SessionDep,
+    settings: SettingsDep,
 ) -> FileResponse:
     """The removed points (the clutter itself) of the newest finished clutter run."""
     return _clutter_download("removed", survey_id, user, session, settings)
@@ -211,7 +219,7 @@ def _write_guardrails_zip(session: Session, survey: Survey, fmt: str, archive: P
 @router.get("/guardrails.zip", response_class=FileResponse)
 def guardrails_zip(
     survey_id: Id,
-    user: Reviewer,
+    user: Annotated[User, Depends(downloader("guardrails.zip"))],
     session: SessionDep,
     settings: SettingsDep,
     format: Literal["glb", "obj"] = Query("glb", description="mesh file format"),
@@ -319,7 +327,7 @@ def write_pillars_npz(t: dict[str, np.ndarray], path: Path) -> None:
 @router.get("/pillars.csv", response_class=StreamingResponse)
 def pillars_csv(
     survey_id: Id,
-    user: Reviewer,
+    user: Annotated[User, Depends(downloader("pillars.csv"))],
     session: SessionDep,
     include_model: bool = Query(False, description="add the model's pre-labels"),
 ) -> StreamingResponse:
@@ -341,7 +349,7 @@ def pillars_csv(
 @router.get("/pillars.npz", response_class=FileResponse)
 def pillars_npz(
     survey_id: Id,
-    user: Reviewer,
+    user: Annotated[User, Depends(downloader("pillars.npz"))],
     session: SessionDep,
     settings: SettingsDep,
     include_model: bool = Query(False, description="add the model's pre-labels"),
@@ -367,7 +375,10 @@ def pillars_npz(
 
 @router.get("/qa-report.html", response_class=Response)
 def qa_report(
-    survey_id: Id, user: Reviewer, session: SessionDep, settings: SettingsDep
+    survey_id: Id,
+    user: Annotated[User, Depends(downloader("qa-report.html"))],
+    session: SessionDep,
+    settings: SettingsDep,
 ) -> Response:
     """A self-contained HTML page: survey, paper metrics of the newest runs, review state."""
     survey = get_survey(session, survey_id)

@@ -18,6 +18,7 @@ from pydantic import BaseModel, Field
 from sqlmodel import select
 
 from app.api.deps import Annotator, CurrentUser, SessionDep, SettingsDep
+from app.api.downloads import check_download, may_download
 from app.api.errors import errors
 from app.api.types import FilePath, Id, Offset
 from app.core.errors import MmscleanError, NotFoundError, PermissionDeniedError
@@ -209,12 +210,14 @@ def requeue_job(
 
 @router.get("/{job_id}/results", response_model=JobResults, responses=errors(404))
 def read_results(
-    job_id: Id, _: CurrentUser, session: SessionDep, settings: SettingsDep
+    job_id: Id, user: CurrentUser, session: SessionDep, settings: SettingsDep
 ) -> JobResults:
-    """The result summary and every file the job wrote (download with /files/{name})."""
+    """The result summary and every file the job wrote that the user may download (with
+    /files/{name}; annotators: logs and reports, as for the survey exports)."""
     job = get_job(session, job_id)
     workdir = workdir_of(job, settings)
-    paths = sorted(p for p in workdir.rglob("*") if p.is_file()) if workdir.is_dir() else []
+    found = sorted(p for p in workdir.rglob("*") if p.is_file()) if workdir.is_dir() else []
+    paths = [p for p in found if may_download(user, p.name)]
     files = [JobFile(name=p.relative_to(workdir).as_posix(), size=p.stat().st_size) for p in paths]
     return JobResults(job_id=job.id, status=job.status, result=dict(job.result), files=files)
 
@@ -222,16 +225,18 @@ def read_results(
 @router.get(
     "/{job_id}/files/{name:path}",
     response_class=FileResponse,
-    responses={**errors(400, 404), 200: {"content": {"application/octet-stream": {}}}},
+    responses={**errors(400, 403, 404), 200: {"content": {"application/octet-stream": {}}}},
 )
 def download_file(
-    job_id: Id, name: FilePath, _: CurrentUser, session: SessionDep, settings: SettingsDep
+    job_id: Id, name: FilePath, user: CurrentUser, session: SessionDep, settings: SettingsDep
 ) -> FileResponse:
-    """One file of the job's folder; a name leading outside it is refused (400)."""
+    """One file of the job's folder; a name leading outside it is refused (400). Maps, meshes
+    and label arrays are for reviewers, as the survey exports (403); logs and reports for all."""
     workdir = workdir_of(get_job(session, job_id), settings)
     target = (workdir / name).resolve()
     if not target.is_relative_to(workdir):
         raise MmscleanError(f"{name}: outside the folder of job {job_id}")
+    check_download(user, target.name)
     if not target.is_file():
         raise NotFoundError(f"job {job_id} has no file {name}")
     return FileResponse(target, filename=target.name)
