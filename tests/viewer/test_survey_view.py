@@ -194,3 +194,26 @@ def test_a_client_never_overwrites_a_label_it_has_not_seen(
     alice.write_pillar_labels(empty, [1])
     assert viewer.wakes == 6
     views.release(view)
+
+
+def test_an_erased_label_shows_as_none_with_the_version_of_its_erase(
+    engine: Engine, ply_survey: Survey, tmp_path: Path
+) -> None:
+    """A view loaded after an erase shows no label there, but keeps the erase's version: its
+    client's write over the pillar passes (version 0 would be refused: versions only grow)."""
+    views, view = open_view(engine, ply_survey, tmp_path)
+    cells = box_cells(view)[:4]
+    bob = user_id(engine, "bob")
+    with Session(engine) as session:
+        write_labels(session, ply_survey.id, bob, cells, np.full(4, 2))
+        write_labels(session, ply_survey.id, bob, cells[:2], np.full(2, NO_LABEL))
+    view.load_all()
+    k, _ = view.map.cell_index(cells)
+    assert view.human[k].tolist() == [-1, -1, 2, 2]
+    assert (view.rgb[k[:2]] == PALETTE[UNLABELLED]).all()
+    assert view.human_versions(cells) == [2, 2, 1, 1]
+    ticket = Ticket(user_id(engine, "alice"), "alice", ply_survey.id)
+    alice = ViewerSession(ViewerStandIn(engine), SimpleNamespace(client_id=1), ticket)
+    alice.view = view
+    assert alice.write_pillar_labels(cells, np.full(4, 1)).versions.tolist() == [3, 3, 2, 2]
+    views.release(view)
