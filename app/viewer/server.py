@@ -3,9 +3,11 @@
 viser runs its own thread and event loop and serves its page and websocket on one port; it has
 no notion of users. So it listens on 127.0.0.1 only (never another address), and the only way in
 from outside is the FastAPI relay at `/viewer/ws`, which checks the login first and files a
-ticket naming the user (see `app.viewer.tickets`). When viser reports a new client we read the
-ticket's nonce from the upstream request path of that very connection; a client without a valid
-ticket is disconnected before it sees anything.
+ticket naming the user (see `app.viewer.tickets`). The first thing viser does with a new
+websocket, before it sends a byte, is run its low-level connect callbacks: ours reads the
+ticket's nonce from the request path of that very connection and takes the ticket, or closes the
+connection (1008). viser reports the client to the app only later (after its first camera
+message), and then the session starts with the ticket taken at the door.
 
 The server also owns what clients share: the open surveys (`SurveyViews`) and the label feed
 that keeps them in step with the store.
@@ -39,12 +41,16 @@ class ViewerServer:
         self.tickets = TicketRegistry()
         self.views = SurveyViews(engine, settings.cache_dir, settings.viewer_overview_points)
         self.sessions: dict[int, ViewerSession] = {}
+        self._admitted: dict[int, Ticket] = {}  # client id -> its ticket, until its session starts
         self._sessions_lock = threading.Lock()
         self.viser: viser.ViserServer | None = None
         self.feed: LabelFeed | None = None
 
     def start(self) -> ViewerServer:
         self.viser = viser.ViserServer(host=LOOPBACK, port=self.settings.viewer_port, verbose=False)
+        websock = self.viser._websock_server  # runs these before any message goes out
+        websock.on_client_connect(self._admit)
+        websock.on_client_disconnect(self._forget_admission)
         self.viser.on_client_connect(self._on_connect)
         self.viser.on_client_disconnect(self._on_disconnect)
         self.feed = LabelFeed(
@@ -86,8 +92,9 @@ class ViewerServer:
 
     # --- viser callbacks ----------------------------------------------------------------------
 
-    async def _on_connect(self, client: viser.ClientHandle) -> None:
-        """On viser's event loop: claim the client's ticket or drop the connection."""
+    async def _admit(self, client: Any) -> None:
+        """On viser's event loop, as a websocket opens and before viser sends anything on it:
+        take the ticket its request path names, or close it (policy violation)."""
         connection = self._connection_of(client.client_id)
         request = getattr(connection, "request", None)
         ticket = self.tickets.take(nonce_of(request.path)) if request is not None else None
@@ -95,6 +102,20 @@ class ViewerServer:
             log.warning("viewer: client %s came without a ticket; closing", client.client_id)
             if connection is not None:
                 await connection.close(1008, "log in through /viewer")
+            return
+        with self._sessions_lock:
+            self._admitted[client.client_id] = ticket
+
+    def _forget_admission(self, client: Any) -> None:
+        with self._sessions_lock:
+            self._admitted.pop(client.client_id, None)
+
+    async def _on_connect(self, client: viser.ClientHandle) -> None:
+        """On viser's event loop, once the client sent its first camera: start its session
+        with the ticket it was admitted with (a client without one was closed at the door)."""
+        with self._sessions_lock:
+            ticket = self._admitted.pop(client.client_id, None)
+        if ticket is None:
             return
         session = ViewerSession(self, client, ticket)
         with self._sessions_lock:

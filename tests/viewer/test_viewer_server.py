@@ -4,6 +4,7 @@ labels with the brush as its own user, sees API writes recoloured and can undo."
 
 from __future__ import annotations
 
+import asyncio
 import ipaddress
 import socket
 import subprocess
@@ -29,7 +30,6 @@ from tests.viewer.wire import (
     SUBPROTOCOL,
     WireClient,
     button_press,
-    camera_message,
     click_message,
     gui_set,
     is_color_update,
@@ -164,20 +164,23 @@ def test_viser_answers_on_loopback_only(viewer_server: Server) -> None:
     assert not reachable, f"viser answers on {reachable}"
 
 
-def test_direct_connection_to_viser_gets_no_scene(viewer_server: Server) -> None:
-    """Someone on the machine dialling the loopback port without a ticket is dropped."""
+def test_direct_connection_to_viser_is_closed_before_any_frame(viewer_server: Server) -> None:
+    """Any local process dialling viser's loopback port with viser's own subprotocol but no
+    ticket (a guessed nonce, or none) is closed at once with 1008 and receives no frame."""
 
-    async def dial() -> tuple[int | None, list[str]]:
-        url = f"ws://127.0.0.1:{viser_port(viewer_server)}/?session=guessed"
-        client = await WireClient.open(url)
-        await client.send(camera_message())
-        with pytest.raises((ConnectionClosed, TimeoutError)):
-            await client.wait_for(is_point_cloud, 10)
-        return client.connection.close_code, [m.get("type") for _, m in client.received]
+    async def dial(path: str) -> tuple[int | None, str]:
+        url = f"ws://127.0.0.1:{viser_port(viewer_server)}{path}"
+        async with connect(url, subprotocols=[SUBPROTOCOL], max_size=None) as ws:
+            try:
+                frame = await asyncio.wait_for(ws.recv(), 10)
+            except ConnectionClosed:
+                return ws.close_code, "no frame"
+            except TimeoutError:
+                return ws.close_code, "stayed open"
+            return ws.close_code, f"a frame of {len(frame)} bytes"
 
-    code, types = run_coroutine(dial())
-    assert code == 1008
-    assert "PointCloudMessage" not in types and "GuiMarkdownMessage" not in types
+    for path in ("/", "/?session=guessed"):
+        assert run_coroutine(dial(path)) == (1008, "no frame")
 
 
 # --- a logged-in client ----------------------------------------------------------------------
