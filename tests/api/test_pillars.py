@@ -89,3 +89,38 @@ def test_writes_need_a_token(server: Server, survey_id: int) -> None:
         json={"labels": [{"cell_id": 1, "label": 0}]},
     )
     assert response.status_code == 401
+
+
+def test_a_write_over_an_erase_must_have_seen_the_erase(server: Server, survey_id: int) -> None:
+    """The issue's lost update (ABA): ann labels a pillar, rev reads it (version 1), ann2
+    erases it, ann labels it again; rev's write at version 1 must be 409, not replace ann's
+    label unseen. An erase is a version: a tile lists it, and a write over it must send it."""
+    ann, rev, ann2 = (server.add_user(f"aba-{n}", "annotator") for n in ("ann", "rev", "ann2"))
+    url = f"/surveys/{survey_id}/pillars/labels"
+    box = {"x0": 50.0, "y0": 60.0, "x1": 50.3, "y1": 60.3}
+    first = ann.put(url, json={"labels": [{"x": 50.1, "y": 60.1, "label": 1, "version": 0}]})
+    assert first.status_code == 200 and first.json()["version"] == [1]
+    cell = first.json()["cell_id"][0]
+    tile = rev.get(url, params=box).json()
+    rev_saw = tile["version"][tile["cell_id"].index(cell)]
+    erased = ann2.put(url, json={"labels": [{"cell_id": cell, "label": None, "version": 1}]})
+    assert erased.status_code == 200 and erased.json()["version"] == [2]
+    tile = ann.get(url, params=box).json()
+    assert cell not in tile["cell_id"]  # no label, but a version to write over
+    assert (tile["erased_cell_id"], tile["erased_version"]) == ([cell], [2])
+    unseen = ann.put(url, json={"labels": [{"cell_id": cell, "label": 2, "version": 0}]})
+    assert unseen.status_code == 409  # 0 is "never labelled": ann did not see the erase
+    assert unseen.json()["current"][0] | {"updated_at": None} == {
+        "cell_id": cell, "label": None, "version": 2,
+        "user_id": ann2.get("/auth/me").json()["id"], "updated_at": None,
+    }  # fmt: skip
+    again = ann.put(url, json={"labels": [{"cell_id": cell, "label": 2, "version": 2}]})
+    assert again.status_code == 200 and again.json()["version"] == [3]
+    late = rev.put(url, json={"labels": [{"cell_id": cell, "label": 3, "version": rev_saw}]})
+    assert late.status_code == 409, late.text
+    assert late.json()["detail"].startswith("versions: 1 pillar(s) changed by someone else")
+    assert late.json()["current"][0]["label"] == 2
+    tile = rev.get(url, params=box).json()
+    assert (tile["label"], tile["version"], tile["erased_cell_id"]) == ([2], [3], [])
+    for client in (ann, rev, ann2):
+        client.close()
