@@ -29,7 +29,10 @@ class Settings(BaseSettings):
     )
     admin_password: str | None = None
     login_free_failures: int = Field(
-        5, ge=1, le=1000, description="failed logins (per user name / address) before lock-outs"
+        5, ge=1, le=1000, description="failed logins for one user name before lock-outs"
+    )
+    login_address_free_failures: int = Field(
+        20, ge=1, le=10_000, description="failed logins from one client address before lock-outs"
     )
     login_window_s: float = Field(
         900, ge=1, le=86_400, description="a quiet time this long forgets the failed logins"
