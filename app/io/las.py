@@ -20,7 +20,15 @@ import laspy
 import numpy as np
 
 from app.core.errors import InputError
-from app.io.point_files import guarded, map_survey, one_line, writable_xyz, write_atomically
+from app.io.las_layout import check_las_layout
+from app.io.point_files import (
+    guarded,
+    is_native_panic,
+    map_survey,
+    one_line,
+    writable_xyz,
+    write_atomically,
+)
 from app.io.survey import PointCloud, Survey
 
 # extra dimensions mmsclean writes, with the dtype the reader hands back
@@ -51,15 +59,6 @@ def read_las(path: str | Path) -> Survey:
     offsets = np.asarray(header.offsets, dtype=np.float64)
     if not np.all(np.isfinite(offsets)):
         raise InputError(path, f"has invalid offsets {offsets.tolist()} (must be finite)")
-    if not header.are_points_compressed:
-        needed = n * header.point_format.size
-        available = path.stat().st_size - header.offset_to_point_data
-        if available < needed:
-            raise InputError(
-                path,
-                f"truncated: header promises {n} points ({needed} bytes), "
-                f"file has {max(available, 0)} bytes",
-            )
 
     has_classes = _has_nonzero_classification(path)
     return map_survey(
@@ -73,8 +72,11 @@ def read_las(path: str | Path) -> Survey:
 
 
 def _read_header(path: Path) -> laspy.LasHeader:
+    """The header, after its counts and offsets were checked against the file (`las_layout`), so
+    laspy cannot loop over a garbage VLR count nor lazrs allocate a garbage chunk table."""
     if not path.is_file():
         raise InputError(path, "does not exist" if not path.exists() else "is not a file")
+    guarded(path, "header", lambda: check_las_layout(path))
     try:
         with laspy.open(path) as reader:
             return reader.header
@@ -84,6 +86,10 @@ def _read_header(path: Path) -> laspy.LasHeader:
         raise
     except Exception as exc:  # laspy raises LaspyException, struct / value errors, lazrs errors
         raise InputError(path, f"not a LAS/LAZ file: {one_line(exc)}") from exc
+    except BaseException as exc:  # a Rust panic in lazrs
+        if not is_native_panic(exc):
+            raise
+        raise InputError(path, f"cannot read LAZ data: {one_line(exc)}") from exc
 
 
 def _has_nonzero_classification(path: Path) -> bool:

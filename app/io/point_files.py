@@ -22,6 +22,7 @@ T = TypeVar("T")
 INTENSITY_NAMES = ("intensity",)
 TIME_NAMES = ("time", "gps_time", "gpstime", "timestamp")
 LABEL_NAMES = ("label", "class", "classification")
+CANONICAL_NAMES = ("x", "y", "z", "rgb", "rgba")
 
 
 def map_survey(
@@ -53,8 +54,15 @@ def one_line(exc: BaseException) -> str:
     return text or type(exc).__name__
 
 
+def is_native_panic(exc: BaseException) -> bool:
+    """A Rust panic from a native extension (lazrs, through pyo3): `pyo3_runtime.PanicException`
+    derives from BaseException, so `except Exception` lets it through as a traceback."""
+    kind = type(exc)
+    return kind.__name__ == "PanicException" and kind.__module__ == "pyo3_runtime"
+
+
 def guarded(path: Path, what: str, fn: Callable[[], T]) -> T:
-    """Run a read, turning any failure of the file into one InputError line."""
+    """Run a read, turning any failure of the file (a native panic too) into one InputError line."""
     try:
         return fn()
     except (InputError, MemoryError):
@@ -62,6 +70,10 @@ def guarded(path: Path, what: str, fn: Callable[[], T]) -> T:
     except FileNotFoundError as exc:
         raise InputError(path, "does not exist") from exc
     except Exception as exc:
+        raise InputError(path, f"cannot read {what}: {one_line(exc)}") from exc
+    except BaseException as exc:
+        if not is_native_panic(exc):
+            raise
         raise InputError(path, f"cannot read {what}: {one_line(exc)}") from exc
 
 
@@ -111,6 +123,26 @@ def read_header_bytes(path: Path, end_keyword: bytes, limit: int) -> bytes:
         return head
     keyword = end_keyword.decode()
     raise InputError(path, f"has no '{keyword}' line in its first {len(head)} bytes")
+
+
+def canonical_name(name: str) -> str:
+    """A field's key in the reader's output: x, y, z, rgb and rgba in lower case whatever case the
+    writer used (PDAL writes `X Y Z`), every other name as written (matched via `normalized`)."""
+    key = name.lower()
+    return key if key in CANONICAL_NAMES else name
+
+
+def check_text_fits(path: Path, offset: int, rows: int, noun: str) -> None:
+    """Refuse a header count that a text body cannot hold before parsing anything: every row takes
+    at least two bytes (a value and a line break)."""
+    available = max(path.stat().st_size - offset, 0)
+    needed = 2 * rows - 1
+    if rows and needed > available:
+        raise InputError(
+            path,
+            f"truncated: header says {rows:,} {noun} (one text line each) "
+            f"but the file has only {available:,} bytes after the header",
+        )
 
 
 def normalized(name: str) -> str:

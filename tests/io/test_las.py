@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import struct
 from pathlib import Path
 
 import laspy
@@ -17,9 +18,15 @@ from app.io.asprs import (
     AsprsClass,
     to_asprs,
 )
-from app.io.las import read_las, write_laz
+from app.io.las import las_point_count, read_las, read_las_points, write_laz
+from app.io.point_files import guarded
 from app.io.registry import open_survey
 from app.io.survey import MAP_FRAME_ID
+from tests.cli import assert_one_line_error, mmsclean
+from tests.io.foreign_files import (
+    write_las_with_garbage_vlr_count,
+    write_laz_without_chunk_table,
+)
 
 SCALE = 0.001
 
@@ -267,3 +274,156 @@ def test_phantom_classification_survives_laz(tmp_path: Path):
     cloud = read_las(path).frames[0].points()
     np.testing.assert_array_equal(cloud.extra["classification"], [2, 1, 1, 65])
     np.testing.assert_array_equal(cloud.extra["mmsclean_label"], labels)
+
+
+# -- foreign and broken files: every header count is checked before laspy / lazrs read ----------
+
+_READS = {
+    "open": lambda path: read_las(path),
+    "points": lambda path: read_las(path).frames[0].points(),
+    "scan": lambda path: read_las_points(path),
+    "count": lambda path: las_point_count(path),
+}
+
+
+def _forbid_laspy(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Fail the test if laspy opens or reads the file: the error must come before."""
+
+    def forbidden(*args, **kwargs):
+        raise AssertionError("laspy read a file whose header does not fit it")
+
+    monkeypatch.setattr(las_module.laspy, "open", forbidden)
+    monkeypatch.setattr(las_module.laspy, "read", forbidden)
+
+
+@pytest.mark.parametrize("read", list(_READS))
+def test_garbage_vlr_count_fails_before_laspy_reads(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, read: str
+):
+    path = write_las_with_garbage_vlr_count(tmp_path / "x.las")
+    before_points = struct.unpack_from("<I", path.read_bytes(), 96)[0] - 227  # no room for VLRs
+    _forbid_laspy(monkeypatch)
+    with pytest.raises(InputError) as info:
+        _READS[read](path)
+    assert str(info.value) == (
+        f"{path}: header says 4,294,967,295 variable-length records but the file has only "
+        f"{before_points:,} bytes after the header (before the point data)"
+    )
+
+
+def _patched(path: Path, *fields: tuple[int, str, int]) -> Path:
+    """`path` with header fields (byte offset, struct format, value) overwritten."""
+    data = bytearray(path.read_bytes())
+    for offset, fmt, value in fields:
+        struct.pack_into(fmt, data, offset, value)
+    path.write_bytes(bytes(data))
+    return path
+
+
+@pytest.mark.parametrize(
+    ("fields", "problem"),
+    [
+        ([(96, "<I", 0xFFFFFF00)], "header says the point data starts at byte 4,294,967,040"),
+        ([(94, "<H", 0xFFFF)], "header size 65,535 bytes is larger than the file"),
+        ([(104, "<B", 42)], "point data format 42 is not one of LAS 0-10"),
+        ([(105, "<H", 12)], "point record length 12 bytes is shorter than point format 6 needs"),
+        (
+            [(235, "<Q", 2**40), (243, "<I", 0xFFFFFFFF)],
+            "4,294,967,295 extended variable-length records from byte 1,099,511,627,776",
+        ),
+        ([(235, "<Q", 375), (243, "<I", 3)], "extended variable-length records start at byte 375"),
+        ([(247, "<Q", 10**15)], "truncated: header says 1,000,000,000,000,000 points of 39 bytes"),
+    ],
+)
+def test_header_fields_beyond_the_file_fail_before_laspy_reads(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, fields: list, problem: str
+):
+    path = _patched(write_laz(tmp_path / "bad.las", _utm_points(30)["xyz"]), *fields)
+    _forbid_laspy(monkeypatch)
+    with pytest.raises(InputError, match=problem) as info:
+        read_las(path)
+    assert str(info.value).startswith(f"{path}: ")
+
+
+@pytest.mark.parametrize("read", list(_READS))
+def test_old_laszip_laz_without_chunk_table_is_one_input_error(tmp_path: Path, read: str):
+    """lazrs panics (pyo3_runtime.PanicException, a BaseException) on its first point."""
+    path = write_laz_without_chunk_table(tmp_path / "old.laz")
+    with pytest.raises(InputError, match="variable-size chunks and no chunk table") as info:
+        _READS[read](path)
+    assert str(info.value).startswith(f"{path}: LAZ with")
+
+
+def test_lazrs_panic_past_the_header_checks_is_still_one_input_error(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    path = write_laz_without_chunk_table(tmp_path / "old.laz")
+    monkeypatch.setattr(las_module, "check_las_layout", lambda path: None)
+    with pytest.raises(InputError, match="Variable-size chunks, but no chunk table") as info:
+        read_las(path).frames[0].points()
+    assert str(info.value).startswith(f"{path}: cannot read ")
+    sequential = laspy.LazBackend.Lazrs
+    with pytest.raises(InputError, match="cannot read points: Variable-size chunks"):
+        guarded(path, "points", lambda: laspy.read(path, laz_backend=sequential))
+
+
+def _chunk_table_start(path: Path) -> int:
+    data = path.read_bytes()
+    return struct.unpack_from("<q", data, struct.unpack_from("<I", data, 96)[0])[0]
+
+
+@pytest.mark.parametrize(
+    ("point_format", "version", "compress"),
+    [
+        (f, v, c)
+        for f, v in [(0, "1.2"), (3, "1.2"), (5, "1.3"), (6, "1.4"), (10, "1.4")]
+        for c in (False, True)
+    ],
+)
+def test_valid_files_pass_the_header_checks(
+    tmp_path: Path, point_format: int, version: str, compress: bool
+):
+    """Formats, versions, EVLRs and several LAZ chunks as laspy writes them all still read."""
+    n = 120_001  # three LAZ chunks of 50,000
+    las = laspy.LasData(laspy.LasHeader(point_format=point_format, version=version))
+    rng = np.random.default_rng(point_format)
+    las.x, las.y, las.z = rng.uniform(0, 100, n), rng.uniform(0, 100, n), np.zeros(n)
+    if version == "1.4":
+        las.evlrs = laspy.vlrs.vlrlist.VLRList([laspy.VLR("mmsclean", 1, "test", b"evlr" * 8)])
+    path = tmp_path / ("f.laz" if compress else "f.las")
+    las.write(path, do_compress=compress)
+    cloud = read_las(path).frames[0].points()
+    np.testing.assert_allclose(cloud.xyz[:, 0], las.x)
+
+
+def test_old_laszip_point_wise_laz_with_a_chunk_size_reads(tmp_path: Path):
+    """Point-wise compression itself is fine when the chunk size is not "variable"."""
+    path = write_laz_without_chunk_table(tmp_path / "old.laz")
+    data = bytearray(path.read_bytes())
+    laszip = data.index(b"laszip encoded") - 2 + 54
+    struct.pack_into("<I", data, laszip + 12, 50_000)
+    path.write_bytes(bytes(data))
+    cloud = read_las(path).frames[0].points()
+    rng = np.random.default_rng(7)
+    np.testing.assert_allclose(cloud.xyz[:, 0], rng.uniform(0, 50, 300), atol=0.005)
+
+
+@pytest.mark.parametrize(
+    ("write", "problem"),
+    [
+        (write_las_with_garbage_vlr_count, "4,294,967,295 variable-length records"),
+        (write_laz_without_chunk_table, "variable-size chunks and no chunk table"),
+    ],
+)
+def test_info_on_a_broken_file_says_one_line_fast(tmp_path: Path, write, problem: str):
+    path = write(tmp_path / ("x.las" if "vlr" in write.__name__ else "x.laz"))
+    result = mmsclean("info", str(path), "--format", "las", timeout=30)  # a hang fails here
+    assert_one_line_error(result, str(path), problem)
+
+
+def test_info_on_a_laz_with_a_garbage_chunk_count_says_one_line(tmp_path: Path):
+    """lazrs would try to allocate 64 GiB for the table and abort the process."""
+    path = write_laz(tmp_path / "table.laz", _utm_points(3000)["xyz"])
+    _patched(path, (_chunk_table_start(path) + 4, "<I", 0xFFFFFFFF))
+    result = mmsclean("info", str(path), "--format", "las", "--check", timeout=30)
+    assert_one_line_error(result, str(path), "claims 4,294,967,295 chunks")
