@@ -27,6 +27,9 @@ class Settings(BaseSettings):
     viewer_tile_points: int = Field(
         1_000_000, ge=1000, description="most points of the full-resolution tile in focus"
     )
+    viewer_session_check_s: float = Field(
+        10, ge=0.1, le=300, description="how often an open viewer checks its login is live"
+    )
     admin_password: str | None = None
     login_free_failures: int = Field(
         5, ge=1, le=1000, description="failed logins for one user name before lock-outs"
