@@ -18,6 +18,9 @@ In an unorganized cloud (HEIGHT == 1) a NaN / infinite coordinate is an error, a
 
 from __future__ import annotations
 
+import shutil
+import struct
+import tempfile
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -27,6 +30,8 @@ import numpy as np
 from app.core.errors import InputError
 from app.io.point_files import (
     LABEL_NAMES,
+    canonical_name,
+    check_text_fits,
     cloud_from_fields,
     guarded,
     load_text_table,
@@ -40,6 +45,7 @@ _KEYS = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWP
 _DATA_KINDS = ("ascii", "binary", "binary_compressed")
 _SIZES = {"I": (1, 2, 4, 8), "U": (1, 2, 4, 8), "F": (4, 8)}
 _MAX_HEADER = 1 << 20  # bytes
+_LZF_MAX_RATIO = 88  # an LZF back-reference of 3 bytes yields at most 264 bytes
 
 
 @dataclass
@@ -67,7 +73,11 @@ def read_pcd(path: str | Path) -> Survey:
     header = _parse_header(path)
     if header.points == 0:
         raise InputError(path, "contains no points")
-    if header.data == "binary":
+    if header.data == "ascii":
+        check_text_fits(path, header.data_offset, header.points, "points")
+    elif header.data == "binary_compressed":
+        _check_compressed_sizes(path, header)
+    elif header.data == "binary":
         nbytes = header.points * header.dtype().itemsize
         available = max(path.stat().st_size - header.data_offset, 0)
         if available < nbytes:
@@ -85,6 +95,34 @@ def read_pcd(path: str | Path) -> Survey:
         partial(_load_reference, path, header, labels) if labels else None,
         labels,
     )
+
+
+def _check_compressed_sizes(path: Path, header: _PcdHeader) -> None:
+    """`DATA binary_compressed` starts with its compressed and uncompressed byte counts; both must
+    agree with POINTS and fit the file before open3d allocates anything."""
+    with open(path, "rb") as f:
+        f.seek(header.data_offset)
+        sizes = f.read(8)
+    if len(sizes) < 8:
+        raise InputError(path, "truncated: binary_compressed PCD has no data after its header")
+    compressed, uncompressed = struct.unpack("<II", sizes)
+    available = max(path.stat().st_size - header.data_offset - 8, 0)
+    point_size = sum(
+        dt.itemsize * count for name, dt, count in header.fields if not name.startswith("_pad")
+    )
+    expected = header.points * point_size
+    if uncompressed != expected:
+        raise InputError(
+            path,
+            f"header says {header.points:,} points ({expected:,} bytes) but the "
+            f"binary_compressed data holds {uncompressed:,} bytes",
+        )
+    if compressed > available or uncompressed > _LZF_MAX_RATIO * compressed:
+        raise InputError(
+            path,
+            f"truncated: binary_compressed data says {compressed:,} compressed bytes for "
+            f"{uncompressed:,}, file has {available:,} bytes after the header",
+        )
 
 
 def _parse_header(path: Path) -> _PcdHeader:
@@ -149,6 +187,7 @@ def _parse_header(path: Path) -> _PcdHeader:
             raise InputError(path, f"PCD header: field {name!r} has COUNT {count}")
         if name == "_":  # PCL padding; several may occur
             name = f"_pad{i}"
+        name = canonical_name(name)  # `X Y Z` (PDAL) read as `x y z`
         if name in seen:
             raise InputError(path, f"PCD header: field {name!r} given twice")
         seen.add(name)
@@ -213,11 +252,25 @@ def _load_data(path: Path, header: _PcdHeader) -> np.ndarray:
 def _load_compressed(path: Path, header: _PcdHeader) -> np.ndarray:
     """`DATA binary_compressed` through open3d's tensor reader."""
 
-    def load() -> dict[str, np.ndarray]:
+    def read(source: Path) -> dict[str, np.ndarray]:
         import open3d as o3d
 
-        cloud = o3d.t.io.read_point_cloud(str(path), remove_nan_points=False)
+        cloud = o3d.t.io.read_point_cloud(str(source), remove_nan_points=False)
         return {key: cloud.point[key].numpy() for key in cloud.point}
+
+    def load() -> dict[str, np.ndarray]:
+        raw = read_header_bytes(path, b"DATA", _MAX_HEADER)
+        canonical = _canonical_fields_line(raw)
+        if canonical == raw:
+            return read(path)
+        # open3d only knows lower-case `x y z`: give it a copy whose FIELDS line says so
+        with tempfile.TemporaryDirectory(prefix="mmsclean-pcd-") as tmp:
+            copy = Path(tmp) / path.name
+            with open(path, "rb") as src, open(copy, "wb") as dst:
+                src.seek(len(raw))
+                dst.write(canonical)
+                shutil.copyfileobj(src, dst)
+            return read(copy)
 
     try:
         attributes = load()
@@ -246,6 +299,18 @@ def _load_compressed(path: Path, header: _PcdHeader) -> np.ndarray:
     for name, values in columns:
         data[name] = values
     return data
+
+
+def _canonical_fields_line(raw: bytes) -> bytes:
+    """The header with its FIELDS names as `canonical_name` keys them (other lines unchanged)."""
+    lines = raw.splitlines(keepends=True)
+    for i, line in enumerate(lines):
+        words = line.split()
+        if words and words[0].upper() == b"FIELDS":
+            names = [canonical_name(w.decode("ascii", "replace")) for w in words[1:]]
+            ending = line[len(line.rstrip(b"\r\n")) :]
+            lines[i] = (" ".join(["FIELDS", *names])).encode("ascii", "replace") + ending
+    return b"".join(lines)
 
 
 def _organized_finite(data: np.ndarray) -> np.ndarray:

@@ -26,6 +26,8 @@ import numpy as np
 from app.core.errors import InputError
 from app.io.point_files import (
     LABEL_NAMES,
+    canonical_name,
+    check_text_fits,
     cloud_from_fields,
     guarded,
     load_text_table,
@@ -107,7 +109,11 @@ def read_ply(path: str | Path) -> Survey:
         raise InputError(path, "has no x/y/z vertex properties")
     if vertex.count == 0:
         raise InputError(path, "contains no points")
-    if header.format != "ascii":
+    if header.format == "ascii":
+        lines_before = sum(e.count for e in header.elements[: header.vertex_index])
+        noun = "vertices and records before them" if lines_before else "vertices"
+        check_text_fits(path, header.data_offset, lines_before + vertex.count, noun)
+    else:
         offset, nbytes = _binary_layout(path, header)
         available = max(path.stat().st_size - offset, 0)
         if available < nbytes:
@@ -155,9 +161,10 @@ def _parse_header(path: Path) -> _PlyHeader:
             if len(words) == 5 and words[1] == "list":
                 element.lists.append(words[4])
             elif len(words) == 3 and words[1] in _PLY_TYPES:
-                if any(words[2] == p for p, _ in element.properties):
+                name = canonical_name(words[2])  # `X Y Z` read as `x y z`
+                if any(name == p for p, _ in element.properties):
                     raise InputError(path, f"{bad} (duplicate property {words[2]!r})")
-                element.properties.append((words[2], _PLY_TYPES[words[1]]))
+                element.properties.append((name, _PLY_TYPES[words[1]]))
             else:
                 raise InputError(path, f"{bad} (unknown property type)")
         else:

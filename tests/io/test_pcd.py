@@ -13,6 +13,7 @@ from app.io import pcd as pcd_module
 from app.io.pcd import read_pcd
 from app.io.registry import open_survey
 from app.io.survey import MAP_FRAME_ID
+from tests.io.foreign_files import uppercase_pcd_table, write_uppercase_pcd
 
 
 def _points(n: int = 400, seed: int = 0) -> np.ndarray:
@@ -230,3 +231,96 @@ def test_points_are_read_only_when_asked(tmp_path: Path, monkeypatch: pytest.Mon
     assert calls == []
     assert len(survey.frames[0].points()) == 30
     assert calls == [path]
+
+
+# -- foreign and broken headers -------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_upper_case_field_names_as_pdal_writes_them(tmp_path: Path, binary: bool):
+    path = write_uppercase_pcd(tmp_path / "pdal.pcd", binary=binary)
+    assert b"FIELDS X Y Z INTENSITY RGB GpsTime Classification" in path.read_bytes()[:200]
+    table = uppercase_pcd_table()
+
+    survey = read_pcd(path)
+    assert survey.frames[0].point_count == len(table)
+    assert survey.reference_label_kinds == ("Classification",)
+    cloud = survey.frames[0].points()
+    np.testing.assert_array_equal(cloud.xyz, np.column_stack([table[a] for a in "XYZ"]))
+    np.testing.assert_array_equal(cloud.intensity, table["INTENSITY"].astype(np.float32))
+    np.testing.assert_array_equal(cloud.time, table["GpsTime"])
+    np.testing.assert_array_equal(cloud.extra["rgb"], table["RGB"])
+    np.testing.assert_array_equal(
+        survey.frames[0].reference_labels()["Classification"], table["Classification"]
+    )
+
+
+def test_upper_case_binary_compressed(tmp_path: Path):
+    """open3d itself only knows lower-case `x y z`; the reader hands it a copy that says so."""
+    xyz = _points(200) + [500000.0, 5400000.0, 100.0]
+    intensity = np.linspace(0, 1, 200, dtype=np.float32)
+    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(xyz))
+    cloud.point["intensity"] = o3d.core.Tensor(intensity.reshape(-1, 1))
+    path = tmp_path / "upper.pcd"
+    assert o3d.t.io.write_point_cloud(str(path), cloud, compressed=True)
+    data = path.read_bytes()
+    assert b"FIELDS x y z intensity\n" in data[:200]
+    path.write_bytes(data.replace(b"FIELDS x y z intensity\n", b"FIELDS X Y Z INTENSITY\n", 1))
+
+    points = read_pcd(path).frames[0].points()
+    np.testing.assert_array_equal(points.xyz, xyz)
+    np.testing.assert_array_equal(points.intensity, intensity)
+    assert path.read_bytes() == data.replace(b"x y z intensity", b"X Y Z INTENSITY", 1)
+
+
+def test_same_field_in_two_cases_is_an_input_error(tmp_path: Path):
+    data = np.zeros(3, dtype=[("x", "<f4"), ("X", "<f4"), ("y", "<f4"), ("z", "<f4")])
+    path = _write_pcd(tmp_path / "twice.pcd", data)
+    with pytest.raises(InputError, match="field 'x' given twice"):
+        read_pcd(path)
+
+
+def _huge(kind: str, tmp_path: Path) -> Path:
+    """A 3-point file whose header says 4,000,000,000 points."""
+    data = np.zeros(3, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+    override = {"WIDTH": "4000000000", "POINTS": "4000000000"}
+    if kind != "binary_compressed":
+        return _write_pcd(tmp_path / f"{kind}.pcd", data, kind=kind, header_override=override)
+    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.zeros((3, 3))))
+    path = tmp_path / "compressed.pcd"
+    assert o3d.t.io.write_point_cloud(str(path), cloud, compressed=True)
+    text = path.read_bytes()
+    for key in (b"WIDTH", b"POINTS"):
+        text = text.replace(key + b" 3\n", key + b" 4000000000\n", 1)
+    path.write_bytes(text)
+    return path
+
+
+@pytest.mark.parametrize(
+    ("kind", "problem"),
+    [
+        ("ascii", "truncated: header says 4,000,000,000 points \\(one text line each\\)"),
+        ("binary", "truncated: header promises 4000000000 points"),
+        ("binary_compressed", "header says 4,000,000,000 points \\(96,000,000,000 bytes\\)"),
+    ],
+)
+def test_more_points_than_the_file_can_hold_fail_when_opened(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, kind: str, problem: str
+):
+    path = _huge(kind, tmp_path)
+    monkeypatch.setattr(pcd_module, "_load_data", None)  # nothing may be read or allocated
+    with pytest.raises(InputError, match=problem) as info:
+        read_pcd(path)
+    assert str(info.value).startswith(f"{path}: ")
+
+
+def test_binary_compressed_sizes_beyond_the_file(tmp_path: Path):
+    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.zeros((3, 3))))
+    path = tmp_path / "sizes.pcd"
+    assert o3d.t.io.write_point_cloud(str(path), cloud, compressed=True)
+    data = bytearray(path.read_bytes())
+    start = data.index(b"DATA binary_compressed\n") + len(b"DATA binary_compressed\n")
+    data[start : start + 4] = (10**9).to_bytes(4, "little")  # compressed size
+    path.write_bytes(bytes(data))
+    with pytest.raises(InputError, match="says 1,000,000,000 compressed bytes for 72"):
+        read_pcd(path)

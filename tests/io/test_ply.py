@@ -234,3 +234,68 @@ def test_vertices_are_read_only_when_asked(tmp_path: Path, monkeypatch: pytest.M
     assert calls == []
     assert len(survey.frames[0].points()) == 20
     assert calls == [path]
+
+
+# -- foreign and broken headers -------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("fmt", ["binary_little_endian", "ascii"])
+def test_upper_case_coordinates(tmp_path: Path, fmt: str):
+    xyz = _points(20)
+    props = ["double X", "double Y", "double Z", "float INTENSITY", "uchar Classification"]
+    table = np.zeros(
+        20, dtype=[("X", "<f8"), ("Y", "<f8"), ("Z", "<f8"), ("I", "<f4"), ("C", "u1")]
+    )
+    table["X"], table["Y"], table["Z"] = xyz.T
+    table["I"] = np.arange(20) / 4
+    table["C"] = np.arange(20) % 3
+    if fmt == "ascii":
+        body = "".join(f"{r[0]!r} {r[1]!r} {r[2]!r} {r[3]!r} {r[4]}\n" for r in table.tolist())
+        body = body.encode()
+    else:
+        body = table.tobytes()
+    path = tmp_path / "upper.ply"
+    path.write_bytes(_header(fmt, 20, props) + body)
+
+    survey = read_ply(path)
+    assert survey.reference_label_kinds == ("Classification",)
+    cloud = survey.frames[0].points()
+    np.testing.assert_array_equal(cloud.xyz, xyz)
+    np.testing.assert_array_equal(cloud.intensity, table["I"])
+    np.testing.assert_array_equal(survey.frames[0].reference_labels()["Classification"], table["C"])
+
+
+def test_same_coordinate_in_two_cases_is_an_input_error(tmp_path: Path):
+    path = tmp_path / "twice.ply"
+    props = ["float x", "float X", "float y", "float z"]
+    path.write_bytes(_header("binary_little_endian", 1, props) + b"\x00" * 16)
+    with pytest.raises(InputError, match="duplicate property 'X'"):
+        read_ply(path)
+
+
+@pytest.mark.parametrize(
+    ("fmt", "problem"),
+    [
+        ("ascii", "truncated: header says 4,000,000,000 vertices \\(one text line each\\)"),
+        ("binary_little_endian", "truncated: header promises 4000000000 vertices"),
+    ],
+)
+def test_more_vertices_than_the_file_can_hold_fail_when_opened(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, fmt: str, problem: str
+):
+    path = tmp_path / "huge.ply"
+    body = b"1 2 3\n4 5 6\n" if fmt == "ascii" else np.zeros(6, "<f4").tobytes()
+    path.write_bytes(_header(fmt, 4_000_000_000, ["float x", "float y", "float z"]) + body)
+    monkeypatch.setattr(ply_module, "_load_vertices", None)  # nothing may be read or allocated
+    with pytest.raises(InputError, match=problem) as info:
+        read_ply(path)
+    assert str(info.value).startswith(f"{path}: ")
+
+
+def test_ascii_records_before_the_vertices_count_too(tmp_path: Path):
+    lines = ["ply", "format ascii 1.0", "element camera 900000000", "property float f"]
+    lines += ["element vertex 2", "property float x", "property float y", "property float z"]
+    path = tmp_path / "camera.ply"
+    path.write_bytes(("\n".join(lines) + "\nend_header\n1\n1 2 3\n4 5 6\n").encode())
+    with pytest.raises(InputError, match="900,000,002 vertices and records before them"):
+        read_ply(path)
