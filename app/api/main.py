@@ -6,11 +6,13 @@ from __future__ import annotations
 import logging
 from contextlib import asynccontextmanager
 
-from fastapi import FastAPI
+from fastapi import Depends, FastAPI
 from sqlmodel import Session
 
 from app import __version__
-from app.api.errors import install_error_handlers
+from app.api.disk_space import DiskSpace, refuse_writes_on_full_disk
+from app.api.errors import document_disk_full, install_error_handlers
+from app.api.orphans import remove_orphans
 from app.api.routes import (
     auth,
     clutter,
@@ -45,6 +47,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         settings.data_dir.mkdir(parents=True, exist_ok=True)
         engine = make_engine(settings.database_url)
         init_db(engine)
+        remove_orphans(engine, settings)  # before anything of this server writes files
         with Session(engine) as session:
             if ensure_first_admin(session, settings.admin_password) is not None:
                 log.info("created the user 'admin' from MMSCLEAN_ADMIN_PASSWORD")
@@ -64,12 +67,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version=__version__,
         lifespan=lifespan,
         description="Cleaning mobile-mapping point clouds: jobs, labels, review and export.",
+        dependencies=[Depends(refuse_writes_on_full_disk)],
     )
     app.state.settings = settings
+    app.state.disk_space = DiskSpace(settings.data_dir, settings.min_free_mb)
     install_error_handlers(app)
     for module in (health, auth, users, surveys, jobs, pillars, clutter, guardrails, models):
         app.include_router(module.router)
     app.include_router(exports.router)
     app.include_router(viewer.router)
     app.include_router(dashboard.router)
+    document_disk_full(app)
     return app

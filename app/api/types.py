@@ -14,6 +14,7 @@ column, array or file system can hold is a 422 naming the field, never an Overfl
 
 from __future__ import annotations
 
+import math
 from typing import Annotated
 
 from annotated_types import Ge, Le, MinLen
@@ -23,8 +24,8 @@ from app.core.limits import INT64_MAX, INT64_MIN, NAME_MAX_BYTES, path_length_pr
 from app.store.pillar_labels import STORE_GRID
 
 _LOWEST, _HIGHEST = STORE_GRID.addressable()
-WORLD_MIN = float(_LOWEST.max())  # metres, on both axes
-WORLD_MAX = float(_HIGHEST.min())
+WORLD_MIN = math.ceil(float(_LOWEST.max()) * 10) / 10  # metres, on both axes (readable in
+WORLD_MAX = math.floor(float(_HIGHEST.min()) * 10) / 10  # messages: -429496729.6 .. 429496729.4)
 
 Int64 = Annotated[int, Ge(INT64_MIN), Le(INT64_MAX)]
 Id = Annotated[int, Ge(1), Le(INT64_MAX)]

@@ -16,6 +16,7 @@ from pathlib import Path, PurePosixPath
 
 from fastapi import Request
 
+from app.api.disk_space import is_disk_full
 from app.core.errors import ConfigError, InputError, UploadTooLargeError
 from app.io.detect import FILE_SUFFIXES, detect_format
 
@@ -117,6 +118,8 @@ def extract_zip(archive: Path, dest: Path, name: str, limit_mb: float) -> Path:
                             raise UploadTooLargeError(f"{name} (unpacked)", limit_mb)
                         out.write(chunk)
             except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, OSError) as exc:
+                if is_disk_full(exc):
+                    raise  # the server's problem (507), not the archive's
                 raise InputError(name, f"zip member {info.filename!r}: {exc}") from None
     archive.unlink(missing_ok=True)
     return survey_folder(dest)

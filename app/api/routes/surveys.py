@@ -13,7 +13,7 @@ import re
 import uuid
 from datetime import datetime
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Request, Response
 from pydantic import BaseModel, Field
@@ -159,7 +159,7 @@ async def upload_survey(
     user: Annotator,
     session: SessionDep,
     settings: SettingsDep,
-    filename: FileName = Query(..., description="survey.laz, or drive.zip"),
+    filename: Annotated[FileName, Query(description="survey.laz, or drive.zip")],
     format: str | None = Query(None, description="reader name; detected when absent"),
     name: str | None = Query(None, min_length=1, max_length=255),
 ) -> SurveyPublic:
