@@ -23,6 +23,7 @@ from app.store.migrations import (
     migrate,
 )
 from app.store.models import Job, LabelSource, PillarEditBatch, PillarLabel, Survey
+from app.store.pillar_labels import NO_LABEL, human_columns, undo, write_labels
 
 
 def _user_version(engine: Engine) -> int:
@@ -323,5 +324,54 @@ def test_version_2_database_gets_login_sessions_and_throttling(
         assert conn.exec_driver_sql(insert).lastrowid == first + 1
         conn.exec_driver_sql("DELETE FROM user WHERE id = 1")
         assert conn.exec_driver_sql("SELECT count(*) FROM auth_session").scalar() == 0
+        assert conn.exec_driver_sql("PRAGMA foreign_key_check").all() == []
+    engine.dispose()
+
+
+def test_version_3_database_gets_tombstones_edit_versions_and_issued_ids(
+    db_path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The real version 4 migration: the new tables and columns have the shape a new database
+    gets; an undo stack from before keeps working (by label), and erases leave tombstones."""
+    monkeypatch.setattr(migrations, "SCHEMA_VERSION", 3)
+    monkeypatch.setattr(migrations, "MIGRATIONS", {v: MIGRATIONS[v] for v in (2, 3)})
+    old = make_engine(f"sqlite:///{db_path}")
+    with old.begin() as conn:
+        for table in SQLModel.metadata.sorted_tables:
+            if table.name not in V4_TABLES:
+                table.create(conn)
+        conn.exec_driver_sql("DROP INDEX ix_pillar_edit_cell_version")
+        for column in ("version", "version_before"):
+            conn.exec_driver_sql(f"ALTER TABLE pillar_edit DROP COLUMN {column}")
+        conn.exec_driver_sql("PRAGMA user_version = 3")
+    _fill(old)  # five human labels at version 1
+    with old.begin() as conn:  # one undoable batch of cell 2 (label 2), as version 3 wrote it
+        conn.exec_driver_sql(
+            "INSERT INTO pillar_edit_batch (id, created_at, survey_id, state, size)"
+            " VALUES (1, '2026-01-01', 1, 'done', 1)"
+        )
+        conn.exec_driver_sql(
+            "INSERT INTO pillar_edit (batch_id, cell_id, before_label, after_label)"
+            " VALUES (1, 2, NULL, 2)"
+        )
+    old.dispose()
+    monkeypatch.undo()
+    engine = make_engine(f"sqlite:///{db_path}")
+    assert init_db(engine) == SCHEMA_VERSION
+    fresh = make_engine(f"sqlite:///{tmp_path / 'fresh.sqlite3'}")
+    init_db(fresh)
+    for table in (*V4_TABLES, "pillar_edit"):
+        assert _columns(engine, table) == _columns(fresh, table)
+    fresh.dispose()
+    with engine.connect() as conn:
+        indexes = {r[1] for r in conn.exec_driver_sql("PRAGMA index_list(pillar_edit)")}
+        assert "ix_pillar_edit_cell_version" in indexes
+    with Session(engine) as session:
+        assert undo(session, 1, None).versions.tolist() == [2]  # by label: unchanged since
+        assert human_columns(session, 1, [2])[1].tolist() == [2]  # erased, version kept
+        assert write_labels(session, 1, None, [3], [NO_LABEL], [1]).versions.tolist() == [2]
+    with engine.connect() as conn:
+        tombstones = conn.exec_driver_sql("SELECT cell_id, version FROM pillar_tombstone")
+        assert sorted(tombstones.all()) == [(2, 2), (3, 2)]
         assert conn.exec_driver_sql("PRAGMA foreign_key_check").all() == []
     engine.dispose()
