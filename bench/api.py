@@ -15,10 +15,13 @@
    in the database: the final label of each cell is the last acknowledged one (0 lost), its
    version equals the number of acknowledged writes to it and the edit log holds exactly one
    row per acknowledged label (0 duplicated). p50 / p99 latency of the writes.
-4. Contention: the same clients all label the same 100 pillars with the versions they saw;
-   no acknowledged write may overwrite a label its client never saw (0 overwritten unseen).
+4. Contention: the same clients all label the same 100 pillars with the versions they saw,
+   `--erase-share` (30 %) of the pillar writes erasing; no acknowledged write may replace a
+   label (or an erase) its client never saw (0 replaced unseen), checked against the server's
+   edit log in commit order, and every pillar must end as its last write left it (0 wrong).
 
     .venv/bin/python -m bench.api [--batches 20] [--clients 20] [--seconds 60] [--no-record]
+        [--only upsert tile concurrency contention] [--erase-share 0.3] [--note TEXT]
 """
 
 from __future__ import annotations
@@ -29,7 +32,6 @@ import statistics
 import tempfile
 import threading
 import time
-from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 
@@ -40,6 +42,7 @@ from app.store.pillar_labels import STORE_GRID
 from bench.common import append_results, markdown_table
 from tests.api.server import Server
 
+SCENARIOS = ("upsert", "tile", "concurrency", "contention")
 TILE_PILLARS = 500  # 100 m / 0.2 m
 # The sample survey (60 m of urban street) has 25,822 occupied pillars, ~43,000 per 100 m: a
 # street tile is 45,000 pillars (an 18 m corridor), each with a human label and a model one.
@@ -174,15 +177,33 @@ def run_clients(writer: Callable[[int], None], sessions: list[httpx.Client]) -> 
         session.close()
 
 
-def stored_human_labels(database: Path, survey: int) -> dict[int, tuple[int, int]]:
-    """cell_id -> (label, version) of the survey's human labels, read straight from SQLite."""
+def stored_human_labels(database: Path, survey: int) -> dict[int, tuple[int | None, int]]:
+    """cell_id -> (label, version) of the survey's human labels, read straight from SQLite;
+    label None for an erased one (its tombstone)."""
     with sqlite3.connect(database) as conn:
         rows = conn.execute(
             "SELECT cell_id, label, version FROM pillar_label WHERE survey_id = ? AND "
-            "source = 'human'",
-            (survey,),
+            "source = 'human' UNION ALL SELECT cell_id, NULL, version FROM pillar_tombstone "
+            "WHERE survey_id = ?",
+            (survey, survey),
         )
         return {c: (label, version) for c, label, version in rows}
+
+
+def edit_log(database: Path, survey: int) -> dict[int, list[tuple[int, int | None]]]:
+    """cell_id -> [(batch id, label after)] of every committed write, in commit order (SQLite
+    has one writer at a time: batch ids are handed out in commit order)."""
+    log: dict[int, list[tuple[int, int | None]]] = {}
+    with sqlite3.connect(database) as conn:
+        rows = conn.execute(
+            "SELECT e.cell_id, e.batch_id, e.after_label FROM pillar_edit AS e "
+            "JOIN pillar_edit_batch AS b ON b.id = e.batch_id WHERE b.survey_id = ? "
+            "ORDER BY e.batch_id",
+            (survey,),
+        )
+        for cell, batch, label in rows:
+            log.setdefault(cell, []).append((batch, label))
+    return log
 
 
 def bench_concurrency(server: Server, clients: int, seconds: float) -> tuple[list[list[str]], dict]:
@@ -241,15 +262,21 @@ def bench_concurrency(server: Server, clients: int, seconds: float) -> tuple[lis
     return [row], {"failures": failures[:5]}
 
 
-def bench_contention(server: Server, clients: int, seconds: float) -> tuple[list[list[str]], dict]:
-    """Every client labels the same 100 pillars (5 per batch), each write carrying the versions
-    the client last saw; a 409 tells it the current ones. Afterwards: no two acknowledged
-    writes of a pillar may have seen the same version (that would be an overwrite nobody saw),
-    each pillar's version is its number of acknowledged writes and its label the last one's."""
-    survey = new_survey(server.data_dir / "mmsclean.sqlite3", "contention")
+def bench_contention(
+    server: Server, clients: int, seconds: float, erase_share: float
+) -> tuple[list[list[str]], dict]:
+    """Every client labels the same 100 pillars (5 per batch, `erase_share` of them erased),
+    each write carrying the versions the client last saw; a 409 tells it the current ones.
+    Afterwards, against the server's edit log in commit order: a write whose client saw version
+    v must be the pillar's (v + 1)-th write (versions count writes: v is the state after the
+    v-th), else it replaced a state its client never saw; each pillar must end with its last
+    write's label and as many versions as writes, and no write may be in the log unacknowledged.
+    """
+    database = server.data_dir / "mmsclean.sqlite3"
+    survey = new_survey(database, "contention")
     sessions = [server.add_user(f"contender{i}", "annotator") for i in range(clients)]
     shared = grid_cells(20_000, 0, 10, 10)
-    acked: list[tuple[int, int, int]] = []  # (cell, version seen, label)
+    acked: list[tuple[int, int, int | None, int]] = []  # (cell, version seen, label, batch id)
     refused: list[int] = [0]
     latencies: list[float] = []
     failures: list[str] = []
@@ -262,7 +289,10 @@ def bench_contention(server: Server, clients: int, seconds: float) -> tuple[list
         url = f"/surveys/{survey}/pillars/labels"
         while time.monotonic() < stop:
             cells = rng.choice(shared, size=5, replace=False).tolist()
-            labels = rng.integers(0, 4, size=5).tolist()
+            labels = [
+                None if erase else int(v)
+                for v, erase in zip(rng.integers(0, 4, 5), rng.random(5) < erase_share, strict=True)
+            ]
             body = [
                 {"cell_id": c, "label": v, "version": seen[c]}
                 for c, v in zip(cells, labels, strict=True)
@@ -286,29 +316,43 @@ def bench_contention(server: Server, clients: int, seconds: float) -> tuple[list
                 continue
             out = response.json()
             with lock:
-                acked.extend((c, seen[c], v) for c, v in zip(cells, labels, strict=True))
+                acked.extend(
+                    (c, seen[c], v, out["batch_id"]) for c, v in zip(cells, labels, strict=True)
+                )
                 latencies.append(ms)
             seen.update(zip(out["cell_id"], out["version"], strict=True))
 
     run_clients(writer, sessions)
 
-    stored = stored_human_labels(server.data_dir / "mmsclean.sqlite3", survey)
-    seen_twice = len(acked) - len({(c, v) for c, v, _ in acked})
-    last = {c: (v + 1, label) for c, v, label in sorted(acked, key=lambda a: a[1])}
-    writes = Counter(c for c, _, _ in acked)
-    wrong = sum(
-        1 for c, (version, label) in last.items() if stored.get(c) != (label, version)
-    ) + sum(1 for c, n in writes.items() if last[c][0] != n)
+    log = edit_log(database, survey)
+    position = {(c, batch): n for c, writes in log.items() for n, (batch, _) in enumerate(writes)}
+    unseen = sum(1 for c, v, _, batch in acked if position.get((c, batch)) != v)
+    unacknowledged = sum(len(w) for w in log.values()) - len(acked)
+    stored = stored_human_labels(database, survey)
+    wrong = sum(1 for c, writes in log.items() if stored.get(c) != (writes[-1][1], len(writes)))
+    erased = sum(1 for _, _, v, _ in acked if v is None)
     row = [
-        f"{clients} clients x {seconds:g} s on the same 100 pillars, batches of 5 with versions",
-        f"{len(acked) // 5:,} writes acknowledged, {refused[0]:,} refused (409)",
+        f"{clients} clients x {seconds:g} s on the same 100 pillars, batches of 5 with versions, "
+        f"{erase_share:.0%} of the pillar writes erase",
+        f"{len(acked) // 5:,} writes acknowledged ({erased:,} of {len(acked):,} pillar writes "
+        f"erases), {refused[0]:,} refused (409)",
         f"{statistics.median(latencies):.0f}",
         f"{percentile(latencies, 99):.0f}",
-        str(seen_twice),
+        str(unseen),
         str(wrong),
-        str(len(failures)),
+        str(len(failures) + unacknowledged),
     ]
     return [row], {"failures": failures[:5]}
+
+
+CONTENTION_NOTE = (
+    "Replaced unseen: acknowledged pillar writes whose client saw version v while the server's "
+    "edit log (commit order) has a number of earlier writes of that pillar other than v: the "
+    "write replaced a label (or an erase) its client never saw. Wrong: pillars whose stored "
+    "label (none: erased) / version is not their last write's / their number of writes. Failed: "
+    "failed requests plus writes in the log nobody acknowledged. p50 / p99 over all answers, "
+    "409 included."
+)
 
 
 def main() -> None:
@@ -317,56 +361,89 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--clients", type=int, default=20)
     parser.add_argument("--seconds", type=float, default=60.0)
+    parser.add_argument("--only", nargs="+", choices=SCENARIOS, default=list(SCENARIOS))
+    parser.add_argument("--erase-share", type=float, default=0.3, help="of contention writes")
+    parser.add_argument("--note", default="", help="added to the recorded entry (e.g. load)")
     parser.add_argument("--no-record", action="store_true")
     args = parser.parse_args()
+    if not 0.0 <= args.erase_share <= 1.0:
+        parser.error(f"--erase-share: must be 0-1, got {args.erase_share}")
 
+    upsert: list[list[str]] = []
+    tile: list[list[str]] = []
+    concurrency: list[list[str]] = []
+    contention: list[list[str]] = []
+    failures: list[str] = []
     with tempfile.TemporaryDirectory(prefix="mmsclean-bench-api-") as tmp:
         env = {"MMSCLEAN_SAMPLE_DIR": "", "MMSCLEAN_WORKERS": "1", "MMSCLEAN_RETRAIN_EVERY": "0"}
         server = Server(Path(tmp) / "var", env=env)
         server.start()
         try:
-            upsert = bench_upsert(server, args.batches)
-            tile = bench_tile(server, args.repeats)
-            speed = upsert + [r[:4] for r in tile]
-            concurrency, info = bench_concurrency(server, args.clients, args.seconds)
-            contention, contention_info = bench_contention(server, args.clients, args.seconds)
+            if "upsert" in args.only:
+                upsert = bench_upsert(server, args.batches)
+            if "tile" in args.only:
+                tile = bench_tile(server, args.repeats)
+            if "concurrency" in args.only:
+                concurrency, info = bench_concurrency(server, args.clients, args.seconds)
+                failures += info["failures"]
+            if "contention" in args.only:
+                contention, info = bench_contention(
+                    server, args.clients, args.seconds, args.erase_share
+                )
+                failures += info["failures"]
         finally:
             server.stop()
 
-    speed_table = markdown_table(["operation", "p50 ms", "p90 ms", "target"], speed)
-    baseline_lines = "\n".join(f"- {r[0]}: baseline {r[4]}" for r in tile)
-    concurrency_table = markdown_table(
-        ["load", "acknowledged", "p50 ms", "p99 ms", "lost", "duplicated", "failed"], concurrency
-    )
-    contention_table = markdown_table(
-        ["load", "writes", "p50 ms", "p99 ms", "overwritten unseen", "wrong", "failed"],
-        contention,
-    )
-    print(speed_table, baseline_lines, concurrency_table, contention_table, sep="\n\n")
-    for failures in (info["failures"], contention_info["failures"]):
-        if failures:
-            print("first failures:", *failures, sep="\n  ")
+    sections: list[str] = []
+    speed = upsert + [r[:4] for r in tile]
+    if speed:
+        sections.append(markdown_table(["operation", "p50 ms", "p90 ms", "target"], speed))
+        sections.append(
+            "Server: `mmsclean serve` (one uvicorn process, SQLite WAL file, one job worker "
+            "idle) on 127.0.0.1, client httpx in the same machine. Times are client-side, "
+            "JSON encoding and HTTP included."
+        )
+    if tile:
+        sections.append("\n".join(f"- {r[0]}: baseline {r[4]}" for r in tile))
+    if concurrency:
+        sections.append(
+            markdown_table(
+                ["load", "acknowledged", "p50 ms", "p99 ms", "lost", "duplicated", "failed"],
+                concurrency,
+            )
+        )
+        sections.append(
+            "Lost: acknowledged labels whose cell does not hold the last acknowledged value. "
+            "Duplicated: edit-log rows beyond the acknowledged labels, stored labels nobody "
+            "acknowledged, and cells whose version differs from their acknowledged writes."
+        )
+    if contention:
+        sections.append(
+            markdown_table(
+                ["load", "writes", "p50 ms", "p99 ms", "replaced unseen", "wrong", "failed"],
+                contention,
+            )
+        )
+        sections.append(CONTENTION_NOTE)
+    if args.note:
+        sections.append(args.note)
+    print(*sections, sep="\n\n")
+    if failures:
+        print("first failures:", *failures, sep="\n  ")
     if not args.no_record:
         command = (
             f".venv/bin/python -m bench.api --batches {args.batches} --repeats {args.repeats} "
             f"--clients {args.clients} --seconds {args.seconds:g}"
         )
-        notes = (
-            "Server: `mmsclean serve` (one uvicorn process, SQLite WAL file, one job worker "
-            "idle) on 127.0.0.1, client httpx in the same machine. Times are client-side, "
-            "JSON encoding and HTTP included.\n\n"
-            f"{baseline_lines}\n\n{concurrency_table}\n\n"
-            "Lost: acknowledged labels whose cell does not hold the last acknowledged value. "
-            "Duplicated: edit-log rows beyond the acknowledged labels, stored labels nobody "
-            "acknowledged, and cells whose version differs from their acknowledged writes.\n\n"
-            f"{contention_table}\n\n"
-            "Overwritten unseen: acknowledged writes of a pillar that saw the same version as "
-            "another acknowledged write of it (the later one replaced a label its client never "
-            "saw). Wrong: pillars whose stored label / version is not the last acknowledged "
-            "write's / their number of acknowledged writes. p50 / p99 over all answers, 409 "
-            "included."
+        if list(args.only) != list(SCENARIOS):
+            command += " --only " + " ".join(args.only)
+        if "contention" in args.only:
+            command += f" --erase-share {args.erase_share:g}"
+        if args.note:
+            command += ' --note "..."'
+        append_results(
+            "Web app backend: pillar label API", command, sections[0], "\n\n".join(sections[1:])
         )
-        append_results("Web app backend: pillar label API", command, speed_table, notes)
 
 
 if __name__ == "__main__":
