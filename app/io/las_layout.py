@@ -62,7 +62,7 @@ def check_las_layout(path: Path) -> None:
                 f"header says {vlr_count:,} variable-length records but the file has only "
                 f"{between:,} bytes after the header (before the point data)",
             )
-        compressed = bool(format_byte & 0x80)
+        compressed = format_byte & 0xC0 == 0x80  # bit 7 without bit 6, as laspy reads it
         point_format = format_byte & 0x3F
         if point_format not in _POINT_SIZES:
             raise InputError(path, f"point data format {point_format} is not one of LAS 0-10")
@@ -75,7 +75,7 @@ def check_las_layout(path: Path) -> None:
         point_count = legacy_count
         if minor >= 4 and header_size >= _HEADER_SIZES[4] and len(head) >= _HEADER_SIZES[4]:
             evlr_start, evlr_count, point_count = struct.unpack_from("<QIQ", head, 235)
-            _check_evlrs(path, size, data_start, evlr_start, evlr_count)
+            _check_evlrs(path, size, evlr_start, evlr_count)
         if not compressed:
             available = size - data_start
             needed = point_count * record_length
@@ -92,15 +92,9 @@ def check_las_layout(path: Path) -> None:
             _check_laz(path, f, size, data_start, point_count, laszip)
 
 
-def _check_evlrs(path: Path, size: int, data_start: int, start: int, count: int) -> None:
+def _check_evlrs(path: Path, size: int, start: int, count: int) -> None:
     if not count:
         return
-    if start < data_start:
-        raise InputError(
-            path,
-            f"header says the extended variable-length records start at byte {start:,}, "
-            f"before the point data (byte {data_start:,})",
-        )
     available = max(size - start, 0)
     if count * _EVLR_HEADER > available:
         raise InputError(

@@ -2,12 +2,16 @@
 
 A small reader of its own for `DATA ascii` and `DATA binary` (header parsed eagerly, data read on
 `Frame.points()` with one `np.loadtxt` / `np.fromfile`). `DATA binary_compressed` (LZF) is handed
-to open3d's tensor reader when the points are loaded; if that fails the error names the file.
+to open3d's tensor reader when the points are loaded (open3d only knows lower-case `x y z`, so a
+file that spells them otherwise goes to it as a temporary copy whose FIELDS line does); if that
+fails the error names the file. Counts the file cannot hold (POINTS beyond the data, the
+compressed sizes) fail when the file is opened, before anything is parsed or allocated.
 
-Fields map like PLY's properties (see `app.io.ply`): `x y z` -> xyz float64, `intensity` ->
-intensity, `time` / `gps_time` / `timestamp` -> time, everything else (e.g. `rgb`, `label`) ->
-`PointCloud.extra`; `label` / `class` / `classification` are also reference labels. PCL's `_`
-padding fields are skipped.
+Fields map like PLY's properties (see `app.io.ply`), in any case (PDAL writes `X Y Z`): `x y z`
+-> xyz float64, `intensity` -> intensity, `time` / `gps_time` / `timestamp` -> time, everything
+else -> `PointCloud.extra` (`rgb` / `rgba` under the lower-case key, others as written);
+`label` / `class` / `classification` are also reference labels. PCL's `_` padding fields are
+skipped.
 
 NaN coordinates: in an *organized* cloud (HEIGHT > 1, e.g. a range image from a sensor driver) a
 NaN point is the usual way of saying "no return at this pixel", so those points are dropped and

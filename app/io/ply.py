@@ -7,8 +7,9 @@ every digit of the text even when declared `float`).
 
 Vertex properties are mapped, case-insensitively and ignoring CloudCompare's `scalar_` prefix:
 `x`, `y`, `z` -> xyz (float64); `intensity` -> intensity (float32); `time` / `gps_time` /
-`timestamp` -> time (float64); everything else -> `PointCloud.extra` under its own name. Label
-properties (`label`, `class`, `classification`) are also the survey's reference labels.
+`timestamp` -> time (float64); everything else -> `PointCloud.extra` under its own name (`rgb` /
+`rgba` in lower case). Label properties (`label`, `class`, `classification`) are also the survey's
+reference labels. A vertex count the file cannot hold fails when the file is opened.
 
 Elements before the vertex element are skipped (in binary files only when they have no list
 properties, since their size must be computed); elements after it are ignored.
