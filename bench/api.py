@@ -27,6 +27,7 @@
 from __future__ import annotations
 
 import argparse
+import shlex
 import sqlite3
 import statistics
 import tempfile
@@ -440,7 +441,7 @@ def main() -> None:
         if "contention" in args.only:
             command += f" --erase-share {args.erase_share:g}"
         if args.note:
-            command += ' --note "..."'
+            command += f" --note {shlex.quote(args.note)}"
         append_results(
             "Web app backend: pillar label API", command, sections[0], "\n\n".join(sections[1:])
         )
