@@ -16,13 +16,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 from sqlmodel import Session
 
+from app.core.bounds import RecordId
 from app.core.errors import ConfigError, ConflictError, NotFoundError
 from app.core.settings import Settings
 from app.io import open_survey
 from app.jobs.registry import JobContext, task
-from app.jobs.task_config import allowed_model_path, validated
+from app.jobs.task_config import job_model, refuse_model_path, validated
 from app.pipelines.guardrail.correction import correct_labels
 from app.pipelines.guardrail.pipeline import (
     DEFAULT_MODEL,
@@ -66,14 +68,34 @@ def _validated(values: dict[str, Any], known: tuple[str, ...]) -> GuardrailConfi
     return validated(GuardrailConfig, values)
 
 
+class ModelChoice(BaseModel):
+    model_config = ConfigDict(protected_namespaces=())
+
+    model_id: RecordId | None = Field(
+        None, description="classifier version to run (GET /models); default: the promoted one"
+    )
+
+
 def guardrail_options(
-    config: dict[str, Any], settings: Settings
-) -> tuple[GuardrailConfig, Path | None]:
-    """`run:guardrail`'s config: GuardrailConfig fields plus an optional `model_path`."""
+    config: dict[str, Any], settings: Settings | None = None
+) -> tuple[GuardrailConfig, int | None]:
+    """`run:guardrail`'s config: GuardrailConfig fields plus an optional `model_id`."""
     values = dict(config or {})
-    model_path = values.pop("model_path", None)
-    cfg = _validated(values, (*GuardrailConfig.model_fields, "model_path"))
-    return cfg, allowed_model_path(model_path, settings)
+    refuse_model_path(values)
+    choice = validated(ModelChoice, {"model_id": values.pop("model_id", None)})
+    cfg = _validated(values, (*GuardrailConfig.model_fields, "model_id"))
+    return cfg, choice.model_id
+
+
+def job_classifier(session: Session, model_id: int | None) -> Path:
+    """The checkpoint of classifier version `model_id`, else the promoted one."""
+    if model_id is None:
+        return promoted_classifier(session)
+    version = job_model(session, Pipeline.guardrail, model_id)
+    path = Path(version.checkpoint_path)
+    if not path.is_file():
+        raise ConflictError(f"{path}: the checkpoint of model version {model_id} is missing")
+    return path
 
 
 def promoted_classifier(session: Session) -> Path:
@@ -177,14 +199,14 @@ def check_rebuild_config(config: dict[str, Any], settings: Settings) -> None:
     _validated(dict(config or {}), REBUILD_FIELDS)
 
 
-@task("run:guardrail", check=check_run_config)
+@task("run:guardrail", check=check_run_config, model="guardrail")
 def run_guardrail(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
-    cfg, model_path = guardrail_options(config, context.settings)
+    cfg, model_id = guardrail_options(config, context.settings)
     survey_id = _survey_id(context)
     with Session(context.engine) as session:
         record = get_survey(session, survey_id)
         source, fmt = record.source_path, record.format
-        model_path = model_path or promoted_classifier(session)
+        model_path = job_classifier(session, model_id)
     started = time.perf_counter()
     survey = open_survey(source, fmt)
     context.progress(0.0, "loading the slice classifier")

@@ -15,15 +15,16 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field
 from sqlalchemy.engine import Engine
 from sqlmodel import Session, select
 
+from app.core.bounds import RecordId
 from app.core.errors import ConfigError, ConflictError, NotFoundError
 from app.core.settings import Settings
 from app.io import open_survey
 from app.jobs.registry import JobContext, task
-from app.jobs.task_config import allowed_model_path, validated
+from app.jobs.task_config import job_model, validated
 from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.model import DEFAULT_MODEL
 from app.pipelines.phantom.run import run_phantom_to_folder
@@ -49,16 +50,15 @@ class PhantomJobConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", protected_namespaces=())
 
-    model_path: str | None = None  # a checkpoint in models/ or the data dir; default: promoted
+    model_id: RecordId | None = Field(
+        None, description="phantom model version to run (GET /models); default: the promoted one"
+    )
     dense: bool = True  # dense tiled inference (False: the paper's per-window path)
     refine: bool = True  # Algorithm 1 neighbourhood vote
 
 
-def parse_config(
-    config: dict[str, Any], settings: Settings
-) -> tuple[PhantomJobConfig, Path | None]:
-    options = validated(PhantomJobConfig, config)
-    return options, allowed_model_path(options.model_path, settings)
+def parse_config(config: dict[str, Any], settings: Settings | None = None) -> PhantomJobConfig:
+    return validated(PhantomJobConfig, config)
 
 
 def check_config(config: dict[str, Any], settings: Settings) -> None:
@@ -70,14 +70,15 @@ def _card(checkpoint: Path) -> dict[str, Any]:
     return json.loads(sidecar.read_text()) if sidecar.is_file() else {}
 
 
-def model_version_for(session: Session, model_path: Path | None) -> ModelVersion:
-    """The version row of the checkpoint to run: the given one, else the promoted one, else the
-    shipped default (rows for shipped checkpoints are created on first use)."""
-    if model_path is None:
-        promoted = promoted_version(session, Pipeline.phantom)
-        if promoted is not None and Path(promoted.checkpoint_path).is_file():
-            return promoted
-        model_path = DEFAULT_MODEL.resolve()
+def model_version_for(session: Session, model_id: int | None) -> ModelVersion:
+    """The version row of the checkpoint to run: the one `model_id` names, else the promoted
+    one, else the shipped default (rows for shipped checkpoints are created on first use)."""
+    if model_id is not None:
+        return job_model(session, Pipeline.phantom, model_id)
+    promoted = promoted_version(session, Pipeline.phantom)
+    if promoted is not None and Path(promoted.checkpoint_path).is_file():
+        return promoted
+    model_path = DEFAULT_MODEL.resolve()
     same_file = select(ModelVersion).where(
         ModelVersion.pipeline == Pipeline.phantom,
         ModelVersion.checkpoint_path == str(model_path),
@@ -166,9 +167,9 @@ def store_model_labels(
     return len(cells)
 
 
-@task(KIND, check=check_config)
+@task(KIND, check=check_config, model="phantom")
 def run_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
-    options, model_path = parse_config(config, context.settings)
+    options = parse_config(config, context.settings)
     if context.survey_id is None:
         raise ConfigError("survey_id", f"{KIND} jobs need a survey")
     with Session(context.engine, expire_on_commit=False) as session:
@@ -176,7 +177,7 @@ def run_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
         if record is None:
             raise NotFoundError(f"survey {context.survey_id} not found")
         source, fmt = record.source_path, record.format
-        version = model_version_for(session, model_path)
+        version = model_version_for(session, options.model_id)
     checkpoint = Path(version.checkpoint_path)
     context.log.info("survey %s (%s, %s), model %s", context.survey_id, fmt, source, checkpoint)
     context.progress(0.0, "opening the survey")

@@ -21,10 +21,11 @@ from sqlmodel import Session
 
 from app.core.errors import ConfigError, ConflictError, NotFoundError
 from app.core.settings import Settings, get_settings
-from app.jobs.registry import check_config, task_for
+from app.jobs.registry import MODELS, check_config, task_for
+from app.jobs.task_config import job_model
 from app.store.audit import audit, unused_id
 from app.store.db import commit
-from app.store.models import Job, JobStatus, Survey, utcnow
+from app.store.models import Job, JobStatus, Pipeline, Survey, utcnow
 
 RESUMABLE = (JobStatus.interrupted, JobStatus.failed, JobStatus.cancelled)
 ACTIVE = (JobStatus.queued, JobStatus.running)
@@ -61,6 +62,8 @@ def _new_job(
     if survey_id is None and kind.startswith("run:"):
         raise ConfigError("survey_id", f"{kind} jobs need a survey")
     check_config(kind, config, settings or get_settings())
+    if kind in MODELS and config.get("model_id") is not None:
+        job_model(session, Pipeline(MODELS[kind]), config["model_id"])
     job = Job(
         kind=kind, config=dict(config), survey_id=survey_id, created_by=user_id, message=message
     )

@@ -8,7 +8,8 @@ is one. Tasks call `context.progress(fraction, message)` often: it records progr
 `load_tasks()` imports them all (worker processes call it at start), plus the modules named in
 `MMSCLEAN_EXTRA_TASK_MODULES` (comma-separated; tests register their own kinds that way).
 A task may also register `check=fn(config, settings)`, run when the job is queued, so a bad
-config is refused at once (422) instead of failing later in a worker.
+config is refused at once (422) instead of failing later in a worker; `model=` the pipeline
+whose registry its `config.model_id` names (checked against the store when queued).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from sqlalchemy.engine import Engine
 
 from app.core.errors import ConfigError
 from app.core.settings import Settings
+from app.jobs.task_config import refuse_model_path
 
 TASK_MODULES = (
     "app.jobs.phantom_tasks",
@@ -60,13 +62,18 @@ TaskFn = Callable[[JobContext, dict[str, Any]], dict[str, Any]]
 CheckFn = Callable[[dict[str, Any], Settings], None]
 TASKS: dict[str, TaskFn] = {}
 CHECKS: dict[str, CheckFn] = {}
+MODELS: dict[str, str] = {}  # kind -> pipeline ("phantom", "guardrail") of its config.model_id
 
 
-def task(kind: str, check: CheckFn | None = None) -> Callable[[TaskFn], TaskFn]:
+def task(
+    kind: str, check: CheckFn | None = None, model: str | None = None
+) -> Callable[[TaskFn], TaskFn]:
     def register(fn: TaskFn) -> TaskFn:
         TASKS[kind] = fn
         if check is not None:
             CHECKS[kind] = check
+        if model is not None:
+            MODELS[kind] = model
         return fn
 
     return register
@@ -95,7 +102,9 @@ def task_for(kind: str) -> TaskFn:
 
 
 def check_config(kind: str, config: dict[str, Any], settings: Settings) -> None:
-    """Raise the task's ConfigError for a config it would refuse (kinds without a check pass)."""
+    """Raise the task's ConfigError for a config it would refuse (kinds without a check pass
+    only what no kind takes: a checkpoint path)."""
+    refuse_model_path(config)
     check = CHECKS.get(kind)
     if check is not None:
         check(config, settings)

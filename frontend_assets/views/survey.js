@@ -41,7 +41,7 @@ const PIPELINE_FORMS = [
     options: [
       { key: "refine", label: "5x5 neighbourhood vote", type: "checkbox", default: true },
       { key: "dense", label: "dense tiled inference", type: "checkbox", default: true },
-      { key: "model_path", label: "Checkpoint", type: "text", default: "", placeholder: "promoted version" },
+      { key: "model_id", label: "Model", type: "model", pipeline: "phantom", default: "" },
     ],
   },
   {
@@ -53,6 +53,7 @@ const PIPELINE_FORMS = [
       { key: "threshold", label: "Threshold", type: "number", step: 0.05, min: 0.05, max: 0.95, default: 0.5 },
       { key: "spacing", label: "Slice length [m]", type: "number", step: 0.1, min: 0.1, default: 0.5 },
       { key: "reconstruct", label: "reconstruct models", type: "checkbox", default: true },
+      { key: "model_id", label: "Classifier version", type: "model", pipeline: "guardrail", default: "" },
     ],
   },
 ];
@@ -122,7 +123,16 @@ function optionInput(kind, option) {
     return { input, el: h("label", { class: "check" }, input, option.label) };
   }
   let input;
-  if (option.type === "select") {
+  if (option.type === "model") {
+    // a model version of the registry by id (jobs never name a checkpoint file)
+    const promoted = h("option", { value: "" }, "promoted version");
+    input = h("select", { id, name: option.key }, promoted);
+    api(`/models?${new URLSearchParams({ pipeline: option.pipeline })}`)
+      .then((models) => {
+        input.append(...models.map((m) => h("option", { value: String(m.id) }, `${m.id}: ${m.name}`)));
+      })
+      .catch(() => {}); // the promoted version stays available
+  } else if (option.type === "select") {
     input = h(
       "select",
       { id, name: option.key },
@@ -152,7 +162,8 @@ function configOf(form, inputs) {
     if (option.type === "checkbox") value = input.checked;
     else if (option.type === "number") value = Number(input.value);
     else value = input.value.trim();
-    if (option.type === "text" && !value) continue;
+    if ((option.type === "text" || option.type === "model") && !value) continue;
+    if (option.type === "model") value = Number(value);
     if (value !== option.default) config[option.key] = value;
   }
   return config;

@@ -262,6 +262,7 @@ def test_bad_config_names_the_field(jobs: Jobs, tmp_path: Path) -> None:
         "config.threshold": {"threshold": 2},
         "config.colour": {"colour": "red"},
         "config.model_path": {"model_path": str(outside)},
+        "config.model_id": {"model_id": 12345},
     }
     for field, config in cases.items():
         with pytest.raises(ConfigError) as err:

@@ -25,6 +25,7 @@ from app.jobs.phantom_tasks import (
     store_model_labels,
 )
 from app.pipelines.phantom.model import DEFAULT_MODEL, PAPER_MODEL
+from app.store.model_versions import ensure_shipped_version
 from app.store.models import AuditEvent, PillarLabel, Pipeline, Survey, utcnow
 from app.store.pillar_labels import STORE_GRID
 from tests.jobs.conftest import job_context
@@ -135,27 +136,30 @@ def test_the_model_version_row(engine: Engine, settings: Settings) -> None:
         assert shipped.checkpoint_path == str(DEFAULT_MODEL.resolve())
         assert shipped.pipeline == Pipeline.phantom and shipped.is_promoted
         assert model_version_for(session, None).id == shipped.id
-        paper = model_version_for(session, PAPER_MODEL.resolve())
+        paper = ensure_shipped_version(session, Pipeline.phantom, PAPER_MODEL, {})
         assert paper.id != shipped.id and not paper.is_promoted
-        assert model_version_for(session, PAPER_MODEL.resolve()).id == paper.id
-        assert model_version_for(session, DEFAULT_MODEL.resolve()).id == shipped.id
+        assert model_version_for(session, paper.id).id == paper.id  # by registry id
+        assert model_version_for(session, None).id == shipped.id  # the promoted one
+        guardrail = ensure_shipped_version(session, Pipeline.guardrail, PAPER_MODEL, {})
+        for model_id, problem in ((guardrail.id, "is a guardrail model"), (999, "no model")):
+            with pytest.raises(ConfigError, match=problem) as caught:
+                model_version_for(session, model_id)
+            assert caught.value.field == "config.model_id"
 
 
-def test_model_path_must_stay_inside_models_or_the_data_dir(
-    settings: Settings, tmp_path: Path
-) -> None:
-    options, path = parse_config({"model_path": "models/phantom/phantom_cnn.pt"}, settings)
-    assert path == PAPER_MODEL.resolve() and options.dense
-    outside = tmp_path / "elsewhere.pt"
-    outside.write_bytes(b"x")
-    for value in (str(outside), "models/../pyproject.toml", "  "):
+def test_jobs_name_models_by_id_never_by_path(settings: Settings) -> None:
+    assert parse_config({"model_id": 3, "dense": False}, settings).model_id == 3
+    for config, field in (
+        ({"model_path": "models/phantom/phantom_cnn.pt"}, "config.model_path"),
+        ({"model_id": 0}, "config.model_id"),
+        ({"model_id": 2**70}, "config.model_id"),
+        ({"model_id": "models/phantom/phantom_cnn.pt"}, "config.model_id"),
+    ):
         with pytest.raises(ConfigError) as caught:
-            parse_config({"model_path": value}, settings)
-        assert caught.value.field == "config.model_path"
-    inside = settings.data_dir / "models" / "mine.pt"
-    inside.parent.mkdir(parents=True)
-    inside.write_bytes(b"x")
-    assert parse_config({"model_path": str(inside)}, settings)[1] == inside.resolve()
+            parse_config(config, settings)
+        assert caught.value.field == field
+    with pytest.raises(ConfigError, match=r"registry id \(config.model_id, see GET /models\)"):
+        parse_config({"model_path": "x.pt"}, settings)
 
 
 def test_stage_progress_rises_through_the_pipeline() -> None:

@@ -24,8 +24,11 @@ from app.jobs.queue import (
     requeue,
     resume,
 )
+from app.pipelines.guardrail.pipeline import DEFAULT_MODEL as DEFAULT_CLASSIFIER
+from app.pipelines.phantom.model import PAPER_MODEL
 from app.store.db import make_engine
-from app.store.models import AuditEvent, Job, JobStatus, Survey
+from app.store.model_versions import ensure_shipped_version
+from app.store.models import AuditEvent, Job, JobStatus, Pipeline, Survey
 
 
 @pytest.fixture
@@ -83,17 +86,24 @@ def test_run_phantom_config_is_checked_when_queued(session: Session, settings: S
     survey = Survey(name="s", format="sim", source_path="/nowhere")
     session.add(survey)
     session.commit()
+    phantom = ensure_shipped_version(session, Pipeline.phantom, PAPER_MODEL, {})
+    guardrail = ensure_shipped_version(session, Pipeline.guardrail, DEFAULT_CLASSIFIER, {})
     for config, field in (
         ({"model_path": "/etc/passwd"}, "config.model_path"),
-        ({"model_path": "models/phantom/missing.pt"}, "config.model_path"),
+        ({"model_path": "models/phantom/phantom_cnn.pt"}, "config.model_path"),
+        ({"model_id": guardrail.id}, "config.model_id"),  # another pipeline's model
+        ({"model_id": guardrail.id + 100}, "config.model_id"),  # no such version
         ({"dense": "maybe"}, "config.dense"),
         ({"threads": 3}, "config.threads"),
     ):
         with pytest.raises(ConfigError) as caught:
             enqueue(session, "run:phantom", config, survey.id, None, settings)
         assert caught.value.field == field
-    shipped = {"model_path": "models/phantom/phantom_cnn.pt", "dense": False}
-    assert enqueue(session, "run:phantom", shipped, survey.id, None, settings).id
+    chosen = {"model_id": phantom.id, "dense": False}
+    assert enqueue(session, "run:phantom", chosen, survey.id, None, settings).id
+    with pytest.raises(ConfigError) as caught:  # every kind refuses a checkpoint path
+        enqueue(session, "run:clutter", {"model_path": "x.pt"}, survey.id, None, settings)
+    assert caught.value.field == "config.model_path"
 
 
 def test_claim_takes_oldest_and_counts_attempts(

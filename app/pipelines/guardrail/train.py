@@ -19,6 +19,7 @@ from torch import nn
 
 from app.core.errors import InputError
 from app.metrics.classification import binary_scores
+from app.pipelines.checkpoints import load_checkpoint
 from app.pipelines.guardrail.classifier import Inputs, SliceHead, predict
 from app.pipelines.guardrail.dataset import (
     HELD_OUT_SEEDS,
@@ -79,10 +80,13 @@ def slice_scores(head: SliceHead, samples: SliceSamples) -> dict:
 
 def save_heads(path: Path, heads: dict[str, SliceHead], card: dict) -> Path:
     """One checkpoint holding a head per input set (`image`, `geometry`, `image+geometry`) and
-    the card; the card also goes beside it as JSON. Written atomically."""
+    the card; the card also goes beside it as JSON. Written atomically. It holds only state
+    dicts, strings, ints and the card's plain types, so `load_heads` reads it with
+    weights_only=True."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     card = {"created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"), **card}
+    card = json.loads(json.dumps(card, default=str))  # plain types: loads weights_only=True
     blob = {
         "heads": {
             name: {"state_dict": h.state_dict(), "inputs": h.inputs, "n_geometry": h.n_geometry}
@@ -98,11 +102,13 @@ def save_heads(path: Path, heads: dict[str, SliceHead], card: dict) -> Path:
 
 
 def load_heads(path: Path) -> tuple[dict[str, SliceHead], dict]:
+    """The heads (eval mode) and the card; the file is read as data only (`load_checkpoint`),
+    anything else in it is one InputError."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "guardrail classifier checkpoint is missing")
+    blob = load_checkpoint(path, "guardrail classifier")
     try:
-        blob = torch.load(path, map_location="cpu", weights_only=False)
         heads = {}
         for name, h in blob["heads"].items():
             head = SliceHead(h["inputs"], int(h["n_geometry"]))

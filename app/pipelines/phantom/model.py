@@ -9,6 +9,7 @@ from pathlib import Path
 import torch
 
 from app.core.errors import DependencyMissingError, InputError
+from app.pipelines.checkpoints import load_checkpoint
 from app.pipelines.phantom.network import PillarCNN
 
 MODELS = Path(__file__).resolve().parents[3] / "models" / "phantom"
@@ -35,8 +36,8 @@ def load_model(path: Path | None = None) -> tuple[PillarCNN, dict]:
             f"phantom model {path} is missing: train one with `mmsclean train phantom` "
             "or pass --model"
         )
+    payload = load_checkpoint(path, "phantom model")
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
         net = PillarCNN(**{**payload["network"], "channels": tuple(payload["network"]["channels"])})
         net.load_state_dict(payload["state_dict"])
     except (KeyError, RuntimeError, TypeError, ValueError) as exc:

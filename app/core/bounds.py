@@ -1,0 +1,44 @@
+"""Physical bounds of the numbers a job config or a command-line option may set.
+
+Every config field that comes from outside has a type from here, so that a value no survey
+needs (a 1 mm free-space voxel, a 1e9 px mask pad, 1e6 threads, a 1e308 m range) is refused
+where it enters, as one line naming the field, instead of exhausting memory or overflowing
+deep inside a pipeline. NaN and infinity are refused by every float type. Fields keep their
+own lower bounds (`gt=0`, `ge=2`, ...) beside these types; the bounds here are the outer ones a
+demanding mapping engineer would still find sensible.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from pydantic import Field
+
+MAX_RANGE_M = 1000.0  # no mobile-mapping sensor sees farther
+MAX_COUNT = 1_000_000  # frames, points, samples, steps of one run
+MAX_THREADS = 256
+MAX_PIXELS = 200
+MAX_RECORD_ID = 2**63 - 1  # SQLite INTEGER
+
+# metres: a grid or voxel edge (free-space voxels, ground cells, clustering voxels, pillars)
+Resolution = Annotated[float, Field(ge=0.02, le=5.0, allow_inf_nan=False)]
+# metres: a distance, range, radius, gap or height
+Metres = Annotated[float, Field(ge=0.0, le=MAX_RANGE_M, allow_inf_nan=False)]
+# pixels of a camera image (mask pads)
+Pixels = Annotated[int, Field(ge=0, le=MAX_PIXELS)]
+# a number of things: frames, points, samples, epochs, voxels of inflation
+Count = Annotated[int, Field(ge=0, le=MAX_COUNT)]
+# worker threads; 0 = all cores
+Threads = Annotated[int, Field(ge=0, le=MAX_THREADS)]
+# a share or probability, 0..1
+Share = Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)]
+# metres per second
+Speed = Annotated[float, Field(ge=0.0, le=100.0, allow_inf_nan=False)]
+# seconds of wall-clock time (a training time limit): at most a week
+Seconds = Annotated[float, Field(ge=0.0, le=7 * 24 * 3600.0, allow_inf_nan=False)]
+# a learning rate
+Rate = Annotated[float, Field(gt=0.0, le=1.0, allow_inf_nan=False)]
+# a random seed
+Seed = Annotated[int, Field(ge=0, le=2**32 - 1)]
+# a store id (survey, model version)
+RecordId = Annotated[int, Field(ge=1, le=MAX_RECORD_ID)]
