@@ -90,7 +90,14 @@ _RESTORED = text(
     "AND pillar_edit.version = json_extract(n.value, '$[1]') "
     "AND pillar_edit.batch_id IN (SELECT id FROM pillar_edit_batch WHERE survey_id = :s)"
 )
+# a batch's undo / redo went through: each pillar was at its edit's version (checked) and is
+# one above it now
 _STEPPED = text(
+    "UPDATE pillar_edit SET version_before = version, version = version + 1 "
+    "WHERE batch_id = :b AND version IS NOT NULL"
+)
+# the same for edits from before schema version 4 (no version: checked by label)
+_STEPPED_LEGACY = text(
     "UPDATE pillar_edit SET version_before = json_extract(n.value, '$[1]'), "
     "version = json_extract(n.value, '$[2]') FROM json_each(:rows) AS n "
     "WHERE pillar_edit.id = json_extract(n.value, '$[0]')"
@@ -371,7 +378,7 @@ def _step(session: Session, survey_id: int, user_id: int | None, undo: bool) -> 
         versions = _apply(
             session, survey_id, user_id, edits.cell, now_labels, now_versions, target, utcnow()
         )
-        _restore_versions(session, survey_id, edits, now_versions, versions)
+        _restore_versions(session, survey_id, batch.id, edits, now_versions, versions)
         batch.state = EditState.undone if undo else EditState.done
         session.add(batch)
         audit(
@@ -387,7 +394,12 @@ def _step(session: Session, survey_id: int, user_id: int | None, undo: bool) -> 
 
 
 def _restore_versions(
-    session: Session, survey_id: int, edits: _Edits, replaced: np.ndarray, versions: np.ndarray
+    session: Session,
+    survey_id: int,
+    batch_id: int,
+    edits: _Edits,
+    replaced: np.ndarray,
+    versions: np.ndarray,
 ) -> None:
     """After an undo / redo of `edits`: the edits that expected the version whose content it
     restored expect the new one; the batch's own edits remember what they replaced and left."""
@@ -396,8 +408,11 @@ def _restore_versions(
     if known.any():
         rows = np.stack([edits.cell[known], edits.version_before[known], versions[known]], axis=1)
         conn.execute(_RESTORED, {"s": survey_id, "rows": json.dumps(rows.tolist())})
-    rows = np.stack([edits.id, replaced, versions], axis=1)
-    conn.execute(_STEPPED, {"rows": json.dumps(rows.tolist())})
+    conn.execute(_STEPPED, {"b": batch_id})
+    legacy = edits.version == NOT_CHECKED
+    if legacy.any():
+        rows = np.stack([edits.id[legacy], replaced[legacy], versions[legacy]], axis=1)
+        conn.execute(_STEPPED_LEGACY, {"rows": json.dumps(rows.tolist())})
 
 
 def undo(session: Session, survey_id: int, user_id: int | None) -> LabelWrite:
