@@ -1,15 +1,18 @@
 """Request dependencies (the `api/deps.py` of full-stack-fastapi-template).
 
 - `SessionDep`: one database session per request on the app's engine; routes commit.
-- `CurrentUser`: the user of a valid bearer token (`Authorization: Bearer ...`). The login
-  cookie is accepted too, but only for reads (GET/HEAD) and websockets, so a page on another
-  site can never make a logged-in browser write.
+- `CurrentUser`: the user of a valid bearer token (`Authorization: Bearer ...`) whose login
+  session is still live (checked on every request: logout and revocation take effect at once).
+  The login cookie is accepted too, but only for reads (GET/HEAD) and websockets, so a page on
+  another site can never make a logged-in browser write. `CurrentLogin`: the user and the
+  session together (for the routes that manage sessions).
 - `Annotator`, `Reviewer`, `Admin`: `CurrentUser` with at least that role (roles nest).
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator
+from dataclasses import dataclass
 from typing import Annotated
 
 from fastapi import Depends, HTTPException, Request, status
@@ -21,7 +24,8 @@ from app.core.errors import PermissionDeniedError
 from app.core.security import TokenSigner
 from app.core.settings import Settings
 from app.store.db import as_conflict
-from app.store.models import Role, User
+from app.store.models import AuthSession, Role, User
+from app.store.sessions import live_session, touch
 from app.store.users import has_role
 
 TOKEN_COOKIE = "mmsclean_token"
@@ -64,26 +68,51 @@ def token_of(request: Request) -> str | None:
     return None
 
 
-def user_from_token(session: Session, signer: TokenSigner, token: str | None) -> User | None:
-    """The active user a token names, if it is valid and the user unchanged since login."""
+@dataclass(frozen=True)
+class Login:
+    user: User
+    session: AuthSession
+
+
+def login_from_token(session: Session, signer: TokenSigner, token: str | None) -> Login | None:
+    """The active user and live session a token names, if its signature is valid (checked
+    before any database read), the session has not ended and the user is unchanged since
+    login. Marks the session as used (written at most once a minute)."""
     claims = signer.check(token) if token else None
     if claims is None:
         return None
     user = session.get(User, claims.user_id)
     if user is None or not user.is_active or user.version != claims.user_version:
         return None
-    return user
+    auth_session = live_session(session, claims.session_id, user.id)
+    if auth_session is None:
+        return None
+    touch(session, auth_session)
+    return Login(user, auth_session)
 
 
-def get_current_user(request: Request, session: SessionDep) -> User:
-    user = user_from_token(session, request.app.state.token_signer, token_of(request))
-    if user is None:
+def user_from_token(session: Session, signer: TokenSigner, token: str | None) -> User | None:
+    """The user of `login_from_token`, or None."""
+    login = login_from_token(session, signer, token)
+    return None if login is None else login.user
+
+
+def get_login(request: Request, session: SessionDep) -> Login:
+    login = login_from_token(session, request.app.state.token_signer, token_of(request))
+    if login is None:
         raise HTTPException(
             status.HTTP_401_UNAUTHORIZED,
             detail="not logged in: send Authorization: Bearer <token> from POST /auth/login",
             headers={"WWW-Authenticate": "Bearer"},
         )
-    return user
+    return login
+
+
+CurrentLogin = Annotated[Login, Depends(get_login)]
+
+
+def get_current_user(login: CurrentLogin) -> User:
+    return login.user
 
 
 CurrentUser = Annotated[User, Depends(get_current_user)]

@@ -36,6 +36,7 @@ WHAT = {
     409: "stale version or duplicate; `current` holds the record as it is now",
     413: "upload larger than the configured limit",
     422: "invalid payload or file; `detail` names the field or file",
+    429: "too many failed logins; `Retry-After` says how many seconds to wait",
     503: "a dependency (model weights, database) is missing",
     507: "the data directory's disk is full; reads still work",
 }

@@ -5,10 +5,11 @@ random salt per user; the stored string names its parameters so they can be rais
 without breaking old hashes.
 
 A login token is `<payload>.<signature>`: the payload (user id, the user's record version at
-login, expiry) in URL-safe base64, signed with HMAC-SHA256 under a secret kept in the data
-directory (`secret.key`, created once, readable by its owner only). Tokens need no table: any
-change to the user record (password, role, deactivation) bumps its version and so invalidates
-every token issued before it.
+login, the login session's id, expiry) in URL-safe base64, signed with HMAC-SHA256 under a
+secret kept in the data directory (`secret.key`, created once, readable by its owner only).
+The signature is checked first, so a forged or altered token is refused without a database
+look-up; then the session it names must still be live (`app.store.sessions`): logout,
+revocation and any change to the user (password, role, deactivation) end it.
 """
 
 from __future__ import annotations
@@ -56,6 +57,7 @@ def verify_password(password: str, stored: str) -> bool:
 class TokenClaims:
     user_id: int
     user_version: int
+    session_id: int
     expires_at: float
 
 
@@ -69,19 +71,33 @@ class TokenSigner:
     def for_data_dir(cls, data_dir: Path) -> TokenSigner:
         return cls(load_or_create_secret(Path(data_dir) / "secret.key"))
 
-    def issue(self, user_id: int, user_version: int, lifetime_s: float = TOKEN_LIFETIME_S) -> str:
-        claims = {"u": int(user_id), "v": int(user_version), "e": round(time.time() + lifetime_s)}
+    def issue(
+        self,
+        user_id: int,
+        user_version: int,
+        session_id: int,
+        lifetime_s: float = TOKEN_LIFETIME_S,
+    ) -> str:
+        claims = {
+            "u": int(user_id),
+            "v": int(user_version),
+            "s": int(session_id),
+            "e": round(time.time() + lifetime_s),
+        }
         payload = _b64(json.dumps(claims, separators=(",", ":")).encode())
         return f"{payload}.{self._sign(payload)}"
 
     def check(self, token: str) -> TokenClaims | None:
-        """The claims of a valid, unexpired token; None otherwise."""
+        """The claims of a validly signed, unexpired token (None otherwise); whether its session
+        is still live is the store's to say."""
         payload, _, signature = token.partition(".")
         if not payload or not hmac.compare_digest(signature, self._sign(payload)):
             return None
         try:
             claims = json.loads(_unb64(payload))
-            result = TokenClaims(int(claims["u"]), int(claims["v"]), float(claims["e"]))
+            result = TokenClaims(
+                int(claims["u"]), int(claims["v"]), int(claims["s"]), float(claims["e"])
+            )
         except (ValueError, KeyError, TypeError):
             return None
         return result if result.expires_at > time.time() else None

@@ -12,6 +12,7 @@ from app.core.security import hash_password, verify_password
 from app.store.audit import audit
 from app.store.db import commit, write_transaction
 from app.store.models import Role, User
+from app.store.sessions import EndReason, end_user_sessions
 
 USERNAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 MIN_PASSWORD_LENGTH = 8
@@ -70,7 +71,7 @@ def update_user(
     password: str | None = None,
     is_active: bool | None = None,
 ) -> User:
-    """Change a user's role, password or active flag; every change invalidates their tokens.
+    """Change a user's role, password or active flag; every change ends their login sessions.
 
     The last active admin cannot lose the role or be deactivated: nobody could manage users
     then. Checked in the write's transaction, so two admins demoting each other at once
@@ -99,11 +100,21 @@ def update_user(
             user.is_active = is_active
             changes["is_active"] = is_active
         if changes:
-            audit(session, by, "user.update", "user", user.id, **changes)
+            ended = end_user_sessions(session, user.id, _end_reason(changes))
+            audit(session, by, "user.update", "user", user.id, **changes, sessions_ended=ended)
         commit(session)
     if changes:
         session.refresh(user)
     return user
+
+
+def _end_reason(changes: dict[str, object]) -> str:
+    """Why a change to a user ends their sessions (the strongest reason names it)."""
+    if changes.get("is_active") is False:
+        return EndReason.deactivated
+    if "password" in changes:
+        return EndReason.password
+    return EndReason.role if "role" in changes else EndReason.changed
 
 
 def admin_count(session: Session) -> int:

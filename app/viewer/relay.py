@@ -3,13 +3,16 @@
 The browser talks to FastAPI (which checked its login); FastAPI dials viser on 127.0.0.1 with
 the same `viser-v<version>` subprotocol and pumps binary frames both ways until either side
 closes, then closes the other with the same code. Nothing is decoded or buffered here: viser's
-frames are already batched and compressed.
+frames are already batched and compressed. An optional `until` ends the relay from outside
+(the login session behind it ended) with the close code and reason it returns.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+from collections.abc import Coroutine
+from typing import Any
 
 import websockets
 from starlette.websockets import WebSocket, WebSocketDisconnect
@@ -19,8 +22,14 @@ UPSTREAM_OPEN_TIMEOUT = 10.0  # seconds
 UNSENDABLE_CODES = {1005, 1006, 1015}  # reserved: they describe a close, never go on the wire
 
 
-async def relay(browser: WebSocket, upstream_url: str, subprotocol: str) -> None:
-    """Connect upstream, accept the browser with `subprotocol`, pump until one side closes."""
+async def relay(
+    browser: WebSocket,
+    upstream_url: str,
+    subprotocol: str,
+    until: Coroutine[Any, Any, tuple[int, str]] | None = None,
+) -> None:
+    """Connect upstream, accept the browser with `subprotocol`, pump until one side closes or
+    `until` returns (code, reason) to close both with."""
     try:
         upstream = await connect(
             upstream_url,
@@ -31,23 +40,35 @@ async def relay(browser: WebSocket, upstream_url: str, subprotocol: str) -> None
             ping_interval=None,
         )
     except (OSError, TimeoutError, websockets.exceptions.WebSocketException):
+        if until is not None:
+            until.close()
         await browser.close(code=1011, reason="viewer unavailable")
         return
     await browser.accept(subprotocol=subprotocol)
     down = asyncio.create_task(_downstream(upstream, browser))
     up = asyncio.create_task(_upstream(browser, upstream))
+    stop = asyncio.create_task(until) if until is not None else None
+    tasks = [t for t in (down, up, stop) if t is not None]
     try:
-        await asyncio.wait({down, up}, return_when=asyncio.FIRST_COMPLETED)
+        await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
     finally:
-        for task in (down, up):
+        for task in tasks:
             task.cancel()
-        await asyncio.gather(down, up, return_exceptions=True)
-        await upstream.close()
-        code = upstream.close_code  # viser's, when it closed first (e.g. 1008: no ticket)
-        if code is None or code in UNSENDABLE_CODES:
+        await asyncio.gather(*tasks, return_exceptions=True)
+        ended = _result(stop)
+        await upstream.close(*(ended or ()))
+        code, reason = ended or (upstream.close_code, upstream.close_reason or "")
+        if code is None or code in UNSENDABLE_CODES:  # viser's code when it closed first
             code = 1000
         with contextlib.suppress(RuntimeError, WebSocketDisconnect, OSError):
-            await browser.close(code=code, reason=upstream.close_reason or "")
+            await browser.close(code=code, reason=reason)
+
+
+def _result(task: asyncio.Task | None) -> tuple[int, str] | None:
+    """What a finished `until` task returned; None when it did not finish."""
+    if task is None or not task.done() or task.cancelled() or task.exception() is not None:
+        return None
+    return task.result()
 
 
 async def _downstream(upstream: ClientConnection, browser: WebSocket) -> None:

@@ -1,4 +1,5 @@
-"""`/users`: admins create users, change roles and passwords, deactivate; anyone lists names."""
+"""`/users`: admins create users, change roles and passwords, deactivate, see and end a user's
+login sessions; anyone lists names."""
 
 from __future__ import annotations
 
@@ -6,10 +7,15 @@ from fastapi import APIRouter
 from pydantic import BaseModel, Field
 from sqlmodel import select
 
-from app.api.deps import Admin, CurrentUser, SessionDep
+from app.api.deps import Admin, CurrentLogin, CurrentUser, SessionDep
 from app.api.errors import errors
+from app.api.routes.auth import SessionPublic, SessionsEnded
 from app.api.schemas import UserPublic
+from app.core.errors import NotFoundError
+from app.store.audit import audit
+from app.store.db import commit
 from app.store.models import Role, User
+from app.store.sessions import EndReason, end_session, end_user_sessions, live_sessions
 from app.store.users import create_user, update_user
 
 router = APIRouter(prefix="/users", tags=["users"], responses=errors(401))
@@ -51,3 +57,40 @@ def change_user(user_id: int, body: UserUpdate, admin: Admin, session: SessionDe
         is_active=body.is_active,
     )
     return UserPublic.of(user)
+
+
+def _user(session: SessionDep, user_id: int) -> User:
+    user = session.get(User, user_id)
+    if user is None:
+        raise NotFoundError(f"user {user_id} not found")
+    return user
+
+
+@router.get("/{user_id}/sessions", response_model=list[SessionPublic], responses=errors(403, 404))
+def list_user_sessions(
+    user_id: int, _: Admin, login: CurrentLogin, session: SessionDep
+) -> list[SessionPublic]:
+    """A user's live login sessions, newest first (admin only)."""
+    rows = live_sessions(session, _user(session, user_id).id)
+    return [SessionPublic.of(row, login.session.id) for row in rows]
+
+
+@router.delete("/{user_id}/sessions", response_model=SessionsEnded, responses=errors(403, 404))
+def end_user_all_sessions(
+    user_id: int, admin: Admin, login: CurrentLogin, session: SessionDep
+) -> SessionsEnded:
+    """End every live session of a user (admin only; the admin's own current one stays)."""
+    user = _user(session, user_id)
+    ended = end_user_sessions(session, user.id, EndReason.revoked, keep=login.session.id)
+    audit(session, admin.id, "auth.revoke", "user", user.id, sessions=ended)
+    commit(session)
+    return SessionsEnded(ended=ended)
+
+
+@router.delete("/{user_id}/sessions/{session_id}", status_code=204, responses=errors(403, 404))
+def end_user_session(user_id: int, session_id: int, admin: Admin, session: SessionDep) -> None:
+    """End one live session of a user (admin only)."""
+    user = _user(session, user_id)
+    end_session(session, user.id, session_id, EndReason.revoked)
+    audit(session, admin.id, "auth.revoke", "user", user.id, session_id=session_id)
+    commit(session)

@@ -7,10 +7,13 @@ the page's own URL), so the page is served at `/viewer?websocket=ws(s)://<host>/
 and a bare `/viewer` redirects there. `WebSocket /viewer/ws` checks the login (cookie, bearer
 header or `token` query parameter) and the Origin BEFORE accepting, files a ticket naming the
 user and relays frames to viser with the `viser-v<version>` subprotocol the browser offered.
+While it relays it checks every `MMSCLEAN_VIEWER_SESSION_CHECK_S` that the login session is
+still live: logout, revocation or a change to the user close the viewer too (1008).
 """
 
 from __future__ import annotations
 
+import asyncio
 from functools import cache
 from pathlib import Path
 from typing import Annotated
@@ -22,12 +25,20 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from sqlmodel import Session
 
-from app.api.deps import TOKEN_COOKIE, SessionDep, token_of, user_from_token
+from app.api.deps import (
+    TOKEN_COOKIE,
+    Login,
+    SessionDep,
+    login_from_token,
+    token_of,
+    user_from_token,
+)
 from app.api.errors import errors
 from app.api.types import Id
 from app.core.errors import ConfigError, NotFoundError
 from app.core.limits import INT64_MAX
 from app.store.models import Survey, User
+from app.store.sessions import live_session, touch
 from app.viewer.modes import MODES
 from app.viewer.relay import relay
 
@@ -126,20 +137,43 @@ def _token(websocket: WebSocket, query_token: str | None) -> str | None:
     return query_token or bearer or websocket.cookies.get(TOKEN_COOKIE)
 
 
-def _user(websocket: WebSocket, query_token: str | None) -> User | None:
-    """The logged-in user, when the survey asked for (if any) exists too."""
+def _login(websocket: WebSocket, query_token: str | None) -> Login | None:
+    """The logged-in user and session, when the survey asked for (if any) exists too."""
     app = websocket.app
     token = _token(websocket, query_token)
     with Session(app.state.engine, expire_on_commit=False) as session:
-        user = user_from_token(session, app.state.token_signer, token)
-        if user is None:
+        login = login_from_token(session, app.state.token_signer, token)
+        if login is None:
             return None
         survey = websocket.query_params.get("survey")
         if survey is None:
-            return user
+            return login
         number = survey_number(survey)
         exists = number is not None and session.get(Survey, number) is not None
-        return user if exists else None
+        return login if exists else None
+
+
+def _still_logged_in(websocket: WebSocket, user_id: int, session_id: int) -> bool:
+    """The relay's login session is live and its user active (marks the session as used)."""
+    with Session(websocket.app.state.engine, expire_on_commit=False) as session:
+        user = session.get(User, user_id)
+        row = live_session(session, session_id, user_id)
+        if user is None or not user.is_active or row is None:
+            return False
+        touch(session, row)
+        return True
+
+
+async def _until_logged_out(websocket: WebSocket, login: Login) -> tuple[int, str]:
+    """Return (1008, reason) once the login session behind a relay has ended."""
+    every = websocket.app.state.settings.viewer_session_check_s
+    while True:
+        await asyncio.sleep(every)
+        alive = await run_in_threadpool(
+            _still_logged_in, websocket, login.user.id, login.session.id
+        )
+        if not alive:
+            return POLICY_VIOLATION, "login session ended"
 
 
 @router.websocket(WS_PATH)
@@ -150,16 +184,18 @@ async def viewer_socket(websocket: WebSocket, token: str | None = None) -> None:
     if viewer is None or not offered or not _same_origin(websocket):
         await websocket.close(code=POLICY_VIOLATION)
         return
-    user = await run_in_threadpool(_user, websocket, token)
-    if user is None:
+    login = await run_in_threadpool(_login, websocket, token)
+    if login is None:
         await websocket.close(code=POLICY_VIOLATION)
         return
+    user = login.user
     survey = websocket.query_params.get("survey")
     mode = websocket.query_params.get("mode")
     nonce = viewer.issue_ticket(
         user.id, user.username, int(survey) if survey else None, mode if mode in MODE_KEYS else None
     )
     try:
-        await relay(websocket, f"{viewer.upstream_url}?session={nonce}", offered[0])
+        upstream = f"{viewer.upstream_url}?session={nonce}"
+        await relay(websocket, upstream, offered[0], until=_until_logged_out(websocket, login))
     finally:
         viewer.tickets.revoke(nonce)
