@@ -1,5 +1,5 @@
-"""Application factory: settings -> database (migrated) -> first admin -> sample survey ->
-routers -> error handlers."""
+"""Application factory: settings -> private data dir -> database (migrated) -> first admin ->
+sample survey -> routers -> error handlers; secrets redacted from the logs."""
 
 from __future__ import annotations
 
@@ -28,11 +28,12 @@ from app.api.routes import (
     viewer,
 )
 from app.api.sample import load_sample_on_first_start
+from app.core.logging import install_redaction
 from app.core.security import TokenSigner
 from app.core.settings import Settings, get_settings
 from app.jobs.pool import WorkerPool
 from app.jobs.retraining import RetrainingTrigger
-from app.store.db import init_db, make_engine
+from app.store.db import init_db, make_engine, secure_dir
 from app.store.users import ensure_first_admin
 from app.viewer.server import ViewerServer
 
@@ -44,7 +45,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        settings.data_dir.mkdir(parents=True, exist_ok=True)
+        install_redaction()  # again: the server configured its loggers since create_app
+        secure_dir(settings.data_dir)  # password hashes, the token key, surveys: owner only
         engine = make_engine(settings.database_url)
         init_db(engine)
         remove_orphans(engine, settings)  # before anything of this server writes files
@@ -70,6 +72,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         dependencies=[Depends(refuse_writes_on_full_disk)],
     )
     app.state.settings = settings
+    install_redaction()
     app.state.disk_space = DiskSpace(settings.data_dir, settings.min_free_mb)
     install_error_handlers(app)
     for module in (health, auth, users, surveys, jobs, pillars, clutter, guardrails, models):

@@ -5,6 +5,10 @@ app, the viewer and job workers read while one of them writes, with foreign keys
 a 30 s busy timeout instead of immediate "database is locked" errors.
 
 - `get_engine()`: the process's engine for a URL (default: settings), migrated on first use.
+- File modes: the database holds password hashes, so an SQLite file is created 0600 (SQLite
+  gives its -wal / -shm / -journal the file's mode), a folder made for it 0700, and a looser
+  existing file is tightened when an engine is made (logged); `secure_dir` does the same for
+  the data directory at server start.
 - `session_scope()`: `with session_scope() as session:` commits on success, rolls back on error.
 - `get_session()`: the FastAPI dependency (`SessionDep`); the route commits.
 - Both turn a lost optimistic-concurrency race (`StaleDataError`) or a UNIQUE violation into
@@ -13,13 +17,16 @@ a 30 s busy timeout instead of immediate "database is locked" errors.
 
 from __future__ import annotations
 
+import logging
+import os
 import re
 import sqlite3
+import stat
 import threading
 import time
 import weakref
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -34,7 +41,12 @@ from app.core.errors import ConflictError
 from app.core.settings import get_settings
 from app.store.migrations import migrate
 
+log = logging.getLogger(__name__)
+
 SQLITE_BUSY_TIMEOUT_S = 30.0
+PRIVATE_DIR = 0o700
+PRIVATE_FILE = 0o600
+SQLITE_COMPANIONS = ("-wal", "-shm", "-journal")
 SQLITE_PRAGMAS = (
     f"PRAGMA busy_timeout={int(SQLITE_BUSY_TIMEOUT_S * 1000)}",
     "PRAGMA journal_mode=WAL",
@@ -57,6 +69,42 @@ def _sqlite_file(url: sa.URL) -> Path | None:
     if database.startswith("file:"):  # URI filename
         return None
     return Path(database)
+
+
+def secure_dir(path: Path) -> Path:
+    """Create `path` (and missing parents) readable by its owner only, or tighten an existing
+    one that others may read (logged)."""
+    path = Path(path)
+    if not path.exists():
+        path.mkdir(parents=True, exist_ok=True)
+        path.chmod(PRIVATE_DIR)
+        return path
+    _tighten(path, PRIVATE_DIR)
+    return path
+
+
+def secure_sqlite_file(path: Path) -> None:
+    """Create the database file 0600 before SQLite does (it would make it 0644, and its
+    companions after it); tighten an existing file and its companions."""
+    path = Path(path)
+    with suppress(OSError):  # exists; or cannot be made, which SQLite then reports itself
+        os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, PRIVATE_FILE))
+    for file in (path, *(path.with_name(path.name + s) for s in SQLITE_COMPANIONS)):
+        if file.is_file():
+            _tighten(file, PRIVATE_FILE)
+
+
+def _tighten(path: Path, mode: int) -> None:
+    """Set `path` to `mode` when group or others had any permission on it (logged)."""
+    current = stat.S_IMODE(path.stat().st_mode)
+    if not current & 0o077:
+        return
+    try:
+        path.chmod(mode)
+    except OSError as exc:  # not ours, or a read-only mount: say so, the owner must fix it
+        log.warning("%s is open to others (mode %04o), cannot change it: %s", path, current, exc)
+        return
+    log.warning("%s was open to others (mode %04o); now %04o", path, current, mode)
 
 
 def _execute_waiting_for_lock(cursor: sqlite3.Cursor, statement: str) -> None:
@@ -93,17 +141,22 @@ def _set_sqlite_pragmas(dbapi_connection: sqlite3.Connection, _record: Any) -> N
 def make_engine(url: str | None = None, **kwargs: Any) -> Engine:
     """A new engine for `url` (default: `settings.database_url`); does not touch the database.
 
-    For an SQLite file its folder is created; every new SQLite connection gets `SQLITE_PRAGMAS`.
+    For an SQLite file its folder is created (0700); before each new connection opens the file
+    it is created empty with mode 0600 or, when it exists, its mode and its companions' are
+    tightened (see `secure_sqlite_file`); every new SQLite connection gets `SQLITE_PRAGMAS`.
     Extra keyword arguments go to `sqlalchemy.create_engine`.
     """
     parsed = sa.make_url(_database_url(url))
     if parsed.get_backend_name() == "sqlite":
         path = _sqlite_file(parsed)
-        if path is not None:
-            path.resolve().parent.mkdir(parents=True, exist_ok=True)
         connect_args = {"check_same_thread": False, "timeout": SQLITE_BUSY_TIMEOUT_S}
         connect_args.update(kwargs.pop("connect_args", {}))
         engine = sa.create_engine(parsed, connect_args=connect_args, **kwargs)
+        if path is not None:
+            path = path.resolve()
+            if not path.parent.exists():
+                secure_dir(path.parent)
+            event.listen(engine, "do_connect", lambda *_: secure_sqlite_file(path))
         event.listen(engine, "connect", _set_sqlite_pragmas)
         return engine
     kwargs.setdefault("pool_pre_ping", True)

@@ -32,6 +32,7 @@ Changing the schema later:
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Callable
 from pathlib import Path
 
@@ -263,6 +264,8 @@ def _backup(engine: Engine, version: int) -> Path | None:
     while target.exists():
         n += 1
         target = path.with_name(f"{path.name}.schema-v{version}.{n}.bak")
+    # a full copy, password hashes included: created empty and owner-only first, as the database
+    os.close(os.open(target, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
     with engine.connect() as conn:
         conn.exec_driver_sql("VACUUM INTO ?", (str(target),))
     log.info("backed up %s (schema version %d) to %s", path, version, target)

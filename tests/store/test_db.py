@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+import stat
 from pathlib import Path
 
 import pytest
@@ -10,7 +12,15 @@ from sqlmodel import Session, select
 
 from app.core.errors import ConflictError
 from app.core.settings import get_settings
-from app.store.db import commit, get_engine, get_session, make_engine, session_scope
+from app.store.db import (
+    commit,
+    get_engine,
+    get_session,
+    init_db,
+    make_engine,
+    secure_dir,
+    session_scope,
+)
 from app.store.migrations import SCHEMA_VERSION
 from app.store.models import LabelSource, PillarLabel, Survey, User
 
@@ -33,6 +43,63 @@ def test_make_engine_creates_the_folder_but_not_the_database(tmp_path: Path) -> 
     engine = make_engine(f"sqlite:///{path}")
     assert path.parent.is_dir() and not path.exists()
     engine.dispose()
+
+
+def _mode(path: Path) -> int:
+    return stat.S_IMODE(path.stat().st_mode)
+
+
+def test_database_files_are_owner_only_from_the_start(tmp_path: Path) -> None:
+    """Password hashes live in the file: it, its -wal / -shm and a folder made for it are
+    never readable by others, whatever the umask."""
+    path = tmp_path / "new" / "mmsclean.sqlite3"
+    engine = make_engine(f"sqlite:///{path}")
+    assert _mode(path.parent) == 0o700
+    init_db(engine)
+    with Session(engine) as session:
+        session.add(User(username="ann", hashed_password="x"))
+        session.commit()
+        files = {p.name: _mode(p) for p in path.parent.iterdir()}
+    assert files == {
+        "mmsclean.sqlite3": 0o600,
+        "mmsclean.sqlite3-wal": 0o600,
+        "mmsclean.sqlite3-shm": 0o600,
+    }
+    engine.dispose()
+
+
+def test_an_existing_database_open_to_others_is_tightened_and_logged(
+    engine: Engine, db_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    with Session(engine) as session:
+        session.add(User(username="ann", hashed_password="x"))
+        session.commit()
+    files = [p for p in db_path.parent.iterdir() if p.name.startswith(db_path.name)]
+    assert len(files) == 3  # the database, -wal, -shm
+    for file in files:
+        file.chmod(0o644)
+    engine.dispose()
+    with caplog.at_level(logging.WARNING, logger="app.store.db"):
+        reopened = make_engine(f"sqlite:///{db_path}")
+        with Session(reopened) as session:
+            assert session.exec(select(User.username)).all() == ["ann"]
+    assert {f.name: _mode(f) for f in files} == {f.name: 0o600 for f in files}
+    assert f"{db_path} was open to others (mode 0644); now 0600" in caplog.messages
+    reopened.dispose()
+
+
+def test_secure_dir_makes_or_tightens_a_folder(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    made = secure_dir(tmp_path / "a" / "var")
+    assert _mode(made) == 0o700
+    loose = tmp_path / "loose"
+    loose.mkdir(mode=0o755)
+    loose.chmod(0o755)
+    with caplog.at_level(logging.WARNING, logger="app.store.db"):
+        secure_dir(loose)
+    assert _mode(loose) == 0o700
+    assert f"{loose} was open to others (mode 0755); now 0700" in caplog.messages
 
 
 def test_get_engine_defaults_to_the_data_dir_and_is_cached(isolated_data_dir: Path) -> None:

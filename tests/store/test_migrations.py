@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import stat
 import threading
 from pathlib import Path
 
@@ -94,6 +95,7 @@ def test_old_database_is_migrated_keeping_its_rows(
         assert conn.exec_driver_sql("PRAGMA foreign_key_check").all() == []
     # the version 1 file was copied aside first, complete
     backup = db_path.with_name(db_path.name + f".schema-v{SCHEMA_VERSION}.bak")
+    assert stat.S_IMODE(backup.stat().st_mode) == 0o600  # password hashes: owner only
     copy = make_engine(f"sqlite:///{backup}")
     assert _user_version(copy) == SCHEMA_VERSION
     with copy.connect() as conn:
