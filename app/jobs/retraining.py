@@ -1,9 +1,12 @@
 """The retraining trigger: every `settings.retrain_every` newly reviewed pillar labels (human
 labels written since the last phantom training job was queued) queue one `train:phantom` job,
-unless one is already waiting or running."""
+unless one is already waiting or running, or the labels could not train it: the task's own
+prerequisites (`app.jobs.phantom_training_data`) are checked first, and what blocks training is
+reported (`blocked_by`, in GET /models/retraining) instead of queueing a job bound to fail."""
 
 from __future__ import annotations
 
+import logging
 import threading
 from dataclasses import dataclass
 
@@ -11,11 +14,17 @@ from sqlalchemy.engine import Engine
 from sqlmodel import Session, select
 
 from app.core.settings import Settings
+from app.jobs.phantom_training_data import label_counts, training_blocker
 from app.jobs.queue import enqueue
+from app.jobs.training_tasks import PhantomRetrainConfig
 from app.store.models import Job, JobStatus
 from app.store.pillar_labels import human_labels_since
+from app.store.training_labels import human_pillar_labels
 
 TRAIN_PHANTOM = "train:phantom"
+TRIGGER_CONFIG = {"trigger": "labels"}
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -23,6 +32,15 @@ class RetrainingState:
     threshold: int  # 0: automatic retraining is off
     new_labels: int  # human labels written since the last training job was queued
     pending_job_id: int | None  # a queued or running training job
+    blocked_by: str | None = None  # why the due retraining is not queued (checked when due)
+
+    @property
+    def due(self) -> bool:
+        return (
+            bool(self.threshold)
+            and self.pending_job_id is None
+            and (self.new_labels >= self.threshold)
+        )
 
 
 def retraining_state(session: Session, settings: Settings) -> RetrainingState:
@@ -35,21 +53,34 @@ def retraining_state(session: Session, settings: Settings) -> RetrainingState:
         )
     ).first()
     since = None if last is None else last.created_at
-    return RetrainingState(
+    state = RetrainingState(
         threshold=settings.retrain_every,
         new_labels=human_labels_since(session, since),
         pending_job_id=None if pending is None else pending.id,
     )
+    if state.due:
+        state = RetrainingState(**{**state.__dict__, "blocked_by": training_blocked_by(session)})
+    return state
+
+
+def training_blocked_by(session: Session) -> str | None:
+    """Why the job the trigger would queue could not train, from the labels and, where a
+    phantom run stored model pre-labels, which labelled pillars hold points."""
+    cfg = PhantomRetrainConfig(**TRIGGER_CONFIG)
+    labels = human_pillar_labels(session, cfg.survey_ids, with_mapped=True)
+    return training_blocker(label_counts(labels, cfg, with_points=True), cfg)
 
 
 def maybe_queue_retraining(session: Session, settings: Settings) -> Job | None:
-    """Queue `train:phantom` when enough new labels came in; returns the job it queued."""
+    """Queue `train:phantom` when enough new labels came in and they can train it; returns the
+    job it queued."""
     state = retraining_state(session, settings)
-    if not state.threshold or state.pending_job_id is not None:
+    if not state.due:
         return None
-    if state.new_labels < state.threshold:
+    if state.blocked_by is not None:
+        log.info("retraining due but not queued: %s", state.blocked_by)
         return None
-    return enqueue(session, TRAIN_PHANTOM, {"trigger": "labels"}, None, None, settings)
+    return enqueue(session, TRAIN_PHANTOM, dict(TRIGGER_CONFIG), None, None, settings)
 
 
 class RetrainingTrigger:

@@ -18,6 +18,12 @@ from app.core.errors import ConfigError, NotFoundError
 from app.core.settings import Settings
 from app.io import open_survey
 from app.jobs.guardrail_tasks import FEATURES_FILE, promoted_classifier
+from app.jobs.phantom_training_data import (
+    ClassCounts,
+    held_out,
+    label_counts,
+    training_blocker,
+)
 from app.jobs.registry import JobContext, task
 from app.jobs.task_config import validated
 from app.metrics.classification import binary_scores
@@ -26,7 +32,7 @@ from app.pipelines.guardrail.classifier import SliceHead, predict
 from app.pipelines.guardrail.dataset import SliceSamples
 from app.pipelines.guardrail.train import fit_head, load_heads, save_heads
 from app.pipelines.phantom.config import PhantomConfig
-from app.pipelines.phantom.dataset import concatenate
+from app.pipelines.phantom.dataset import Samples, concatenate
 from app.pipelines.phantom.finetune import LabelledPillars, finetune, labelled_samples, score
 from app.pipelines.phantom.model import DEFAULT_MODEL, load_model, save_model
 from app.pipelines.phantom.pipeline import accumulate
@@ -35,6 +41,7 @@ from app.store.guardrail_review import latest_run, match_slices
 from app.store.model_versions import ensure_shipped_version, promoted_version, register_version
 from app.store.models import Pipeline, Survey
 from app.store.pillar_labels import STORE_GRID
+from app.store.training_labels import human_pillar_labels
 
 
 class PhantomRetrainConfig(BaseModel):
@@ -48,30 +55,12 @@ class PhantomRetrainConfig(BaseModel):
     seed: int = Field(0, ge=0)
     time_limit: float | None = Field(None, gt=0, description="seconds of training at most")
     min_labels: int = Field(50, ge=1, description="fewer human labels: refuse to train")
+    min_classes: int = Field(
+        2, ge=1, le=4, description="fewer classes among the training labels: refuse to train"
+    )
     trigger: Literal["on demand", "labels"] = Field(
         "on demand", description="who asked: a user, or the new-labels trigger"
     )
-
-
-def human_pillar_labels(
-    session: Session, survey_ids: list[int] | None
-) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    """survey id -> (cell ids, labels) of its human pillar labels."""
-    rows = (
-        session.connection()
-        .execute(text("SELECT survey_id, cell_id, label FROM pillar_label WHERE source = 'human'"))
-        .all()
-    )
-    if not rows:
-        return {}
-    data = np.array(rows, dtype=np.int64)
-    out = {}
-    for survey in np.unique(data[:, 0]).tolist():
-        if survey_ids is not None and survey not in survey_ids:
-            continue
-        mine = data[data[:, 0] == survey]
-        out[survey] = (mine[:, 1], mine[:, 2])
-    return out
 
 
 def _base_model(session: Session) -> tuple[Path, int | None]:
@@ -86,17 +75,26 @@ def check_phantom_config(config: dict[str, Any], _settings: Settings) -> None:
     validated(PhantomRetrainConfig, config)
 
 
+def refuse_if_blocked(counts: ClassCounts, cfg: PhantomRetrainConfig) -> None:
+    """The job fails with the one line `training_blocker` gives (the trigger's check)."""
+    blocked = training_blocker(counts, cfg)
+    if blocked is not None:
+        raise ConfigError("labels", blocked)
+
+
+def class_counts(parts: list[Samples]) -> np.ndarray:
+    """(4,) samples per class over PARTS."""
+    return sum((np.bincount(p.y, minlength=4)[:4] for p in parts), np.zeros(4, np.int64))
+
+
 @task("train:phantom", check=check_phantom_config)
 def train_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
     cfg = validated(PhantomRetrainConfig, config)
     phantom = PhantomConfig()
     with Session(context.engine) as session:
         labels = human_pillar_labels(session, cfg.survey_ids)
-        total = sum(len(c) for c, _ in labels.values())
-        if total < cfg.min_labels:
-            raise ConfigError(
-                "labels", f"{total} human pillar labels; retraining needs at least {cfg.min_labels}"
-            )
+        refuse_if_blocked(label_counts(labels, cfg), cfg)  # before any map is opened
+        total = sum(len(s.cells) for s in labels.values())
         surveys = {}
         for survey_id in labels:
             record = session.get(Survey, survey_id)
@@ -111,20 +109,21 @@ def train_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]
 
     rng = np.random.default_rng(cfg.seed)
     train_parts, val_parts = [], []
-    for k, (survey_id, (cells, classes)) in enumerate(labels.items()):
+    for k, (survey_id, survey_labels) in enumerate(labels.items()):
         context.progress(0.3 * k / len(labels), f"samples of survey {survey_id}")
         name, source, fmt = surveys[survey_id]
         xyz = accumulate(open_survey(source, fmt), with_reference=False).xyz
+        cells, classes = survey_labels.cells, survey_labels.classes
         pillars = np.stack(STORE_GRID.decode(cells), axis=1)
-        centres = (pillars + 0.5) * phantom.cell_size
-        held = held_out_blocks(centres, cfg.block_size, cfg.holdout, cfg.seed)
+        held = held_out(survey_labels, cfg)
         context_branch = base_net.context > 0
         for part, mask, rotations in ((train_parts, ~held, cfg.rotations), (val_parts, held, 1)):
             if mask.any():
                 lmap = LabelledPillars(name, xyz, pillars[mask], classes[mask])
                 part.append(labelled_samples(lmap, phantom, rotations, rng, context_branch))
-    if not train_parts or not val_parts:
-        raise ConfigError("labels", "labels cover too few map blocks to hold some out")
+    # a pillar with no points gives no sample: check again with what the maps gave
+    sampled = ClassCounts(total, class_counts(train_parts), class_counts(val_parts), True)
+    refuse_if_blocked(sampled, cfg)
     train_samples, val_samples = concatenate(train_parts), concatenate(val_parts)
     context.log.info(
         "samples: train %s, validation %s",

@@ -7,8 +7,10 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from app.store.pillar_labels import STORE_GRID
 from tests.api.server import Server
 
 
@@ -50,17 +52,26 @@ def train_jobs(client) -> list[dict]:
     return [j for j in client.get("/jobs").json() if j["kind"] == "train:phantom"]
 
 
+def trainable_labels(n: int, first: int = 0) -> list[dict]:
+    """N pillar labels that could train: a strip 0.2 m wide and N * 0.2 m long (several 10 m
+    blocks once N > 100), ground and phantom alternating."""
+    ix = np.arange(first, first + n)
+    cells = STORE_GRID.cell_id(ix, np.zeros(n, dtype=np.int64)).tolist()
+    return [{"cell_id": c, "label": 3 * (i % 2)} for i, c in zip(ix.tolist(), cells, strict=True)]
+
+
 def test_new_labels_queue_retraining_once(trigger_server: Server) -> None:
     survey = add_survey(trigger_server)
     anna = trigger_server.add_user("trigger-anna", "annotator")
-    labels = [{"cell_id": c, "label": c % 4} for c in range(3)]
+    labels = trainable_labels(3)
     assert anna.put(f"/surveys/{survey}/pillars/labels", json={"labels": labels}).is_success
     with trigger_server.client() as admin:
         time.sleep(0.5)
         assert train_jobs(admin) == []  # 3 < 5
         status = admin.get("/models/retraining").json()
-        assert status == {"threshold": 5, "new_labels": 3, "pending_job_id": None}
-        more = [{"cell_id": c, "label": 1} for c in range(3, 6)]
+        expected = {"threshold": 5, "new_labels": 3, "pending_job_id": None, "blocked_by": None}
+        assert status == expected
+        more = trainable_labels(300, first=3)
         assert anna.put(f"/surveys/{survey}/pillars/labels", json={"labels": more}).is_success
         deadline = time.monotonic() + 10
         while not train_jobs(admin) and time.monotonic() < deadline:
@@ -69,6 +80,70 @@ def test_new_labels_queue_retraining_once(trigger_server: Server) -> None:
         assert len(jobs) == 1 and jobs[0]["config"] == {"trigger": "labels"}
         # the counter starts again from that job
         assert admin.get("/models/retraining").json()["new_labels"] == 0
+    anna.close()
+
+
+@pytest.fixture(scope="module")
+def blocked_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+    """A server whose trigger fires every 1,000 new human labels (no workers needed)."""
+    data_dir: Path = tmp_path_factory.mktemp("models-blocked") / "var"
+    env = {"MMSCLEAN_SAMPLE_DIR": "", "MMSCLEAN_RETRAIN_EVERY": "1000", "MMSCLEAN_WORKERS": "1"}
+    running = Server(data_dir, env=env).start()
+    yield running
+    running.stop()
+
+
+def add_model_labels(server: Server, survey: int, ix: np.ndarray, iy: np.ndarray) -> None:
+    """Model pre-labels, as a phantom run stores them for the pillars it found points in."""
+    cells = STORE_GRID.cell_id(ix, iy).tolist()
+    with database(server) as conn:
+        conn.executemany(
+            "INSERT INTO pillar_label (created_at, updated_at, version, survey_id, cell_id, label,"
+            " source, confidence) VALUES (datetime('now'), datetime('now'), 1, ?, ?, 0, 'model',"
+            " 0.9)",
+            [(survey, c) for c in cells],
+        )
+
+
+def settled_status(admin) -> dict:
+    """GET /models/retraining once the trigger has had its turn after the last write."""
+    time.sleep(1.0)
+    return admin.get("/models/retraining").json()
+
+
+def test_labels_that_cannot_train_queue_nothing_and_say_why(blocked_server: Server) -> None:
+    """The issue: 100,000 labels from one annotator on one survey queued a train:phantom that
+    failed with "need at least one array to concatenate" (the labelled pillars held no points).
+    Now the trigger checks the task's prerequisites first and reports what blocks it."""
+    mapped = add_survey(blocked_server)
+    grid = np.mgrid[0:100, 0:100].reshape(2, -1)  # its phantom run saw points in 20 m x 20 m
+    add_model_labels(blocked_server, mapped, grid[0], grid[1])
+    anna = blocked_server.add_user("blocked-anna", "annotator")
+    ix, iy = np.mgrid[1000:1400, 0:250].reshape(2, -1)  # 100,000 pillars 200 m away
+    cells = STORE_GRID.cell_id(ix, iy).tolist()
+    labels = [{"cell_id": c, "label": 3 * (i % 2)} for i, c in enumerate(cells)]
+    assert anna.put(f"/surveys/{mapped}/pillars/labels", json={"labels": labels}).is_success
+    with blocked_server.client() as admin:
+        status = settled_status(admin)
+        assert status["new_labels"] == 100_000 and status["pending_job_id"] is None
+        assert "has points in its survey's map" in status["blocked_by"]
+        assert train_jobs(admin) == []
+        # a survey no phantom run mapped, labelled with one class only: still nothing to learn
+        other = add_survey(blocked_server)
+        ground = [{**label, "label": 0} for label in trainable_labels(1000)]
+        assert anna.put(f"/surveys/{other}/pillars/labels", json={"labels": ground}).is_success
+        status = settled_status(admin)
+        assert status["blocked_by"] == (
+            "the training labels hold 1 class(es) (ground); retraining needs at least 2"
+        )
+        assert train_jobs(admin) == []
+        # phantoms labelled there too: now it can train, and the trigger queues it
+        phantoms = [{**label, "label": 3} for label in trainable_labels(1000, first=2000)]
+        assert anna.put(f"/surveys/{other}/pillars/labels", json={"labels": phantoms}).is_success
+        deadline = time.monotonic() + 10
+        while not train_jobs(admin) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert [j["config"] for j in train_jobs(admin)] == [{"trigger": "labels"}]
     anna.close()
 
 

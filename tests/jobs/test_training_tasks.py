@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -14,12 +15,14 @@ from app.api.sample import load_sample_on_first_start
 from app.core.errors import ConfigError
 from app.core.settings import Settings
 from app.io import open_survey
-from app.jobs.registry import JobContext
+from app.jobs.queue import claim_next
+from app.jobs.registry import JobContext, load_tasks
 from app.jobs.training_tasks import train_phantom
+from app.jobs.worker import run_job
 from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.dataset import labelled_map_from_survey, labelled_pillars
-from app.store.models import Job, ModelVersion, Survey
-from app.store.pillar_labels import STORE_GRID
+from app.store.models import Job, JobStatus, ModelVersion, Survey
+from app.store.pillar_labels import STORE_GRID, write_labels
 from tests.jobs.conftest import job_context
 
 
@@ -88,3 +91,53 @@ def test_too_few_labels_is_one_clear_error(context: JobContext) -> None:
         train_phantom(context, {})
     with pytest.raises(ConfigError, match="config.holdout"):
         train_phantom(context, {"holdout": 2})
+
+
+def label_far_from_the_map(context: JobContext, n: int = 100_000) -> None:
+    """N labels (ground / phantom) 2 km from the sample survey's points: pillars that hold no
+    points, as one annotator's 100,000 labels in the issue."""
+    ix, iy = np.mgrid[10_000:10_400, 0:250].reshape(2, -1)[:, :n]
+    cells = STORE_GRID.cell_id(ix, iy)
+    with Session(context.engine) as session:
+        write_labels(session, context.survey_id, None, cells, 3 * (np.arange(n) % 2))
+
+
+def test_labels_on_pillars_without_points_fail_with_one_clear_line(context: JobContext) -> None:
+    """Was `ValueError: need at least one array to concatenate` from numpy."""
+    label_far_from_the_map(context)
+    with pytest.raises(ConfigError) as caught:
+        train_phantom(context, {"epochs": 1, "rotations": 1})
+    message = caught.value.message
+    assert message == (
+        "labels: no labelled pillar outside the map blocks held out for validation has points "
+        "in its survey's map (labels outside the surveyed area?)"
+    )
+
+
+def test_a_failed_retraining_job_says_why_in_its_message(context: JobContext) -> None:
+    """Through a worker: the job ends failed, its message the task's one line."""
+    label_far_from_the_map(context, 2000)
+    claimed = claim_next(context.engine, os.getpid())
+    assert claimed is not None and claimed.kind == "train:phantom"
+    status = run_job(context.engine, context.settings, claimed, load_tasks(), os.getppid())
+    assert status == JobStatus.failed
+    with Session(context.engine) as session:
+        job = session.get(Job, claimed.id)
+    assert job.message.startswith("labels: no labelled pillar outside the map blocks held out")
+    assert "\n" not in job.message and "concatenate" not in job.message
+
+
+def test_one_class_of_labels_is_refused_before_any_map_is_read(context: JobContext) -> None:
+    cells = STORE_GRID.cell_id(np.arange(500), np.zeros(500, dtype=np.int64))
+    with Session(context.engine) as session:
+        write_labels(session, context.survey_id, None, cells, np.zeros(500, dtype=np.int64))
+    with pytest.raises(ConfigError, match=r"labels: the training labels hold 1 class\(es\)"):
+        train_phantom(context, {"epochs": 1, "rotations": 1})
+
+
+def test_labels_in_one_block_cannot_hold_any_out(context: JobContext) -> None:
+    cells = STORE_GRID.cell_id(np.arange(60), np.zeros(60, dtype=np.int64))  # 12 m, 2 blocks
+    with Session(context.engine) as session:
+        write_labels(session, context.survey_id, None, cells, np.arange(60) % 2)
+    with pytest.raises(ConfigError, match="labels: the labels cover too few map blocks"):
+        train_phantom(context, {"epochs": 1, "rotations": 1, "block_size": 50})

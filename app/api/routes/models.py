@@ -55,6 +55,9 @@ class RetrainingStatus(BaseModel):
     threshold: int = Field(description="new human labels that queue retraining; 0 = off")
     new_labels: int
     pending_job_id: int | None
+    blocked_by: str | None = Field(
+        None, description="why the due retraining was not queued (checked once it is due)"
+    )
 
 
 @router.get("", response_model=list[ModelVersionPublic])
