@@ -6,7 +6,7 @@ end of the file, for minutes). lazrs trusts the chunk table: a garbage chunk cou
 allocated as given (the process aborts), and variable-size chunks without a chunk table (LASzip's
 old point-wise compression) end in a Rust panic. So a field the file cannot hold is one InputError
 line naming the field here; what passes cannot make laspy hang or lazrs allocate beyond the file.
-Anything else wrong (bad signature, unknown version) is left to laspy's own error.
+A bad signature or a file too short for a header is left to laspy's own error.
 """
 
 from __future__ import annotations
@@ -42,7 +42,11 @@ def check_las_layout(path: Path) -> None:
         head = f.read(max(_HEADER_SIZES.values()))
         if len(head) < _MIN_SIZE or head[:4] != b"LASF":
             return
-        minor = head[25]
+        major, minor = head[24], head[25]
+        if major != 1 or minor not in _HEADER_SIZES:
+            raise InputError(
+                path, f"not a LAS/LAZ file: version {major}.{minor} is not LAS 1.0-1.5"
+            )
         header_size, data_start, vlr_count = struct.unpack_from("<HII", head, 94)
         format_byte, record_length, legacy_count = struct.unpack_from("<BHI", head, 104)
         if header_size > size:

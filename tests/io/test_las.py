@@ -326,6 +326,7 @@ def _patched(path: Path, *fields: tuple[int, str, int]) -> Path:
         ([(96, "<I", 0xFFFFFF00)], "header says the point data starts at byte 4,294,967,040"),
         ([(94, "<H", 0xFFFF)], "header size 65,535 bytes is larger than the file"),
         ([(104, "<B", 42)], "point data format 42 is not one of LAS 0-10"),
+        ([(24, "<B", 120)], "not a LAS/LAZ file: version 120.4 is not LAS 1.0-1.5"),
         ([(105, "<H", 12)], "point record length 12 bytes is shorter than point format 6 needs"),
         (
             [(235, "<Q", 2**40), (243, "<I", 0xFFFFFFFF)],
