@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Annotated
@@ -20,6 +21,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm.exc import StaleDataError
 from sqlmodel import Session
 
+from app.api.disk_space import is_disk_full
 from app.core.errors import PermissionDeniedError
 from app.core.security import TokenSigner
 from app.core.settings import Settings
@@ -28,6 +30,7 @@ from app.store.models import AuthSession, Role, User
 from app.store.sessions import live_session, touch
 from app.store.users import has_role
 
+log = logging.getLogger(__name__)
 TOKEN_COOKIE = "mmsclean_token"
 SAFE_METHODS = {"GET", "HEAD"}
 
@@ -87,7 +90,13 @@ def login_from_token(session: Session, signer: TokenSigner, token: str | None) -
     auth_session = live_session(session, claims.session_id, user.id)
     if auth_session is None:
         return None
-    touch(session, auth_session)
+    try:
+        touch(session, auth_session)
+    except Exception as exc:  # on a full disk reads go on; the session's last use waits
+        if not is_disk_full(exc):
+            raise
+        session.rollback()
+        log.warning("login session %d: last use not recorded, the disk is full", auth_session.id)
     return Login(user, auth_session)
 
 

@@ -19,6 +19,7 @@ from sqlmodel import Session
 from app.api.deps import TOKEN_COOKIE, CurrentLogin, CurrentUser, SessionDep, SettingsDep
 from app.api.errors import errors
 from app.api.schemas import UserPublic
+from app.api.types import Id
 from app.core.security import TOKEN_LIFETIME_S
 from app.core.settings import Settings
 from app.store.audit import audit
@@ -209,7 +210,7 @@ def end_my_other_sessions(login: CurrentLogin, session: SessionDep) -> SessionsE
 
 @router.delete("/sessions/{session_id}", status_code=204, responses=errors(401, 404))
 def end_my_session(
-    session_id: int, login: CurrentLogin, response: Response, session: SessionDep
+    session_id: Id, login: CurrentLogin, response: Response, session: SessionDep
 ) -> None:
     """End one of the user's live sessions (404 for any other id); ending the current one is
     a logout."""

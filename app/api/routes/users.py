@@ -11,6 +11,7 @@ from app.api.deps import Admin, CurrentLogin, CurrentUser, SessionDep
 from app.api.errors import errors
 from app.api.routes.auth import SessionPublic, SessionsEnded
 from app.api.schemas import UserPublic
+from app.api.types import Id
 from app.core.errors import NotFoundError
 from app.store.audit import audit
 from app.store.db import commit
@@ -45,7 +46,7 @@ def add_user(body: UserCreate, admin: Admin, session: SessionDep) -> UserPublic:
 
 
 @router.patch("/{user_id}", response_model=UserPublic, responses=errors(403, 404, 409, 422))
-def change_user(user_id: int, body: UserUpdate, admin: Admin, session: SessionDep) -> UserPublic:
+def change_user(user_id: Id, body: UserUpdate, admin: Admin, session: SessionDep) -> UserPublic:
     """Change role, password or active flag (admin only); the user's tokens stop working. The
     last active admin cannot be demoted or deactivated (409)."""
     user = update_user(
@@ -59,7 +60,7 @@ def change_user(user_id: int, body: UserUpdate, admin: Admin, session: SessionDe
     return UserPublic.of(user)
 
 
-def _user(session: SessionDep, user_id: int) -> User:
+def _user(session: SessionDep, user_id: Id) -> User:
     user = session.get(User, user_id)
     if user is None:
         raise NotFoundError(f"user {user_id} not found")
@@ -68,7 +69,7 @@ def _user(session: SessionDep, user_id: int) -> User:
 
 @router.get("/{user_id}/sessions", response_model=list[SessionPublic], responses=errors(403, 404))
 def list_user_sessions(
-    user_id: int, _: Admin, login: CurrentLogin, session: SessionDep
+    user_id: Id, _: Admin, login: CurrentLogin, session: SessionDep
 ) -> list[SessionPublic]:
     """A user's live login sessions, newest first (admin only)."""
     rows = live_sessions(session, _user(session, user_id).id)
@@ -77,7 +78,7 @@ def list_user_sessions(
 
 @router.delete("/{user_id}/sessions", response_model=SessionsEnded, responses=errors(403, 404))
 def end_user_all_sessions(
-    user_id: int, admin: Admin, login: CurrentLogin, session: SessionDep
+    user_id: Id, admin: Admin, login: CurrentLogin, session: SessionDep
 ) -> SessionsEnded:
     """End every live session of a user (admin only; the admin's own current one stays)."""
     user = _user(session, user_id)
@@ -88,7 +89,7 @@ def end_user_all_sessions(
 
 
 @router.delete("/{user_id}/sessions/{session_id}", status_code=204, responses=errors(403, 404))
-def end_user_session(user_id: int, session_id: int, admin: Admin, session: SessionDep) -> None:
+def end_user_session(user_id: Id, session_id: Id, admin: Admin, session: SessionDep) -> None:
     """End one live session of a user (admin only)."""
     user = _user(session, user_id)
     end_session(session, user.id, session_id, EndReason.revoked)
