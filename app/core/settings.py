@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from functools import lru_cache
 from pathlib import Path
 
@@ -9,6 +10,15 @@ from pydantic import Field, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from app.core.errors import ConfigError
+
+
+def half_physical_memory_mb() -> int:
+    """Half the machine's physical memory in MB (the default job memory limit)."""
+    try:
+        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):  # not a POSIX system: assume 8 GB
+        total = 8 * 1024**3
+    return max(64, total // (2 * 1024**2))
 
 
 class Settings(BaseSettings):
@@ -54,6 +64,12 @@ class Settings(BaseSettings):
         500, ge=0, description="less free space on the data dir's disk: writes answer 507"
     )
     workers: int = Field(2, ge=1, le=64, description="job worker processes")
+    job_memory_mb: int = Field(
+        default_factory=half_physical_memory_mb,
+        ge=64,
+        description="a job whose estimated memory is larger is refused when queued; "
+        "default: half the machine's physical memory",
+    )
     retrain_every: int = Field(
         2000, ge=0, description="newly reviewed pillar labels that queue retraining; 0 = off"
     )
