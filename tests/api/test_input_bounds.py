@@ -167,6 +167,18 @@ def with_value(body: Any, at: tuple, value: Any) -> Any:
     return body
 
 
+def kind_of(schema: dict, node: dict) -> str | None:
+    """A parameter's JSON type (the non-null one of an optional parameter)."""
+    node = resolve(schema, node)
+    options = node.get("anyOf") or [node]
+    return next((o.get("type") for o in options if o.get("type") != "null"), None)
+
+
+def url_of(path: str, values: dict, query: dict | None = None) -> str:
+    text = path.format(**values)
+    return text + ("?" + str(httpx.QueryParams(query)) if query else "")
+
+
 SKIPPED = {("post", "/auth/logout")}  # would end the probing client's own login
 
 
@@ -177,15 +189,9 @@ def schema_probes(schema: dict) -> Iterator[tuple[str, str, Any, str]]:
             if (method, path) in SKIPPED:
                 continue
             params = operation.get("parameters", [])
-            kinds = {p["name"]: resolve(schema, p["schema"]) for p in params}
-
-            def kind(name: str) -> str | None:
-                node = kinds[name]
-                options = node.get("anyOf") or [node]
-                return next((o.get("type") for o in options if o.get("type") != "null"), None)
-
+            kinds = {p["name"]: kind_of(schema, p["schema"]) for p in params}
             path_values = {
-                p["name"]: 1 if kind(p["name"]) == "integer" else "x"
+                p["name"]: 1 if kinds[p["name"]] == "integer" else "x"
                 for p in params
                 if p["in"] == "path"
             }
@@ -193,25 +199,21 @@ def schema_probes(schema: dict) -> Iterator[tuple[str, str, Any, str]]:
             content = operation.get("requestBody", {}).get("content", {})
             body_schema = content.get("application/json", {}).get("schema")
             body = None if body_schema is None else example(schema, body_schema)
-
-            def url(values: dict, params: dict | None = None) -> str:
-                text = path.format(**values)
-                return text + ("?" + str(httpx.QueryParams(params)) if params else "")
-
             for name, value in path_values.items():
                 if value == 1:
                     for bad in (BIG, -1):
-                        yield method, url({**path_values, name: bad}), body, f"path {name}={bad}"
+                        target = url_of(path, {**path_values, name: bad})
+                        yield method, target, body, f"path {name}={bad}"
             for name in query:
-                if kind(name) in ("integer", "number"):
+                if kinds[name] in ("integer", "number"):
                     for bad in (str(BIG), "1e308", "nan", "-inf"):
-                        target = url(path_values, {name: bad})
+                        target = url_of(path, path_values, {name: bad})
                         yield method, target, body, f"query {name}={bad}"
             if body_schema is not None:
                 for at in number_paths(schema, body_schema):
                     for bad in (1e308, -1e308, math.nan, math.inf, BIG):
                         bad_body = with_value(body, at, bad)
-                        yield method, url(path_values), bad_body, f"body {at}={bad}"
+                        yield method, url_of(path, path_values), bad_body, f"body {at}={bad}"
 
 
 def test_no_route_answers_5xx_to_out_of_range_numbers(admin: httpx.Client) -> None:
