@@ -77,6 +77,7 @@ def install_error_handlers(app: FastAPI) -> None:
             for p in problems
         ]
         return JSONResponse({"detail": detail, "errors": plain}, status_code=422)
+
     app.add_middleware(UnhandledErrors)
 
 
