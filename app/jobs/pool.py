@@ -3,7 +3,13 @@ supervisor thread.
 
 Jobs run in processes, not threads, so a CPU-heavy pipeline never holds the API's GIL. The
 supervisor restarts a worker that died (its running job becomes `interrupted`, resumable) and
-stops a worker whose job ignores a cancel request (a task that never calls `progress`).
+stops a worker whose job ignores a cancel request (a task in native code that never calls
+`progress`: DUFOMap integrating a frame, a big allocation): CANCEL_GRACE_S after the supervisor
+first saw the request, the worker gets SIGKILL (native code may ignore SIGTERM), the job's
+partial outputs are removed, it ends `cancelled`, and a fresh worker takes the next job. The
+grace is counted on the supervisor's own clock from the first sight of the request, not from
+the job row's `updated_at`: every later write to the row (a second cancel click) used to
+restart it, so a runaway job could outlive any number of cancels.
 """
 
 from __future__ import annotations
@@ -14,22 +20,22 @@ import os
 import threading
 import time
 from dataclasses import dataclass
-from datetime import timedelta
 from multiprocessing.process import BaseProcess
+from pathlib import Path
 
 import sqlalchemy as sa
 from sqlalchemy.engine import Engine
 
 from app.core.settings import Settings
 from app.jobs.queue import finish, mark_interrupted
-from app.jobs.worker import worker_main
+from app.jobs.worker import discard_outputs, worker_main
 from app.store.db import make_engine
-from app.store.models import Job, JobStatus, utcnow
+from app.store.models import Job, JobStatus
 
 log = logging.getLogger(__name__)
 
 SUPERVISE_S = 0.5  # how often the supervisor looks at the workers
-CANCEL_GRACE_S = 10.0  # a cancelled job still silent after this long: its worker is killed
+CANCEL_GRACE_S = 5.0  # a cancelled job still running this long after: its worker is killed
 QUICK_DEATH_S = 10.0  # a worker dying this soon after its start is restarted with back-off
 MAX_BACKOFF_S = 60.0
 STOP_TIMEOUT_S = 10.0
@@ -53,6 +59,7 @@ class WorkerPool:
         self._lock = threading.Lock()
         self._stopping = threading.Event()
         self._thread: threading.Thread | None = None
+        self._cancel_seen: dict[int, float] = {}  # job id -> when the supervisor first saw it
 
     @property
     def engine(self) -> Engine:
@@ -163,29 +170,37 @@ class WorkerPool:
                 self._spawn(slot)
 
     def _enforce_cancels(self) -> None:
-        """Kill the worker of a job asked to cancel that has not written progress since."""
+        """Kill the worker of a job still running CANCEL_GRACE_S after its cancel request was
+        first seen; remove its partial outputs and end it `cancelled`."""
         with self._lock:
             live = {s.process.pid: s.process for s in self._slots if s.process is not None}
-        if not live:
-            return
-        cutoff = utcnow() - timedelta(seconds=CANCEL_GRACE_S)
         with self.engine.connect() as conn:
-            stuck = conn.execute(
-                sa.select(Job.id, Job.worker_pid).where(
-                    Job.status == JobStatus.running,
-                    Job.cancel_requested,
-                    Job.updated_at < cutoff,
-                    Job.worker_pid.in_(list(live)),
+            pending = conn.execute(
+                sa.select(Job.id, Job.worker_pid, Job.result_path).where(
+                    Job.status == JobStatus.running, Job.cancel_requested
                 )
             ).all()
-        for job_id, pid in stuck:
+        now = time.monotonic()
+        asked = {job_id: now for job_id, _, _ in pending}
+        self._cancel_seen = {**asked, **{j: t for j, t in self._cancel_seen.items() if j in asked}}
+        for job_id, pid, workdir in pending:
+            if now - self._cancel_seen[job_id] < CANCEL_GRACE_S or pid not in live:
+                continue
             process = live[pid]
-            process.kill()
+            process.kill()  # SIGKILL: native code can neither ignore nor delay it
             process.join()
+            jobs_dir = self.settings.jobs_dir.resolve()
+            if workdir and Path(workdir).resolve().is_relative_to(jobs_dir):
+                discard_outputs(
+                    Path(workdir),
+                    "cancelled: the task did not stop by itself; its worker was stopped and "
+                    "its partial outputs removed",
+                )
             finish(
                 self.engine,
                 job_id,
                 JobStatus.cancelled,
                 "cancelled (the task did not stop by itself; its worker was stopped)",
             )
+            self._cancel_seen.pop(job_id, None)
             log.warning("job %d ignored its cancel request: worker %d killed", job_id, pid)

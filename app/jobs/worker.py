@@ -37,6 +37,7 @@ PROGRESS_INTERVAL_S = 0.2  # at most ~5 progress writes per second per job
 PR_SET_PDEATHSIG = 1
 MAX_MESSAGE = 500
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+LOG_NAME = "job.log"
 
 
 def die_with_parent(parent_pid: int) -> None:
@@ -62,6 +63,25 @@ def _json_default(value: Any) -> Any:
     if isinstance(value, np.ndarray):
         return value.tolist()
     return str(value)  # Path, datetime, ...
+
+
+def discard_outputs(workdir: Path, note: str) -> int:
+    """A cancelled job's partial outputs go: everything in its folder but `job.log`, which
+    gets `note` as its last line. Returns how many entries were removed."""
+    removed = 0
+    if workdir.is_dir():
+        for entry in workdir.iterdir():
+            if entry.name == LOG_NAME:
+                continue
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry, ignore_errors=True)
+            else:
+                entry.unlink(missing_ok=True)
+            removed += 1
+        stamp = time.strftime("%Y-%m-%d %H:%M:%S")
+        with open(workdir / LOG_NAME, "a", encoding="utf-8") as log:
+            log.write(f"{stamp} INFO app.jobs.worker: {note}\n")
+    return removed
 
 
 def json_safe(result: Any) -> dict[str, Any]:
@@ -127,7 +147,7 @@ def run_job(
         # as this job's
         shutil.rmtree(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
-    log_path = workdir / "job.log"
+    log_path = workdir / LOG_NAME
     set_workdir(engine, job.id, str(log_path), str(workdir))
     reporter = ProgressReporter(engine, job.id, parent_pid)
     with job_logger(job.id, log_path) as log:
@@ -157,7 +177,8 @@ def run_job(
             result = json_safe(task(context, dict(job.config)))
         except JobCancelled:
             reporter.flush()
-            log.info("cancelled after %.1f s", time.perf_counter() - started)
+            seconds = time.perf_counter() - started
+            discard_outputs(workdir, f"cancelled after {seconds:.1f} s; partial outputs removed")
             finish(engine, job.id, JobStatus.cancelled, "cancelled")
             return JobStatus.cancelled
         except Exception as exc:

@@ -3,9 +3,13 @@ MMSCLEAN_EXTRA_TASK_MODULES=tests.jobs.sample_tasks."""
 
 from __future__ import annotations
 
+import ctypes
 import os
+import signal
 import time
 from typing import Any
+
+import numpy as np
 
 from app.core.errors import ConfigError
 from app.jobs.registry import JobContext, task
@@ -20,8 +24,13 @@ def _check_steps(config: dict[str, Any], _settings: object) -> None:
 
 @task("test:steps", check=_check_steps)
 def steps(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
-    """`steps` progress reports `delay` seconds apart; writes a file into the workdir."""
+    """`steps` progress reports `delay` seconds apart; writes a file into the workdir (with
+    `partial`, a partial one first, as a pipeline writing as it goes)."""
     n, delay = int(config.get("steps", 5)), float(config.get("delay", 0.1))
+    if config.get("partial"):
+        partial = context.workdir / "out" / "partial.txt"
+        partial.parent.mkdir(parents=True, exist_ok=True)
+        partial.write_text("half done\n")
     for i in range(n):
         time.sleep(delay)
         context.progress((i + 1) / n, f"step {i + 1} of {n}")
@@ -48,6 +57,20 @@ def crash(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
     """The worker process dies mid-job (as on an OOM kill)."""
     context.progress(0.3, "crashing")
     os._exit(3)
+
+
+@task("test:native")
+def native(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
+    """A runaway in native code (DUFOMap at a millimetre): it has written a partial file,
+    ignores SIGTERM, allocates, then sits in a C call that never reports progress."""
+    partial = context.workdir / "out" / "partial.bin"
+    partial.parent.mkdir(parents=True, exist_ok=True)
+    partial.write_bytes(bytes(1024))
+    context.progress(0.1, "into native code")
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    block = np.ones(4 * 1024**2)  # 32 MB
+    ctypes.CDLL(None).sleep(int(config.get("seconds", 120)))  # in C: no Python runs meanwhile
+    return {"sum": float(block.sum())}
 
 
 @task("test:silent")

@@ -108,9 +108,16 @@ def test_failures_end_with_one_line(running: tuple[WorkerPool, Engine]) -> None:
     assert (refused.status, refused.message) == (JobStatus.failed, "config.size: must be positive")
 
 
+def only_the_log_is_left(done: Job) -> str:
+    """The job folder holds nothing but job.log; its last line."""
+    workdir = Path(done.result_path)
+    assert [p.name for p in workdir.iterdir()] == ["job.log"]
+    return (workdir / "job.log").read_text().splitlines()[-1]
+
+
 def test_cancel_a_running_job(running: tuple[WorkerPool, Engine]) -> None:
     _, engine = running
-    job_id = submit(engine, "test:steps", {"steps": 400, "delay": 0.05})
+    job_id = submit(engine, "test:steps", {"steps": 400, "delay": 0.05, "partial": True})
     wait_for(engine, job_id, lambda j: j.status == JobStatus.running and j.progress > 0)
     with Session(engine) as session:
         request_cancel(session, job_id, None)
@@ -118,7 +125,33 @@ def test_cancel_a_running_job(running: tuple[WorkerPool, Engine]) -> None:
     done = wait_for(engine, job_id, ended, timeout=10)
     assert done.status == JobStatus.cancelled and done.progress < 1
     assert time.monotonic() - asked < 3  # honoured at the next progress write
-    assert not (Path(done.result_path) / "out").exists()
+    assert "cancelled after" in only_the_log_is_left(done)  # the partial output is gone
+
+
+def test_a_runaway_in_native_code_is_cancelled_within_10_s(
+    running: tuple[WorkerPool, Engine],
+) -> None:
+    """The job never reports progress again and ignores SIGTERM; the user asks twice (a second
+    request used to restart the grace period): cancelled within 10 s, its partial file gone,
+    and a fresh worker runs the next job."""
+    pool, engine = running
+    job_id = submit(engine, "test:native", {"seconds": 300})
+    started = wait_for(engine, job_id, lambda j: j.status == JobStatus.running and j.progress > 0)
+    assert (Path(started.result_path) / "out" / "partial.bin").is_file()
+    with Session(engine) as session:
+        request_cancel(session, job_id, None)
+    asked = time.monotonic()
+    time.sleep(3)
+    with Session(engine) as session:
+        request_cancel(session, job_id, None)  # nothing happened yet: the user asks again
+    done = wait_for(engine, job_id, ended, timeout=60)
+    took = time.monotonic() - asked
+    assert done.status == JobStatus.cancelled, done.message
+    assert took <= 10, f"cancel took {took:.1f} s"
+    assert "partial outputs removed" in only_the_log_is_left(done)
+    after = wait_for(engine, submit(engine, "test:steps", {"steps": 2}), ended)
+    assert after.status == JobStatus.succeeded and after.worker_pid != started.worker_pid
+    assert started.worker_pid not in pool.pids
 
 
 def test_a_silent_job_is_cancelled_by_stopping_its_worker(
