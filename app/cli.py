@@ -155,6 +155,10 @@ def run_clutter(
     voxel_dedup: Annotated[
         float | None, typer.Option(help="metres: keep one point per voxel in the cleaned map")
     ] = None,
+    dufomap_resolution: Annotated[
+        float, typer.Option(help="metres: voxel edge of the free-space map (0.02-5)")
+    ] = 0.1,
+    threads: Annotated[int, typer.Option(help="worker threads, 0 = all cores")] = 0,
     overlays: Annotated[int, typer.Option(help="write mask overlays of the first N frames")] = 0,
 ) -> None:
     """Clutter removal (Lee et al.): camera masks, 3D expansion, free space, tracking."""
@@ -174,6 +178,8 @@ def run_clutter(
             use_free_space=free_space,
             use_tracking=tracking,
             voxel_dedup=voxel_dedup,
+            dufomap_resolution=dufomap_resolution,
+            threads=threads,
         )
     except ValidationError as exc:
         raise option_error(exc, {"mask_padding_px": "padding"}) from None
@@ -319,6 +325,7 @@ def train_phantom(
     ] = 16,
 ) -> None:
     """Train the phantom 3D CNN on simulated surveys and SemanticKITTI sequences."""
+    from pydantic import ValidationError
     from rich.progress import Progress
 
     from app.core.errors import ConfigError
@@ -328,9 +335,16 @@ def train_phantom(
     for folder in semantickitti or []:
         if not (folder / "velodyne").is_dir():
             raise ConfigError("--semantickitti", f"{folder} is not a SemanticKITTI sequence")
-    config = TrainConfig(
-        per_class=per_class, epochs=epochs, folds_to_run=folds_to_run, seed=seed, context=context
-    )
+    try:
+        config = TrainConfig(
+            per_class=per_class,
+            epochs=epochs,
+            folds_to_run=folds_to_run,
+            seed=seed,
+            context=context,
+        )
+    except ValidationError as exc:
+        raise option_error(exc) from None
     with Progress(console=err_console, transient=True) as bar:
         task = bar.add_task("training", total=1.0)
         card = train_phantom_model(

@@ -116,3 +116,35 @@ def test_info_real_kitti_raw(real_data: Path) -> None:
     result = mmsclean("info", str(drive), "-f", "kitti-raw", "--json")
     assert result.returncode == 0, result.stderr
     assert json.loads(result.stdout)["frames"] == 20
+
+
+@pytest.mark.parametrize(
+    ("option", "value", "problem"),
+    [
+        ("--dufomap-resolution", "0.001", "greater than or equal to 0.02"),
+        ("--dufomap-resolution", "nan", "finite number"),
+        ("--padding", "1000000000", "less than or equal to 200"),
+        ("--threads", "1000000", "less than or equal to 256"),
+        ("--voxel-dedup", "inf", "finite number"),
+    ],
+)
+def test_run_clutter_options_are_bounded(
+    tmp_path: Path, option: str, value: str, problem: str
+) -> None:
+    """The command line builds the job's config model: the same bounds, one line, exit 2."""
+    root = make_semantickitti(tmp_path / "seq", frames=2)
+    result = mmsclean(
+        "run", "clutter", str(root), "-f", "semantickitti", "--out", str(tmp_path / "out"),
+        option, value,
+    )  # fmt: skip
+    assert_one_line_error(result, f"{option}: Input should be", problem, "(got ")
+    assert result.returncode == 2
+    assert not (tmp_path / "out").exists()
+
+
+def test_train_phantom_options_are_bounded(tmp_path: Path) -> None:
+    result = mmsclean(
+        "train", "phantom", "--out", str(tmp_path / "m.pt"), "--per-class", "1000000000"
+    )
+    assert_one_line_error(result, "--per-class: Input should be less than or equal to 1000000")
+    assert not (tmp_path / "m.pt").exists()

@@ -20,24 +20,31 @@ MAX_THREADS = 256
 MAX_PIXELS = 200
 MAX_RECORD_ID = 2**63 - 1  # SQLite INTEGER
 
+# Where a type has a bound, it wins over a field's own bound of the same kind (pydantic merges
+# the annotation last): types here bound one side where fields need their own other side.
+
 # metres: a grid or voxel edge (free-space voxels, ground cells, clustering voxels, pillars)
 Resolution = Annotated[float, Field(ge=0.02, le=5.0, allow_inf_nan=False)]
-# metres: a distance, range, radius, gap or height
-Metres = Annotated[float, Field(ge=0.0, le=MAX_RANGE_M, allow_inf_nan=False)]
+# metres: a distance, range, radius, gap or height (the field sets its lower bound)
+Metres = Annotated[float, Field(le=MAX_RANGE_M, allow_inf_nan=False)]
+# metres at the scale of one object: inflations, tolerances, halos (the field's lower bound)
+ObjectMetres = Annotated[float, Field(le=10.0, allow_inf_nan=False)]
 # pixels of a camera image (mask pads)
 Pixels = Annotated[int, Field(ge=0, le=MAX_PIXELS)]
-# a number of things: frames, points, samples, epochs, voxels of inflation
-Count = Annotated[int, Field(ge=0, le=MAX_COUNT)]
+# a number of things: frames, points, samples, slices (the field sets its lower bound)
+Count = Annotated[int, Field(le=MAX_COUNT)]
+# training epochs (the field sets its lower bound)
+Epochs = Annotated[int, Field(le=10_000)]
 # worker threads; 0 = all cores
 Threads = Annotated[int, Field(ge=0, le=MAX_THREADS)]
-# a share or probability, 0..1
+# a share or probability, 0..1 (a field may exclude the ends with gt / lt)
 Share = Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)]
 # metres per second
 Speed = Annotated[float, Field(ge=0.0, le=100.0, allow_inf_nan=False)]
 # seconds of wall-clock time (a training time limit): at most a week
-Seconds = Annotated[float, Field(ge=0.0, le=7 * 24 * 3600.0, allow_inf_nan=False)]
-# a learning rate
-Rate = Annotated[float, Field(gt=0.0, le=1.0, allow_inf_nan=False)]
+Seconds = Annotated[float, Field(gt=0.0, le=7 * 24 * 3600.0, allow_inf_nan=False)]
+# a learning rate, weight decay or momentum
+Rate = Annotated[float, Field(le=1.0, allow_inf_nan=False)]
 # a random seed
 Seed = Annotated[int, Field(ge=0, le=2**32 - 1)]
 # a store id (survey, model version)

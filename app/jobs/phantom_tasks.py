@@ -23,6 +23,7 @@ from app.core.bounds import RecordId
 from app.core.errors import ConfigError, ConflictError, NotFoundError
 from app.core.settings import Settings
 from app.io import open_survey
+from app.jobs.memory import MemoryEstimate, points_mb, survey_text
 from app.jobs.registry import JobContext, task
 from app.jobs.task_config import job_model, validated
 from app.pipelines.phantom.config import PhantomConfig
@@ -32,11 +33,13 @@ from app.store.audit import audit
 from app.store.model_versions import ensure_shipped_version, promoted_version
 from app.store.models import LabelSource, ModelVersion, Pipeline, Survey, utcnow
 from app.store.pillar_labels import STORE_GRID
+from app.store.surveys import survey_footprint
 
 KIND = "run:phantom"
 # overall progress reached at the start and end of each pipeline stage; the rest is ingestion
 STAGES = {"accumulate": (0.02, 0.15), "classify": (0.15, 0.8), "done": (0.85, 0.85)}
 INGEST_AT = 0.9
+PHANTOM_BYTES_PER_POINT = 200.0  # map xyz, ground, pillar keys, sort buffers, labels
 
 _INSERT_MODEL_LABELS = (
     "INSERT INTO pillar_label (survey_id, cell_id, label, source, confidence, user_id, "
@@ -63,6 +66,19 @@ def parse_config(config: dict[str, Any], settings: Settings | None = None) -> Ph
 
 def check_config(config: dict[str, Any], settings: Settings) -> None:
     parse_config(config, settings)
+
+
+def estimate_memory(session: Session, survey: int | None, config: dict[str, Any]) -> MemoryEstimate:
+    """run:phantom's memory: the accumulated map and its pillar arrays (the grid is tiled, and
+    a job sets no resolution, so it grows with the survey alone)."""
+    if survey is None:
+        return MemoryEstimate("no survey")
+    footprint = survey_footprint(session, survey)
+    return MemoryEstimate(survey_text(footprint)).add(
+        "survey_id",
+        points_mb(footprint, PHANTOM_BYTES_PER_POINT),
+        f"{PHANTOM_BYTES_PER_POINT:.0f} bytes per point of the accumulated map",
+    )
 
 
 def _card(checkpoint: Path) -> dict[str, Any]:
@@ -167,7 +183,7 @@ def store_model_labels(
     return len(cells)
 
 
-@task(KIND, check=check_config, model="phantom")
+@task(KIND, check=check_config, model="phantom", estimate=estimate_memory)
 def run_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
     options = parse_config(config, context.settings)
     if context.survey_id is None:

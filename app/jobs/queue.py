@@ -21,7 +21,8 @@ from sqlmodel import Session
 
 from app.core.errors import ConfigError, ConflictError, NotFoundError
 from app.core.settings import Settings, get_settings
-from app.jobs.registry import MODELS, check_config, task_for
+from app.jobs.memory import check_memory
+from app.jobs.registry import ESTIMATES, MODELS, check_config, task_for
 from app.jobs.task_config import job_model
 from app.store.audit import audit, unused_id
 from app.store.db import commit
@@ -61,9 +62,12 @@ def _new_job(
         raise ConfigError("survey_id", f"no survey with id {survey_id}")
     if survey_id is None and kind.startswith("run:"):
         raise ConfigError("survey_id", f"{kind} jobs need a survey")
-    check_config(kind, config, settings or get_settings())
+    settings = settings or get_settings()
+    check_config(kind, config, settings)
     if kind in MODELS and config.get("model_id") is not None:
         job_model(session, Pipeline(MODELS[kind]), config["model_id"])
+    if kind in ESTIMATES:
+        check_memory(ESTIMATES[kind](session, survey_id, config), settings.job_memory_mb)
     job = Job(
         kind=kind, config=dict(config), survey_id=survey_id, created_by=user_id, message=message
     )

@@ -9,7 +9,9 @@ is one. Tasks call `context.progress(fraction, message)` often: it records progr
 `MMSCLEAN_EXTRA_TASK_MODULES` (comma-separated; tests register their own kinds that way).
 A task may also register `check=fn(config, settings)`, run when the job is queued, so a bad
 config is refused at once (422) instead of failing later in a worker; `model=` the pipeline
-whose registry its `config.model_id` names (checked against the store when queued).
+whose registry its `config.model_id` names (checked against the store when queued);
+`estimate=fn(session, survey_id, config)` the memory its run needs (`app.jobs.memory`), refused
+when queued if more than MMSCLEAN_JOB_MEMORY_MB.
 """
 
 from __future__ import annotations
@@ -23,9 +25,11 @@ from pathlib import Path
 from typing import Any
 
 from sqlalchemy.engine import Engine
+from sqlmodel import Session
 
 from app.core.errors import ConfigError
 from app.core.settings import Settings
+from app.jobs.memory import MemoryEstimate
 from app.jobs.task_config import refuse_model_path
 
 TASK_MODULES = (
@@ -60,13 +64,18 @@ class JobContext:
 
 TaskFn = Callable[[JobContext, dict[str, Any]], dict[str, Any]]
 CheckFn = Callable[[dict[str, Any], Settings], None]
+EstimateFn = Callable[[Session, int | None, dict[str, Any]], MemoryEstimate]
 TASKS: dict[str, TaskFn] = {}
 CHECKS: dict[str, CheckFn] = {}
 MODELS: dict[str, str] = {}  # kind -> pipeline ("phantom", "guardrail") of its config.model_id
+ESTIMATES: dict[str, EstimateFn] = {}
 
 
 def task(
-    kind: str, check: CheckFn | None = None, model: str | None = None
+    kind: str,
+    check: CheckFn | None = None,
+    model: str | None = None,
+    estimate: EstimateFn | None = None,
 ) -> Callable[[TaskFn], TaskFn]:
     def register(fn: TaskFn) -> TaskFn:
         TASKS[kind] = fn
@@ -74,6 +83,8 @@ def task(
             CHECKS[kind] = check
         if model is not None:
             MODELS[kind] = model
+        if estimate is not None:
+            ESTIMATES[kind] = estimate
         return fn
 
     return register

@@ -66,10 +66,12 @@ def check_import_config(config: dict[str, Any], settings: Settings) -> Path:
     path = config.get("path")
     if not isinstance(path, str):
         raise ConfigError("config.path", "must be the survey's path inside the import root")
-    for key in ("format", "name"):
+    for key, longest in (("format", 32), ("name", 255)):  # the survey table's columns
         value = config.get(key)
         if value is not None and (not isinstance(value, str) or not value.strip()):
             raise ConfigError(f"config.{key}", "must be a non-empty string when given")
+        if value is not None and len(value) > longest:
+            raise ConfigError(f"config.{key}", f"has {len(value)} characters; at most {longest}")
     return resolve_import_path(path, settings.allowed_import_root)
 
 

@@ -14,10 +14,12 @@ from pydantic import BaseModel, Field
 from sqlalchemy import text
 from sqlmodel import Session
 
+from app.core.bounds import Count, Metres, Rate, RecordId, Seconds, Seed, Share
 from app.core.errors import ConfigError, NotFoundError
 from app.core.settings import Settings
 from app.io import open_survey
 from app.jobs.guardrail_tasks import FEATURES_FILE, promoted_classifier
+from app.jobs.memory import MB, MemoryEstimate
 from app.jobs.phantom_training_data import (
     ClassCounts,
     held_out,
@@ -40,21 +42,25 @@ from app.pipelines.phantom.train import TrainConfig
 from app.store.guardrail_review import latest_run, match_slices
 from app.store.model_versions import ensure_shipped_version, promoted_version, register_version
 from app.store.models import Pipeline, Survey
-from app.store.pillar_labels import STORE_GRID
+from app.store.pillar_labels import STORE_GRID, human_labels_since
 from app.store.training_labels import human_pillar_labels
+
+PHANTOM_SAMPLE_BYTES = 30 * 24 * 24 + 6 * 31 * 31  # a window's counts + context bands, uint8
 
 
 class PhantomRetrainConfig(BaseModel):
-    survey_ids: list[int] | None = Field(None, description="surveys whose labels to use; all")
-    holdout: float = Field(0.2, gt=0, lt=1, description="share of map blocks held out")
-    block_size: float = Field(10.0, gt=0, description="metres: blocks kept whole by the split")
+    survey_ids: list[RecordId] | None = Field(
+        None, max_length=10_000, description="surveys whose labels to use; all"
+    )
+    holdout: Share = Field(0.2, gt=0, lt=1, description="share of map blocks held out")
+    block_size: Metres = Field(10.0, gt=0, description="metres: blocks kept whole by the split")
     rotations: int = Field(4, ge=1, le=16, description="copies of the map, first unrotated")
     epochs: int = Field(4, ge=1, le=100)
-    per_class: int = Field(5000, ge=1, description="balanced samples per labelled class")
-    lr: float = Field(0.005, gt=0, description="fine-tuning SGD rate (below training's 0.05)")
-    seed: int = Field(0, ge=0)
-    time_limit: float | None = Field(None, gt=0, description="seconds of training at most")
-    min_labels: int = Field(50, ge=1, description="fewer human labels: refuse to train")
+    per_class: Count = Field(5000, ge=1, description="balanced samples per labelled class")
+    lr: Rate = Field(0.005, gt=0, description="fine-tuning SGD rate (below training's 0.05)")
+    seed: Seed = 0
+    time_limit: Seconds | None = Field(None, description="seconds of training at most")
+    min_labels: Count = Field(50, ge=1, description="fewer human labels: refuse to train")
     min_classes: int = Field(
         2, ge=1, le=4, description="fewer classes among the training labels: refuse to train"
     )
@@ -75,6 +81,24 @@ def check_phantom_config(config: dict[str, Any], _settings: Settings) -> None:
     validated(PhantomRetrainConfig, config)
 
 
+def estimate_phantom(session: Session, _survey: int | None, config: dict[str, Any]):
+    """train:phantom's memory: the labelled windows (each rotated copy) and the balanced
+    training samples (per class)."""
+    cfg = validated(PhantomRetrainConfig, config)
+    labels = human_labels_since(session, None)
+    estimate = MemoryEstimate(f"{labels:,} human pillar labels")
+    estimate.add(
+        "config.rotations",
+        labels * cfg.rotations * PHANTOM_SAMPLE_BYTES / MB,
+        f"{cfg.rotations} copies of every labelled window",
+    )
+    return estimate.add(
+        "config.per_class",
+        4 * cfg.per_class * PHANTOM_SAMPLE_BYTES / MB,
+        f"{cfg.per_class:,} balanced samples per class",
+    )
+
+
 def refuse_if_blocked(counts: ClassCounts, cfg: PhantomRetrainConfig) -> None:
     """The job fails with the one line `training_blocker` gives (the trigger's check)."""
     blocked = training_blocker(counts, cfg)
@@ -87,7 +111,7 @@ def class_counts(parts: list[Samples]) -> np.ndarray:
     return sum((np.bincount(p.y, minlength=4)[:4] for p in parts), np.zeros(4, np.int64))
 
 
-@task("train:phantom", check=check_phantom_config)
+@task("train:phantom", check=check_phantom_config, estimate=estimate_phantom)
 def train_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
     cfg = validated(PhantomRetrainConfig, config)
     phantom = PhantomConfig()
@@ -193,13 +217,15 @@ def train_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]
 
 
 class GuardrailRetrainConfig(BaseModel):
-    survey_ids: list[int] | None = Field(None, description="surveys whose slices to use; all")
-    holdout: float = Field(0.25, gt=0, lt=1, description="share of road blocks held out")
-    block_size: float = Field(20.0, gt=0, description="metres of road kept whole by the split")
+    survey_ids: list[RecordId] | None = Field(
+        None, max_length=10_000, description="surveys whose slices to use; all"
+    )
+    holdout: Share = Field(0.25, gt=0, lt=1, description="share of road blocks held out")
+    block_size: Metres = Field(20.0, gt=0, description="metres of road kept whole by the split")
     epochs: int = Field(30, ge=1, le=500)
-    lr: float = Field(3e-4, gt=0, description="fine-tuning Adam rate (training: 1e-3)")
-    seed: int = Field(0, ge=0)
-    min_labels: int = Field(20, ge=1, description="fewer reviewed slices: refuse to train")
+    lr: Rate = Field(3e-4, gt=0, description="fine-tuning Adam rate (training: 1e-3)")
+    seed: Seed = 0
+    min_labels: Count = Field(20, ge=1, description="fewer reviewed slices: refuse to train")
     trigger: Literal["on demand", "labels"] = "on demand"
 
 

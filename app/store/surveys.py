@@ -213,6 +213,39 @@ def frames_summary(session: Session, survey_id: int) -> dict[str, Any]:
     }
 
 
+@dataclass(frozen=True)
+class SurveyFootprint:
+    """How big a survey is, as far as the store knows: its points and frames and the bounding
+    box of its trajectory (sensor positions). The extent of the points themselves is not
+    stored; a job's memory estimate widens the trajectory by the sensor's reach instead."""
+
+    points: int
+    frames: int
+    largest_frame: int  # points of the largest frame
+    trajectory_min: tuple[float, float, float]
+    trajectory_max: tuple[float, float, float]
+
+
+def survey_footprint(session: Session, survey_id: int) -> SurveyFootprint:
+    """The survey's footprint from its frame rows (NotFoundError for an unknown survey)."""
+    survey = get_survey(session, survey_id)
+    rows = session.exec(
+        select(Frame.point_count, Frame.pose).where(Frame.survey_id == survey_id)
+    ).all()
+    if not rows:
+        origin = (survey.origin_x, survey.origin_y, survey.origin_z)
+        return SurveyFootprint(survey.point_count, 0, survey.point_count, origin, origin)
+    counts = np.asarray([r[0] for r in rows], dtype=np.int64)
+    positions = np.asarray([r[1] for r in rows], dtype=np.float64).reshape(-1, 4, 4)[:, :3, 3]
+    return SurveyFootprint(
+        points=int(max(counts.sum(), survey.point_count)),
+        frames=len(rows),
+        largest_frame=int(counts.max()),
+        trajectory_min=tuple(positions.min(axis=0).tolist()),
+        trajectory_max=tuple(positions.max(axis=0).tolist()),
+    )
+
+
 def latest_jobs(session: Session, survey_id: int) -> dict[str, Job]:
     """The newest job of each kind run on the survey."""
     newest = (

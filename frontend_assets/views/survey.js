@@ -31,7 +31,7 @@ const PIPELINE_FORMS = [
       { key: "use_free_space", label: "free space", type: "checkbox", default: true },
       { key: "use_tracking", label: "tracking", type: "checkbox", default: true },
       { key: "expansion", label: "Mask expansion", type: "select", choices: ["cluster", "pad"], default: "cluster" },
-      { key: "mask_padding_px", label: "Mask padding [px]", type: "number", step: 1, min: 0, default: 30 },
+      { key: "mask_padding_px", label: "Mask padding [px]", type: "number", step: 1, min: 0, max: 200, default: 30 },
     ],
   },
   {
@@ -51,7 +51,7 @@ const PIPELINE_FORMS = [
     options: [
       { key: "head", label: "Classifier", type: "select", choices: ["image+geometry", "image", "geometry"], default: "image+geometry" },
       { key: "threshold", label: "Threshold", type: "number", step: 0.05, min: 0.05, max: 0.95, default: 0.5 },
-      { key: "spacing", label: "Slice length [m]", type: "number", step: 0.1, min: 0.1, default: 0.5 },
+      { key: "spacing", label: "Slice length [m]", type: "number", step: 0.1, min: 0.1, max: 5, default: 0.5 },
       { key: "reconstruct", label: "reconstruct models", type: "checkbox", default: true },
       { key: "model_id", label: "Classifier version", type: "model", pipeline: "guardrail", default: "" },
     ],

@@ -4,6 +4,8 @@ cancel, requeue, logs and files, and the error answers."""
 from __future__ import annotations
 
 import io
+import json
+import math
 import sqlite3
 import time
 from pathlib import Path
@@ -177,6 +179,48 @@ def test_errors_name_the_field_or_record(sample_server: Server, admin: httpx.Cli
         assert response.status_code == 404, (method, path)
         assert response.json()["detail"] == "job 99999 not found"
     assert httpx.get(f"{sample_server.url}/jobs").status_code == 401
+
+
+@pytest.mark.parametrize(
+    ("kind", "config", "field", "problem"),
+    [  # the issue's values: each passed before, and ran out of memory, time or range later
+        ("run:clutter", {"dufomap_resolution": 0.001}, "dufomap_resolution", ">= 0.02"),
+        ("run:clutter", {"mask_padding_px": 1e9}, "mask_padding_px", "<= 200"),
+        ("run:clutter", {"threads": 1e6}, "threads", "<= 256"),
+        ("run:clutter", {"min_track_frames": 1e12}, "min_track_frames", "<= 1000000"),
+        ("run:clutter", {"max_range": 1e308}, "max_range", "<= 1000"),
+        ("run:clutter", {"ground_cell": 1e-4}, "ground_cell", ">= 0.02"),
+        ("run:clutter", {"dufomap_resolution": math.nan}, "dufomap_resolution", "finite"),
+        ("run:clutter", {"voxel_dedup": math.inf}, "voxel_dedup", "finite"),
+        ("run:guardrail", {"spacing": 1e-6}, "spacing", ">= 0.02"),
+        ("run:guardrail", {"join_gap": math.inf}, "join_gap", "finite"),
+        ("guardrail:rebuild", {"min_guardrail_length": 1e308}, "min_guardrail_length", "<= 1000"),
+        ("run:phantom", {"model_id": 2**70}, "model_id", "<= 9223372036854775807"),
+        ("train:phantom", {"per_class": 1e9}, "per_class", "<= 1000000"),
+        ("train:phantom", {"time_limit": math.inf}, "time_limit", "finite"),
+        ("train:guardrail", {"block_size": 1e308}, "block_size", "<= 1000"),
+        ("import:survey", {"path": "x", "name": "n" * 300}, "name", "at most 255"),
+    ],
+)
+def test_config_values_out_of_physical_bounds_are_422(
+    sample_server: Server, admin: httpx.Client, kind: str, config: dict, field: str, problem: str
+) -> None:
+    body = {"kind": kind, "survey_id": sample_survey_id(sample_server), "config": config}
+    if kind.startswith("train:") or kind.startswith("import:"):
+        body.pop("survey_id")
+    before = len(admin.get("/jobs").json())
+    response = admin.post(
+        "/jobs",
+        content=json.dumps(body, allow_nan=True),  # NaN / Infinity as a sloppy client sends
+        headers={"content-type": "application/json"},
+    )
+    assert response.status_code == 422, response.text
+    detail = response.json()["detail"]
+    assert detail.startswith(f"config.{field}:") and "\n" not in detail, detail
+    words = {">=": "greater than or equal to", "<=": "less than or equal to"}
+    operator, _, number = problem.partition(" ")
+    assert (f"{words[operator]} {number}" if operator in words else problem) in detail, detail
+    assert len(admin.get("/jobs").json()) == before
 
 
 def test_roles(sample_server: Server, admin: httpx.Client) -> None:

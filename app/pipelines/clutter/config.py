@@ -14,6 +14,17 @@ from typing import Literal
 
 from pydantic import BaseModel, Field
 
+from app.core.bounds import (
+    Count,
+    Metres,
+    ObjectMetres,
+    Pixels,
+    Resolution,
+    Share,
+    Speed,
+    Threads,
+)
+
 Mode = Literal["clutter", "dynamic"]
 Expansion = Literal["cluster", "pad"]
 
@@ -25,8 +36,10 @@ class ClutterConfig(BaseModel):
         "dynamic: remove only objects that moved",
     )
     # camera masks (the paper)
-    camera: str | None = Field(None, description="camera to segment; None = the survey's first")
-    mask_padding_px: int = Field(30, ge=0, description="the paper's mask buffer, pixels")
+    camera: str | None = Field(
+        None, max_length=64, description="camera to segment; None = the survey's first"
+    )
+    mask_padding_px: Pixels = Field(30, description="the paper's mask buffer, pixels")
     expansion: Expansion = Field(
         "cluster",
         description="cluster: grow masked instances to their 3D cluster (mmsclean); "
@@ -36,30 +49,42 @@ class ClutterConfig(BaseModel):
     use_free_space: bool = True
     use_tracking: bool = True
     # camera instances (connected components of a class mask, split at depth jumps)
-    depth_gap: float = Field(1.5, gt=0, description="metres between depth layers of one instance")
-    min_instance_points: int = Field(5, ge=1, description="smaller depth layers are not objects")
+    depth_gap: ObjectMetres = Field(
+        1.5, gt=0, description="metres between depth layers of one instance"
+    )
+    min_instance_points: Count = Field(5, ge=1, description="smaller depth layers are not objects")
     # per-frame 3D clusters
-    max_range: float = Field(80.0, gt=0, description="points farther from the sensor: untouched")
-    ground_cell: float = Field(1.0, gt=0, description="metres: cells of the per-frame ground")
-    ground_tolerance: float = Field(0.1, ge=0, description="points this close above: ground")
-    cluster_voxel: float = Field(0.4, gt=0, description="voxel edge of the Euclidean clustering")
-    min_mask_fraction: float = Field(
-        0.3, ge=0, le=1, description="share of a cluster's seen points on instances to expand it"
+    max_range: Metres = Field(
+        80.0, gt=0, description="metres: points farther from the sensor are untouched"
     )
-    min_seed_share: float = Field(
-        0.1, ge=0, le=1, description="share of a cluster's points on an instance to take it whole"
+    ground_cell: Resolution = Field(1.0, description="metres: cells of the per-frame ground")
+    ground_tolerance: ObjectMetres = Field(
+        0.1, ge=0, description="metres: points this close above are ground"
     )
-    max_object_extent: float = Field(
+    cluster_voxel: Resolution = Field(
+        0.4, description="metres: voxel edge of the Euclidean clustering"
+    )
+    min_mask_fraction: Share = Field(
+        0.3, description="share of a cluster's seen points on instances to expand it"
+    )
+    min_seed_share: Share = Field(
+        0.1, description="share of a cluster's points on an instance to take it whole"
+    )
+    max_object_extent: Metres = Field(
         12.0, gt=0, description="metres: larger clusters are background merged with an object"
     )
-    max_object_height: float = Field(4.5, gt=0, description="metres above ground, ditto")
-    halo_radius: float = Field(
-        0.3, ge=0, description="in a background cluster, points this near an instance go with it"
+    max_object_height: Metres = Field(4.5, gt=0, description="metres above ground, ditto")
+    halo_radius: ObjectMetres = Field(
+        0.3,
+        ge=0,
+        description="metres: in a background cluster, points this near an instance go with it",
     )
     # free space (DUFOMap)
-    dufomap_resolution: float = Field(0.1, gt=0, description="voxel edge of the free-space map")
-    dufomap_d_s: float = Field(0.2, ge=0, description="DUFOMap d_s: hit inflation, metres")
-    dufomap_d_p: int = Field(1, ge=0, description="DUFOMap d_p: unknown inflation, voxels")
+    dufomap_resolution: Resolution = Field(
+        0.1, description="metres: voxel edge of the free-space map (its memory grows ~ r^-1.6)"
+    )
+    dufomap_d_s: ObjectMetres = Field(0.2, ge=0, description="DUFOMap d_s: hit inflation, metres")
+    dufomap_d_p: int = Field(1, ge=0, le=10, description="DUFOMap d_p: unknown inflation, voxels")
     free_in_view: Literal["all", "masked"] = Field(
         "masked",
         description="free-space points inside the camera view: all go, or only under a padded mask",
@@ -69,18 +94,18 @@ class ClutterConfig(BaseModel):
         description="free-space points at ground level: only those within halo_radius of a free "
         "point above the ground (feet, wheels), or all (DUFOMap's own decision)",
     )
-    min_free_fraction: float = Field(
-        0.3, ge=0, le=1, description="share of a track's points in free space to call it moving"
+    min_free_fraction: Share = Field(
+        0.3, description="share of a track's points in free space to call it moving"
     )
     # tracking
-    track_gate: float = Field(2.5, gt=0, description="metres a cluster may be from its prediction")
-    min_speed: float = Field(0.5, ge=0, description="m/s: slower tracks did not move")
-    min_track_points: int = Field(20, ge=1, description="smaller clusters are not tracked")
-    min_track_frames: int = Field(3, ge=2, description="frames a track needs to estimate its speed")
-    min_class_share: float = Field(
+    track_gate: Metres = Field(2.5, gt=0, description="metres a cluster may be from its prediction")
+    min_speed: Speed = Field(0.5, description="m/s: slower tracks did not move")
+    min_track_points: Count = Field(20, ge=1, description="smaller clusters are not tracked")
+    min_track_frames: Count = Field(
+        3, ge=2, description="frames a track needs to estimate its speed"
+    )
+    min_class_share: Share = Field(
         0.5,
-        ge=0,
-        le=1,
         description="clutter mode: a track the camera classed in this share of the frames where "
         "it saw it keeps its class in the other ones (a mask missed in shadow or occlusion)",
     )
@@ -91,6 +116,10 @@ class ClutterConfig(BaseModel):
     )
     # accumulation
     voxel_dedup: float | None = Field(
-        None, gt=0, description="voxel edge for de-duplicating the clean map; None keeps all"
+        None,
+        ge=0.001,
+        le=5.0,
+        allow_inf_nan=False,
+        description="metres: voxel edge for de-duplicating the clean map; None keeps all",
     )
-    threads: int = Field(0, ge=0, description="worker threads (DUFOMap, torch), 0 = all cores")
+    threads: Threads = Field(0, description="worker threads (DUFOMap, torch), 0 = all cores")

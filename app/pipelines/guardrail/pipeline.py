@@ -13,6 +13,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, Field
 
+from app.core.bounds import Count, Metres, ObjectMetres, Resolution, Share
 from app.io.survey import Survey
 from app.pipelines.guardrail.classifier import CropEncoder, predict
 from app.pipelines.guardrail.correction import correct_labels
@@ -25,20 +26,20 @@ DEFAULT_MODEL = Path(__file__).resolve().parents[3] / "models" / "guardrail" / "
 
 
 class GuardrailConfig(BaseModel):
-    spacing: float = Field(0.5, gt=0, description="slice length along the trajectory (paper)")
+    spacing: Resolution = Field(0.5, description="metres: slice length along the trajectory")
     head: Literal["image+geometry", "image", "geometry"] = Field(
         "image+geometry", description="classifier inputs: image (the paper), geometry, or both"
     )
-    threshold: float = Field(0.5, gt=0, lt=1, description="guardrail probability to say yes")
-    max_gap: int = Field(2, ge=0, description="other slices filled inside a guardrail run")
-    max_isolated: int = Field(1, ge=0, description="guardrail runs this short become other")
-    min_guardrail_length: float = Field(
+    threshold: Share = Field(0.5, gt=0, lt=1, description="guardrail probability to say yes")
+    max_gap: Count = Field(2, ge=0, description="slices: other slices filled inside a run")
+    max_isolated: Count = Field(1, ge=0, description="slices: guardrail runs this short go")
+    min_guardrail_length: Metres = Field(
         3.0, gt=0, description="metres: shorter guardrail runs are not reconstructed"
     )
-    join_gap: float = Field(2.0, ge=0, description="metres between runs of one guardrail")
-    join_lateral: float = Field(0.75, ge=0, description="metres of lateral offset, ditto")
-    ground_clearance: float = Field(
-        0.1, ge=0, description="points lower above the ground are not modelled"
+    join_gap: Metres = Field(2.0, ge=0, description="metres between runs of one guardrail")
+    join_lateral: ObjectMetres = Field(0.75, ge=0, description="metres of lateral offset, ditto")
+    ground_clearance: ObjectMetres = Field(
+        0.1, ge=0, description="metres: points lower above the ground are not modelled"
     )
     reconstruct: bool = True
 

@@ -4,29 +4,39 @@ from __future__ import annotations
 
 from pydantic import BaseModel, Field
 
+from app.core.bounds import Count, Metres, ObjectMetres, Resolution, Share, Threads
+
 
 class PhantomConfig(BaseModel):
-    cell_size: float = Field(0.2, gt=0, description="s_c: pillar base, metres")
-    pillar_height: float = Field(3.0, gt=0, description="pillars reach this high above ground")
-    voxel_size: float = Field(0.1, gt=0, description="voxel edge: 2 x 2 x 30 voxels per pillar")
-    neighbourhood: int = Field(11, ge=3, description="pillars per side of the CNN window (11 x 11)")
-    refine_window: int = Field(5, ge=1, description="N: Algorithm 1 neighbourhood (5 x 5)")
+    cell_size: Resolution = Field(0.2, description="s_c: pillar base, metres")
+    pillar_height: Metres = Field(3.0, gt=0, description="pillars reach this high above ground")
+    voxel_size: Resolution = Field(0.1, description="voxel edge: 2 x 2 x 30 voxels per pillar")
+    neighbourhood: int = Field(
+        11, ge=3, le=101, description="pillars per side of the CNN window (11 x 11)"
+    )
+    refine_window: int = Field(5, ge=1, le=51, description="N: Algorithm 1 neighbourhood (5 x 5)")
     refine: bool = True
-    ground_cell: float = Field(1.0, gt=0, description="metres: cells of the ground-height estimate")
-    ground_opening: int = Field(5, ge=1, description="cells: objects narrower are not ground")
-    ground_tolerance: float = Field(
+    ground_cell: Resolution = Field(1.0, description="metres: cells of the ground-height estimate")
+    ground_opening: int = Field(5, ge=1, le=101, description="cells: objects narrower not ground")
+    ground_tolerance: ObjectMetres = Field(
         0.15, ge=0, description="points this close above the ground stay ground (DESIGN.md)"
     )
-    min_object_points: int = Field(
+    min_object_points: Count = Field(
         3, ge=0, description="pillars with fewer points above ground_tolerance are ground"
     )
-    below_ground: float = Field(0.3, ge=0, description="points this far below ground still count")
-    prior_weight: float = Field(
-        1.0, ge=0, le=1, description="w: weight of the map's class priors (priors.py), 0 = paper"
+    below_ground: ObjectMetres = Field(
+        0.3, ge=0, description="points this far below ground still count"
     )
-    tile_pillars: int = Field(32, ge=8, description="dense inference tile size (output pillars)")
-    batch_size: int = Field(512, ge=1, description="windows per batch on the per-window path")
-    threads: int = Field(0, ge=0, description="torch threads, 0 = all cores")
+    prior_weight: Share = Field(
+        1.0, description="w: weight of the map's class priors (priors.py), 0 = paper"
+    )
+    tile_pillars: int = Field(
+        32, ge=8, le=4096, description="dense inference tile size (output pillars)"
+    )
+    batch_size: int = Field(
+        512, ge=1, le=65_536, description="windows per batch on the per-window path"
+    )
+    threads: Threads = Field(0, description="torch threads, 0 = all cores")
 
     @property
     def voxels_per_cell(self) -> int:

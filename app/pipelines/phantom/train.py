@@ -34,13 +34,14 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 import torch
 from pydantic import BaseModel, Field
 from torch.nn.functional import cross_entropy
 
+from app.core.bounds import Count, Epochs, Metres, Rate, Seconds, Seed, Threads
 from app.core.settings import get_settings
 from app.io import open_survey
 from app.metrics.classification import confusion_matrix, scores_from_confusion
@@ -62,33 +63,41 @@ from app.simulate.survey import SimulationConfig, simulate
 Progress = Callable[[str, float], None]  # (stage, fraction done)
 
 SIM_PRESETS = ("urban", "highway", "mixed")
+Channels = Annotated[int, Field(ge=1, le=1024)]  # width of a network layer
 
 
 class TrainConfig(BaseModel):
-    per_class: int = Field(10_000, ge=1, description="samples per class (paper: 10,000)")
-    folds: int = Field(5, ge=2, description="k of the k-fold cross-validation (paper: 5)")
-    folds_to_run: int = Field(1, ge=1, description="how many of the k folds to train (module doc)")
-    epochs: int = Field(8, ge=1)
-    batch: int = Field(64, ge=1)
-    lr: float = Field(0.05, gt=0, description="initial SGD learning rate")
-    momentum: float = Field(0.9, ge=0)
-    weight_decay: float = Field(1e-4, ge=0)
+    per_class: Count = Field(10_000, ge=1, description="samples per class (paper: 10,000)")
+    folds: int = Field(5, ge=2, le=100, description="k of the k-fold cross-validation (paper: 5)")
+    folds_to_run: int = Field(
+        1, ge=1, le=100, description="how many of the k folds to train (module doc)"
+    )
+    epochs: Epochs = Field(8, ge=1)
+    batch: int = Field(64, ge=1, le=65_536)
+    lr: Rate = Field(0.05, gt=0, description="initial SGD learning rate")
+    momentum: Rate = Field(0.9, ge=0)
+    weight_decay: Rate = Field(1e-4, ge=0)
     lr_schedule: Literal["paper", "constant"] = Field(
         "paper", description="paper: lr_e = lr0 / (e + 1) (module doc); constant: lr0"
     )
-    seed: int = Field(0, ge=0)
-    threads: int = Field(0, ge=0, description="torch threads, 0 = all cores")
-    channels: tuple[int, int, int] = (8, 16, 32)
-    hidden: int = Field(64, ge=1)
+    seed: Seed = 0
+    threads: Threads = Field(0, description="torch threads, 0 = all cores")
+    channels: tuple[Channels, Channels, Channels] = (8, 16, 32)
+    hidden: Channels = 64
     context: int = Field(
-        0, ge=0, description="channels of the context branch (network.py), 0 = the paper's CNN"
+        0,
+        ge=0,
+        le=1024,
+        description="channels of the context branch (network.py), 0 = the paper's CNN",
     )
-    rotations: int = Field(8, ge=1, description="random rotations per map at most (scarce classes)")
-    block_size: float = Field(
+    rotations: int = Field(
+        8, ge=1, le=360, description="random rotations per map at most (scarce classes)"
+    )
+    block_size: Metres = Field(
         10.0, ge=0, description="metres: k-fold splits keep map blocks whole, 0 = per sample"
     )
-    time_limit: float | None = Field(
-        None, gt=0, description="seconds per fold: no epoch starts that would end past it"
+    time_limit: Seconds | None = Field(
+        None, description="seconds per fold: no epoch starts that would end past it"
     )
 
     def learning_rate(self, epoch: int) -> float:
