@@ -242,6 +242,10 @@ def test_run_phantom_from_the_survey_page_and_read_its_metrics(
     row.locator("a.survey-link").click()
     page.wait_for_selector("form.pipeline[data-pipeline='run:phantom']")
     survey_id = int(page.url.rsplit("/", 1)[1])
+    # a model is chosen by its registry id, never typed in as a file path
+    assert page.locator("form.pipeline [name='model_path']").count() == 0
+    model = page.locator("form.pipeline[data-pipeline='run:phantom'] select[name='model_id']")
+    assert model.locator("option").first.inner_text() == "promoted version"
 
     page.click("button[data-start='run:phantom']")
     bar = ".latest[data-kind='run:phantom'] .progress"
