@@ -4,6 +4,7 @@ the real ESPNetv2 weights)."""
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -238,11 +239,12 @@ def test_rerun_replaces_the_instances(tmp_path: Path) -> None:
     engine.dispose()
 
 
-def test_a_decision_between_check_and_update_makes_the_batch_stale(
+def test_a_decision_during_a_batch_waits_for_it_and_is_then_stale(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """Another reviewer decides right after this batch's version check: the guarded update
-    notices, nothing of the batch is written, and 409's `current` shows the other decision."""
+    """Another reviewer decides right after this batch's version check: the check and the
+    update are one transaction, so the other decision waits for the batch, then finds the
+    version it saw gone (409 with the batch's decision as `current`); nothing is lost."""
     engine = make_engine(f"sqlite:///{tmp_path / 'db.sqlite3'}")
     init_db(engine)
     with Session(engine) as session:
@@ -252,27 +254,40 @@ def test_a_decision_between_check_and_update_makes_the_batch_stale(
         replace_instances(session, 1, [{**row, "instance_index": i} for i in range(2)], None)
         first, second = session.exec(select(ClutterInstance.id)).all()
     check = clutter_review._states
-    raced: list[bool] = []
+    other_result: list[BaseException | None] = []
+    other: list[threading.Thread] = []
+
+    def rival() -> None:
+        try:
+            with Session(engine) as session:
+                decide(session, 1, [DecisionWrite(first, 1, Decision.rejected)], None)
+            other_result.append(None)
+        except BaseException as exc:  # the test inspects it
+            other_result.append(exc)
 
     def check_then_race(session: Session, survey_id: int, ids: list[int]):
         states = check(session, survey_id, ids)
-        if not raced:
-            raced.append(True)
-            with Session(engine) as other:
-                decide(other, 1, [DecisionWrite(first, 1, Decision.rejected)], None)
+        if not other:
+            other.append(threading.Thread(target=rival))
+            other[0].start()
+            other[0].join(timeout=0.5)  # it must still be waiting for this batch
+            assert other[0].is_alive()
         return states
 
     monkeypatch.setattr(clutter_review, "_states", check_then_race)
     writes = [DecisionWrite(i, 1, Decision.approved) for i in (first, second)]
-    with Session(engine) as session, pytest.raises(StaleWriteError) as stale:
+    with Session(engine) as session:
         decide(session, 1, writes, None)
-    assert [(c["instance_id"], c["decision"], c["version"]) for c in stale.value.current] == [
-        (first, "rejected", 2)
+    other[0].join(timeout=30)
+    (stale,) = other_result
+    assert isinstance(stale, StaleWriteError)
+    assert [(c["instance_id"], c["decision"], c["version"]) for c in stale.current] == [
+        (first, "approved", 2)
     ]
     with Session(engine) as session:
         _, states = list_instances(session, 1)
     assert [(s.decision, s.version) for s in states] == [
-        (Decision.rejected, 2),
-        (Decision.pending, 1),
+        (Decision.approved, 2),
+        (Decision.approved, 2),
     ]
     engine.dispose()
