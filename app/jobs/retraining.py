@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from sqlalchemy.engine import Engine
 from sqlmodel import Session, select
 
+from app.core.errors import MmscleanError
 from app.core.settings import Settings
 from app.jobs.phantom_training_data import label_counts, training_blocker
 from app.jobs.queue import enqueue
@@ -80,7 +81,12 @@ def maybe_queue_retraining(session: Session, settings: Settings) -> Job | None:
     if state.blocked_by is not None:
         log.info("retraining due but not queued: %s", state.blocked_by)
         return None
-    return enqueue(session, TRAIN_PHANTOM, dict(TRIGGER_CONFIG), None, None, settings)
+    try:
+        return enqueue(session, TRAIN_PHANTOM, dict(TRIGGER_CONFIG), None, None, settings)
+    except MmscleanError as exc:  # e.g. over MMSCLEAN_JOB_MEMORY_MB: said, not raised, since
+        session.rollback()  # the trigger runs after a label write's answer was sent
+        log.warning("retraining due but not queued: %s", exc.message)
+        return None
 
 
 class RetrainingTrigger:

@@ -141,3 +141,23 @@ def test_labels_in_one_block_cannot_hold_any_out(context: JobContext) -> None:
         write_labels(session, context.survey_id, None, cells, np.arange(60) % 2)
     with pytest.raises(ConfigError, match="labels: the labels cover too few map blocks"):
         train_phantom(context, {"epochs": 1, "rotations": 1, "block_size": 50})
+
+
+def test_a_due_retraining_refused_when_queued_is_logged_not_raised(
+    engine: Engine, settings: Settings, monkeypatch: pytest.MonkeyPatch, caplog
+) -> None:
+    """The trigger runs after a label write's answer went out: a refusal when it queues (here
+    the memory limit) is a warning in the log, never an exception in a background task."""
+    from app.jobs import retraining
+
+    due = retraining.RetrainingState(threshold=1, new_labels=5, pending_job_id=None)
+    monkeypatch.setattr(retraining, "retraining_state", lambda session, settings: due)
+
+    def over_the_limit(*args, **kwargs):
+        raise ConfigError("config.epochs", "this run needs about 9,000 MB; the limit is 64 MB")
+
+    monkeypatch.setattr(retraining, "enqueue", over_the_limit)
+    trigger = retraining.RetrainingTrigger(engine, settings.model_copy(update={"retrain_every": 1}))
+    with caplog.at_level("WARNING", logger="app.jobs.retraining"):
+        assert trigger() is None
+    assert "the limit is 64 MB" in caplog.text
