@@ -23,7 +23,7 @@ from app.core.bounds import RecordId
 from app.core.errors import ConfigError, ConflictError, NotFoundError
 from app.core.settings import Settings
 from app.io import open_survey
-from app.jobs.memory import MemoryEstimate, points_mb, survey_text
+from app.jobs.memory import MemoryEstimate, per_point_estimate
 from app.jobs.registry import JobContext, task
 from app.jobs.task_config import job_model, refuse_model_path, validated
 from app.pipelines.guardrail.correction import correct_labels
@@ -52,7 +52,7 @@ from app.store.guardrail_review import (
 )
 from app.store.model_versions import ensure_shipped_version, promoted_version
 from app.store.models import GuardrailKind, GuardrailSlice, Pipeline
-from app.store.surveys import get_survey, survey_footprint
+from app.store.surveys import get_survey
 
 STAGE_FILE = "guardrail_slices.npz"
 FEATURES_FILE = "slice_features.npz"  # classifier inputs per slice: what retraining reads
@@ -200,14 +200,7 @@ def check_run_config(config: dict[str, Any], settings: Settings) -> None:
 def estimate_run(session: Session, survey: int | None, config: dict[str, Any]) -> MemoryEstimate:
     """run:guardrail's memory: the survey's points with their slice and component arrays."""
     guardrail_options(config)
-    if survey is None:
-        return MemoryEstimate("no survey")
-    footprint = survey_footprint(session, survey)
-    return MemoryEstimate(survey_text(footprint)).add(
-        "survey_id",
-        points_mb(footprint, GUARDRAIL_BYTES_PER_POINT),
-        f"{GUARDRAIL_BYTES_PER_POINT:.0f} bytes per point",
-    )
+    return per_point_estimate(session, survey, GUARDRAIL_BYTES_PER_POINT, "")
 
 
 def check_rebuild_config(config: dict[str, Any], settings: Settings) -> None:

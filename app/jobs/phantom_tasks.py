@@ -23,7 +23,7 @@ from app.core.bounds import RecordId
 from app.core.errors import ConfigError, ConflictError, NotFoundError
 from app.core.settings import Settings
 from app.io import open_survey
-from app.jobs.memory import MemoryEstimate, points_mb, survey_text
+from app.jobs.memory import MemoryEstimate, per_point_estimate
 from app.jobs.registry import JobContext, task
 from app.jobs.task_config import job_model, validated
 from app.pipelines.phantom.config import PhantomConfig
@@ -33,7 +33,6 @@ from app.store.audit import audit
 from app.store.model_versions import ensure_shipped_version, promoted_version
 from app.store.models import LabelSource, ModelVersion, Pipeline, Survey, utcnow
 from app.store.pillar_labels import STORE_GRID
-from app.store.surveys import survey_footprint
 
 KIND = "run:phantom"
 # overall progress reached at the start and end of each pipeline stage; the rest is ingestion
@@ -71,14 +70,7 @@ def check_config(config: dict[str, Any], settings: Settings) -> None:
 def estimate_memory(session: Session, survey: int | None, config: dict[str, Any]) -> MemoryEstimate:
     """run:phantom's memory: the accumulated map and its pillar arrays (the grid is tiled, and
     a job sets no resolution, so it grows with the survey alone)."""
-    if survey is None:
-        return MemoryEstimate("no survey")
-    footprint = survey_footprint(session, survey)
-    return MemoryEstimate(survey_text(footprint)).add(
-        "survey_id",
-        points_mb(footprint, PHANTOM_BYTES_PER_POINT),
-        f"{PHANTOM_BYTES_PER_POINT:.0f} bytes per point of the accumulated map",
-    )
+    return per_point_estimate(session, survey, PHANTOM_BYTES_PER_POINT, " of the accumulated map")
 
 
 def _card(checkpoint: Path) -> dict[str, Any]:
