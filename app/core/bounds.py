@@ -14,11 +14,12 @@ from typing import Annotated
 
 from pydantic import Field
 
+from app.core.limits import INT64_MAX
+
 MAX_RANGE_M = 1000.0  # no mobile-mapping sensor sees farther
 MAX_COUNT = 1_000_000  # frames, points, samples, steps of one run
 MAX_THREADS = 256
 MAX_PIXELS = 200
-MAX_RECORD_ID = 2**63 - 1  # SQLite INTEGER
 
 # Where a type has a bound, it wins over a field's own bound of the same kind (pydantic merges
 # the annotation last): types here bound one side where fields need their own other side.
@@ -48,4 +49,4 @@ Rate = Annotated[float, Field(le=1.0, allow_inf_nan=False)]
 # a random seed
 Seed = Annotated[int, Field(ge=0, le=2**32 - 1)]
 # a store id (survey, model version)
-RecordId = Annotated[int, Field(ge=1, le=MAX_RECORD_ID)]
+RecordId = Annotated[int, Field(ge=1, le=INT64_MAX)]
