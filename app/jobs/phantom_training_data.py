@@ -42,21 +42,28 @@ class ClassCounts:
     train: np.ndarray  # (4,) outside the held-out blocks
     held_out: np.ndarray  # (4,) inside them
     with_points: bool  # counted only pillars known to hold points (else every label)
+    unmapped: int = 0  # with_points: labels left out, on surveys no phantom run has mapped
 
 
 def label_counts(
     labels: dict[int, SurveyLabels], cfg: PhantomRetrainConfig, with_points: bool = False
 ) -> ClassCounts:
-    """The counts from the labels alone; WITH_POINTS: leave out the labels whose pillar a
-    survey's last phantom run found no points in (where the store knows: `mapped`)."""
+    """The counts from the labels alone; WITH_POINTS: count only the labels whose pillar a
+    survey's last phantom run found points in (`mapped`). A survey no phantom run has mapped
+    counts for nothing then: which of its pillars hold points is unknown without reading its
+    whole map, and a trigger that guessed would queue jobs bound to fail."""
     train, held = np.zeros(4, np.int64), np.zeros(4, np.int64)
+    unmapped = 0
     for survey in labels.values():
         inside = held_out(survey, cfg)
-        usable = survey.mapped if with_points and survey.mapped is not None else True
+        usable: np.ndarray | bool = True
+        if with_points:
+            usable = survey.mapped if survey.mapped is not None else False
+            unmapped += 0 if survey.mapped is not None else len(survey.cells)
         train += np.bincount(survey.classes[~inside & usable], minlength=4)[:4]
         held += np.bincount(survey.classes[inside & usable], minlength=4)[:4]
     total = sum(len(s.cells) for s in labels.values())
-    return ClassCounts(total, train, held, with_points)
+    return ClassCounts(total, train, held, with_points, unmapped)
 
 
 def training_blocker(counts: ClassCounts, cfg: PhantomRetrainConfig) -> str | None:
@@ -66,6 +73,12 @@ def training_blocker(counts: ClassCounts, cfg: PhantomRetrainConfig) -> str | No
     for side, part in (("outside", counts.train), ("inside", counts.held_out)):
         if part.sum():
             continue
+        if counts.with_points and counts.unmapped:
+            return (
+                f"no labelled pillar {side} the map blocks held out for validation is known to "
+                f"hold points: {counts.unmapped:,} labels lie on surveys no phantom run has "
+                "mapped (run phantom on them, or retrain by hand)"
+            )
         if counts.with_points:
             return (
                 f"no labelled pillar {side} the map blocks held out for validation has points "

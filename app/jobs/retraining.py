@@ -65,8 +65,8 @@ def retraining_state(session: Session, settings: Settings) -> RetrainingState:
 
 
 def training_blocked_by(session: Session) -> str | None:
-    """Why the job the trigger would queue could not train, from the labels and, where a
-    phantom run stored model pre-labels, which labelled pillars hold points."""
+    """Why the job the trigger would queue could not train, from the labels on pillars a
+    phantom run found points in (its model pre-labels; labels elsewhere count for nothing)."""
     cfg = PhantomRetrainConfig(**TRIGGER_CONFIG)
     labels = human_pillar_labels(session, cfg.survey_ids, with_mapped=True)
     return training_blocker(label_counts(labels, cfg, with_points=True), cfg)

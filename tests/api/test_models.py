@@ -62,6 +62,8 @@ def trainable_labels(n: int, first: int = 0) -> list[dict]:
 
 def test_new_labels_queue_retraining_once(trigger_server: Server) -> None:
     survey = add_survey(trigger_server)
+    strip = np.arange(0, 303)  # its phantom run saw points along the labelled strip
+    add_model_labels(trigger_server, survey, strip, np.zeros_like(strip))
     anna = trigger_server.add_user("trigger-anna", "annotator")
     labels = trainable_labels(3)
     assert anna.put(f"/surveys/{survey}/pillars/labels", json={"labels": labels}).is_success
@@ -128,9 +130,18 @@ def test_labels_that_cannot_train_queue_nothing_and_say_why(blocked_server: Serv
         assert status["new_labels"] == 100_000 and status["pending_job_id"] is None
         assert "has points in its survey's map" in status["blocked_by"]
         assert train_jobs(admin) == []
-        # a survey no phantom run mapped, labelled with one class only: still nothing to learn
+        # a survey no phantom run mapped: which labelled pillars hold points is unknown, so
+        # its labels count for nothing (the bench's 100,000 labels on an unrun survey queued a
+        # job that then failed)
         other = add_survey(blocked_server)
         ground = [{**label, "label": 0} for label in trainable_labels(1000)]
+        assert anna.put(f"/surveys/{other}/pillars/labels", json={"labels": ground}).is_success
+        status = settled_status(admin)
+        assert "1,000 labels lie on surveys no phantom run has mapped" in status["blocked_by"]
+        assert train_jobs(admin) == []
+        # once its phantom run has mapped it: one class only, still nothing to learn
+        strip = np.arange(0, 3000)
+        add_model_labels(blocked_server, other, strip, np.zeros_like(strip))
         assert anna.put(f"/surveys/{other}/pillars/labels", json={"labels": ground}).is_success
         status = settled_status(admin)
         assert status["blocked_by"] == (
