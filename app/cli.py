@@ -534,8 +534,9 @@ def export(
 
     from sqlmodel import Session
 
-    from app.api.qa_report import build_qa_report
-    from app.api.routes.exports import (
+    from app.core.errors import ConfigError
+    from app.core.settings import get_settings
+    from app.reports.exports import (
         clutter_map,
         csv_pieces,
         exported,
@@ -543,8 +544,7 @@ def export(
         write_guardrails_zip,
         write_pillars_npz,
     )
-    from app.core.errors import ConfigError
-    from app.core.settings import get_settings
+    from app.reports.qa_report import build_qa_report
     from app.store.db import get_engine
     from app.store.surveys import find_survey
 

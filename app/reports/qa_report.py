@@ -21,22 +21,16 @@ from typing import Any
 
 import cv2
 import numpy as np
-from sqlmodel import Session, col, func, select
+from sqlmodel import Session
 
 from app.core.settings import Settings
 from app.metrics.plots import bar_image, confusion_image
-from app.store.models import (
-    ClutterDecision,
-    ClutterInstance,
-    Decision,
-    GuardrailModel,
-    Job,
-    LabelSource,
-    ModelStatus,
-    PillarClass,
-    PillarLabel,
-    Survey,
-    User,
+from app.store.models import Decision, Job, LabelSource, ModelStatus, PillarClass, Survey
+from app.store.review_counts import (
+    clutter_decision_counts,
+    clutter_instance_count,
+    guardrail_status_counts,
+    pillar_label_counts,
 )
 from app.store.surveys import frames_summary, latest_succeeded_job
 
@@ -282,13 +276,7 @@ def run_section(session: Session, settings: Settings, survey: Survey, pipeline: 
 def label_section(session: Session, survey_id: int) -> str:
     """Human labels per class and per user, model pre-labels, clutter decisions, guardrail
     model verdicts."""
-    per_user = session.exec(
-        select(User.username, PillarLabel.source, PillarLabel.label, func.count())
-        .select_from(PillarLabel)
-        .outerjoin(User, col(User.id) == col(PillarLabel.user_id))
-        .where(PillarLabel.survey_id == survey_id)
-        .group_by(User.username, PillarLabel.source, PillarLabel.label)
-    ).all()
+    per_user = pillar_label_counts(session, survey_id)
     by_source = {s.value: np.zeros(len(PillarClass), dtype=np.int64) for s in LabelSource}
     by_user: dict[str, np.ndarray] = {}
     for username, source, label, n in per_user:
@@ -317,19 +305,8 @@ def label_section(session: Session, survey_id: int) -> str:
         else note("No human pillar labels yet.")
     )
 
-    instances = session.exec(
-        select(func.count())
-        .select_from(ClutterInstance)
-        .where(ClutterInstance.survey_id == survey_id)
-    ).one()
-    decided = dict(
-        session.exec(
-            select(ClutterDecision.decision, func.count())
-            .join(ClutterInstance, col(ClutterInstance.id) == col(ClutterDecision.instance_id))
-            .where(ClutterInstance.survey_id == survey_id)
-            .group_by(ClutterDecision.decision)
-        ).all()
-    )
+    instances = clutter_instance_count(session, survey_id)
+    decided = clutter_decision_counts(session, survey_id)
     approved = int(decided.get(Decision.approved, 0))
     rejected = int(decided.get(Decision.rejected, 0))
     parts.append("<h3>clutter decisions</h3>")
@@ -339,13 +316,7 @@ def label_section(session: Session, survey_id: int) -> str:
             [[int(instances), approved, rejected, int(instances) - approved - rejected]],
         )
     )
-    verdicts = dict(
-        session.exec(
-            select(GuardrailModel.status, func.count())
-            .where(GuardrailModel.survey_id == survey_id)
-            .group_by(GuardrailModel.status)
-        ).all()
-    )
+    verdicts = guardrail_status_counts(session, survey_id)
     parts.append("<h3>guardrail models</h3>")
     parts.append(
         table(
