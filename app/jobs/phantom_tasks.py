@@ -8,7 +8,6 @@ replaced in the same transaction that writes the new, so a reader never sees hal
 
 from __future__ import annotations
 
-import itertools
 import json
 import os
 from pathlib import Path
@@ -16,11 +15,10 @@ from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
-from sqlalchemy.engine import Engine
-from sqlmodel import Session, select
+from sqlmodel import Session
 
 from app.core.bounds import RecordId
-from app.core.errors import ConfigError, ConflictError, NotFoundError
+from app.core.errors import ConfigError, ConflictError
 from app.core.settings import Settings
 from app.io import open_survey
 from app.jobs.memory import MemoryEstimate, per_point_estimate
@@ -29,22 +27,21 @@ from app.jobs.task_config import job_model, validated
 from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.model import DEFAULT_MODEL
 from app.pipelines.phantom.run import run_phantom_to_folder
-from app.store.audit import audit
-from app.store.model_versions import ensure_shipped_version, promoted_version
-from app.store.models import LabelSource, ModelVersion, Pipeline, Survey, utcnow
+from app.store.model_labels import store_model_labels
+from app.store.model_versions import (
+    ensure_shipped_version,
+    promoted_version,
+    version_by_checkpoint,
+)
+from app.store.models import ModelVersion, Pipeline
 from app.store.pillar_labels import STORE_GRID
+from app.store.surveys import get_survey
 
 KIND = "run:phantom"
 # overall progress reached at the start and end of each pipeline stage; the rest is ingestion
 STAGES = {"accumulate": (0.02, 0.15), "classify": (0.15, 0.8), "done": (0.85, 0.85)}
 INGEST_AT = 0.9
 PHANTOM_BYTES_PER_POINT = 200.0  # map xyz, ground, pillar keys, sort buffers, labels
-
-_INSERT_MODEL_LABELS = (
-    "INSERT INTO pillar_label (survey_id, cell_id, label, source, confidence, user_id, "
-    "model_version_id, version, created_at, updated_at) VALUES (?, ?, ?, ?, ?, NULL, ?, 1, ?, ?)"
-)
-_DELETE_MODEL_LABELS = "DELETE FROM pillar_label WHERE survey_id = ? AND source = ?"
 
 
 class PhantomJobConfig(BaseModel):
@@ -87,17 +84,16 @@ def model_version_for(session: Session, model_id: int | None) -> ModelVersion:
     if promoted is not None and Path(promoted.checkpoint_path).is_file():
         return promoted
     model_path = DEFAULT_MODEL.resolve()
-    same_file = select(ModelVersion).where(
-        ModelVersion.pipeline == Pipeline.phantom,
-        ModelVersion.checkpoint_path == str(model_path),
-    )
-    known = session.exec(same_file).first()
+    known = version_by_checkpoint(session, Pipeline.phantom, model_path)
     if known is not None:
         return known
     try:
         return ensure_shipped_version(session, Pipeline.phantom, model_path, _card(model_path))
     except ConflictError:  # another worker created the row a moment ago
-        return session.exec(same_file).one()
+        known = version_by_checkpoint(session, Pipeline.phantom, model_path)
+        if known is None:
+            raise
+        return known
 
 
 def stage_progress(context: JobContext):
@@ -132,58 +128,13 @@ def model_label_rows(pillars_npz: Path) -> tuple[np.ndarray, np.ndarray, np.ndar
     return cells[first], labels[first], confidence[first]
 
 
-def store_model_labels(
-    engine: Engine,
-    survey_id: int,
-    cells: np.ndarray,
-    labels: np.ndarray,
-    confidence: np.ndarray,
-    model_version_id: int,
-    user_id: int | None,
-    job_id: int,
-) -> int:
-    """Replace the survey's model pre-labels in one transaction; returns how many were written."""
-    now = utcnow().replace(tzinfo=None).isoformat(sep=" ", timespec="microseconds")
-    model = LabelSource.model.value
-    rows = zip(
-        itertools.repeat(survey_id),
-        cells.tolist(),
-        labels.tolist(),
-        itertools.repeat(model),
-        confidence.tolist(),
-        itertools.repeat(model_version_id),
-        itertools.repeat(now),
-        itertools.repeat(now),
-    )
-    with Session(engine) as session:
-        conn = session.connection()
-        conn.exec_driver_sql(_DELETE_MODEL_LABELS, (survey_id, model))
-        if len(cells):
-            conn.exec_driver_sql(_INSERT_MODEL_LABELS, list(rows))
-        audit(
-            session,
-            user_id,
-            "pillar.model_labels",
-            "survey",
-            survey_id,
-            job_id=job_id,
-            model_version_id=model_version_id,
-            pillars=len(cells),
-            per_class=np.bincount(labels, minlength=4).tolist(),
-        )
-        session.commit()
-    return len(cells)
-
-
 @task(KIND, check=check_config, model="phantom", estimate=estimate_memory)
 def run_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
     options = parse_config(config, context.settings)
     if context.survey_id is None:
         raise ConfigError("survey_id", f"{KIND} jobs need a survey")
     with Session(context.engine, expire_on_commit=False) as session:
-        record = session.get(Survey, context.survey_id)
-        if record is None:
-            raise NotFoundError(f"survey {context.survey_id} not found")
+        record = get_survey(session, context.survey_id)
         source, fmt = record.source_path, record.format
         version = model_version_for(session, options.model_id)
     checkpoint = Path(version.checkpoint_path)

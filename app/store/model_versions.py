@@ -19,6 +19,16 @@ def promoted_version(session: Session, pipeline: Pipeline) -> ModelVersion | Non
     return session.exec(query.order_by(ModelVersion.id.desc())).first()
 
 
+def version_by_checkpoint(
+    session: Session, pipeline: Pipeline, checkpoint: Path
+) -> ModelVersion | None:
+    """The pipeline's version row of the checkpoint file at CHECKPOINT (as given), if any."""
+    query = select(ModelVersion).where(
+        ModelVersion.pipeline == pipeline, ModelVersion.checkpoint_path == str(checkpoint)
+    )
+    return session.exec(query).first()
+
+
 def ensure_shipped_version(
     session: Session, pipeline: Pipeline, checkpoint: Path, card: dict[str, Any]
 ) -> ModelVersion:

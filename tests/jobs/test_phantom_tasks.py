@@ -22,9 +22,9 @@ from app.jobs.phantom_tasks import (
     parse_config,
     run_phantom,
     stage_progress,
-    store_model_labels,
 )
 from app.pipelines.phantom.model import DEFAULT_MODEL, PAPER_MODEL
+from app.store.model_labels import store_model_labels
 from app.store.model_versions import ensure_shipped_version
 from app.store.models import AuditEvent, PillarLabel, Pipeline, Survey, utcnow
 from app.store.pillar_labels import STORE_GRID

@@ -13,7 +13,7 @@ from sqlalchemy.engine import Engine
 from sqlmodel import Session
 
 from app.core.errors import StaleWriteError
-from app.jobs.phantom_tasks import store_model_labels
+from app.store.model_labels import store_model_labels
 from app.store.model_versions import register_version
 from app.store.models import Pipeline, Role, Survey
 from app.store.pillar_labels import (

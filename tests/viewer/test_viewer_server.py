@@ -18,8 +18,8 @@ from sqlmodel import Session
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
-from app.jobs.phantom_tasks import store_model_labels
 from app.store.db import make_engine
+from app.store.model_labels import store_model_labels
 from app.store.model_versions import register_version
 from app.store.models import Pipeline
 from app.store.pillar_labels import STORE_GRID
