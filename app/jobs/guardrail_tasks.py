@@ -1,5 +1,5 @@
-"""Guardrail jobs and the guardrail review helpers the API needs (the API reaches pipelines only
-through `app.jobs`).
+"""Guardrail jobs (the synchronous review helpers the API and the viewer call live in
+`app.review.guardrails`).
 
 - `run:guardrail`: the guardrail pipeline on the job's survey into the job's folder (the CLI's
   outputs plus `guardrail_slices.npz`, what a rebuild needs), then the slices and the
@@ -20,13 +20,12 @@ from pydantic import BaseModel, ConfigDict, Field
 from sqlmodel import Session
 
 from app.core.bounds import RecordId
-from app.core.errors import ConfigError, ConflictError, NotFoundError
+from app.core.errors import ConfigError, ConflictError
 from app.core.settings import Settings
 from app.io import open_survey
 from app.jobs.memory import MemoryEstimate, per_point_estimate
 from app.jobs.registry import JobContext, task
 from app.jobs.task_config import job_model, refuse_model_path, validated
-from app.pipelines.guardrail.correction import correct_labels
 from app.pipelines.guardrail.pipeline import (
     DEFAULT_MODEL,
     GuardrailConfig,
@@ -39,19 +38,16 @@ from app.pipelines.guardrail.pipeline import (
 from app.pipelines.guardrail.run import write_guardrail_folder
 from app.pipelines.guardrail.train import load_heads
 from app.pipelines.outputs import write_report
+from app.review.guardrails import current_run, load_stage, stage_rows
 from app.store.guardrail_review import (
-    GuardrailRun,
     ModelRecord,
     SliceRows,
-    latest_run,
-    match_slices,
     replace_guardrail_models,
     replace_guardrail_run,
     slice_table,
-    trajectory_position,
 )
 from app.store.model_versions import ensure_shipped_version, promoted_version
-from app.store.models import GuardrailKind, GuardrailSlice, Pipeline
+from app.store.models import GuardrailKind, Pipeline
 from app.store.surveys import get_survey
 
 STAGE_FILE = "guardrail_slices.npz"
@@ -269,44 +265,16 @@ def run_guardrail(context: JobContext, config: dict[str, Any]) -> dict[str, Any]
 # --- rebuild ------------------------------------------------------------------------------
 
 
-def load_stage(run: GuardrailRun, slices_only: bool = False) -> ReconstructionInput:
-    path = Path(run.stage_path)
-    if not path.is_file():
-        raise ConflictError(
-            f"{path}: the slice stage of the last guardrail run is missing; run it again"
-        )
-    return ReconstructionInput.load(path, slices_only=slices_only)
-
-
-def _current_run(session: Session, survey_id: int) -> GuardrailRun:
-    get_survey(session, survey_id)
-    run = latest_run(session, survey_id)
-    if run is None:
-        raise ConflictError(f"survey {survey_id} has no guardrail run yet; run run:guardrail")
-    return run
-
-
-def _stage_rows(saved: ReconstructionInput, component: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """For each store slice, its slice in the saved stage (the two must be the same set)."""
-    s = saved.slices
-    at = match_slices(component, index, s.component, s.station_index)
-    if len(component) != len(s) or (at < 0).any():
-        raise ConflictError(
-            "the survey's slices no longer match the last guardrail run's stage; run it again"
-        )
-    return at
-
-
 @task("guardrail:rebuild", check=check_rebuild_config)
 def rebuild_guardrail_models(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
     survey_id = _survey_id(context)
     _validated(dict(config or {}), REBUILD_FIELDS)
     with Session(context.engine) as session:
-        run = _current_run(session, survey_id)
+        run = current_run(session, survey_id)
         table = slice_table(session, survey_id)
     context.progress(0.02, "loading the slice stage")
     saved = load_stage(run)
-    at = _stage_rows(saved, table.component, table.slice_index)
+    at = stage_rows(saved, table.component, table.slice_index)
     labels = np.zeros(len(saved.slices), dtype=bool)
     labels[at] = table.label.astype(bool)
     cfg = _validated(
@@ -357,83 +325,3 @@ def rebuild_guardrail_models(context: JobContext, config: dict[str, Any]) -> dic
             output[f"{g.id}.{fmt_name}"] = str(path)
     context.progress(1.0, f"{stored['models']} guardrail models ({stored['kept']} kept)")
     return {"files": output, "report": str(report_path), "counts": counts}
-
-
-# --- review helpers for the API -----------------------------------------------------------
-
-
-def preview_correction(
-    session: Session,
-    survey_id: int,
-    labels: dict[int, int],
-    max_gap: int | None = None,
-    max_isolated: int | None = None,
-) -> dict[str, Any]:
-    """The adjacency correction of the last run applied to the survey's labels with `labels`
-    (slice id -> 0/1) put in, nothing saved. Input per slice: the given label, else the human
-    label, else the classifier's raw label. Answers every slice whose corrected label differs
-    from its current label, plus the given ones."""
-    run = _current_run(session, survey_id)
-    table = slice_table(session, survey_id)
-    by_id = np.argsort(table.id)
-    sorted_ids = table.id[by_id]
-    ids = np.fromiter(labels.keys(), dtype=np.int64, count=len(labels))
-    given = np.fromiter(labels.values(), dtype=np.int64, count=len(labels))
-    pos = np.clip(np.searchsorted(sorted_ids, ids), 0, max(len(sorted_ids) - 1, 0))
-    found = sorted_ids[pos] == ids if len(sorted_ids) else np.zeros(len(ids), dtype=bool)
-    if not found.all():
-        raise NotFoundError(f"guardrail slice {ids[~found][0]} not found in survey {survey_id}")
-    if not np.isin(given, (0, 1)).all():
-        raise ConfigError("labels", "every label must be 0 or 1")
-    rows = by_id[pos] if len(ids) else np.zeros(0, dtype=np.int64)
-    proposed = np.where(table.human, table.label, table.predicted)
-    proposed[rows] = given
-    saved = load_stage(run, slices_only=True)
-    at = _stage_rows(saved, table.component, table.slice_index)
-    stage_labels = np.zeros(len(saved.slices), dtype=np.int64)
-    stage_labels[at] = proposed
-    gap = saved.config.max_gap if max_gap is None else max_gap
-    isolated = saved.config.max_isolated if max_isolated is None else max_isolated
-    corrected = correct_labels(saved.slices, stage_labels, max_gap=gap, max_isolated=isolated)[at]
-    show = corrected != table.label
-    show[rows] = True
-    pick = np.flatnonzero(show)
-    return {
-        "max_gap": gap,
-        "max_isolated": isolated,
-        "guardrail_slices": int(corrected.sum()),
-        "changed": int((corrected != table.label).sum()),
-        "slices": [
-            {
-                "id": int(i),
-                "component_id": int(c),
-                "slice_index": int(k),
-                "label": int(lab),
-                "proposed": int(p),
-                "corrected_label": int(q),
-            }
-            for i, c, k, lab, p, q in zip(
-                table.id[pick],
-                table.component[pick],
-                table.slice_index[pick],
-                table.label[pick],
-                proposed[pick],
-                corrected[pick],
-                strict=True,
-            )
-        ],  # fmt: skip
-    }
-
-
-def slice_position(session: Session, survey_id: int, row: GuardrailSlice) -> list[float] | None:
-    """World position of a slice: the centre of its points from the last run's stage, else the
-    sensor position at its station."""
-    run = latest_run(session, survey_id)
-    if run is not None and Path(run.stage_path).is_file():
-        s = ReconstructionInput.load(Path(run.stage_path), slices_only=True).slices
-        at = match_slices(
-            np.array([row.component_id]), np.array([row.slice_index]), s.component, s.station_index
-        )
-        if at[0] >= 0:
-            return [float(v) for v in s.centre[at[0]]]
-    return trajectory_position(session, survey_id, row.station_m)

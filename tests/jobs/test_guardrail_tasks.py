@@ -16,7 +16,6 @@ from app.core.errors import ConfigError, ConflictError, NotFoundError
 from app.core.settings import Settings
 from app.jobs.guardrail_tasks import (
     STAGE_FILE,
-    preview_correction,
     rebuild_guardrail_models,
     run_guardrail,
 )
@@ -28,7 +27,6 @@ from app.store.guardrail_review import (
     decide_model,
     list_models,
     put_slice_labels,
-    slice_table,
 )
 from app.store.models import (
     AuditEvent,
@@ -240,19 +238,6 @@ def test_rebuild_with_unchanged_labels_reproduces_the_run(jobs: Jobs) -> None:
         assert m.id > max(b.id for b in before.values())  # ids are never handed out twice
         assert m.params["poles"] == before[kind].params["poles"]
         assert m.params["slices"] == before[kind].params["slices"]
-
-
-def test_preview_correction_fills_a_gap_without_saving(jobs: Jobs) -> None:
-    jobs.run()
-    with jobs.session() as session:
-        table = slice_table(session, jobs.survey_id)
-        on = np.flatnonzero(table.label == 1)
-        # one guardrail slice in the middle of a run set to "other" is filled back in
-        middle = on[len(on) // 4]
-        preview = preview_correction(session, jobs.survey_id, {int(table.id[middle]): 0})
-        entry = next(s for s in preview["slices"] if s["id"] == table.id[middle])
-        assert entry["proposed"] == 0 and entry["corrected_label"] == 1
-        assert slice_table(session, jobs.survey_id).label[middle] == 1  # nothing saved
 
 
 def test_bad_config_names_the_field(jobs: Jobs, tmp_path: Path) -> None:

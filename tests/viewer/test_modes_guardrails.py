@@ -16,8 +16,8 @@ from sqlalchemy.engine import Engine
 from sqlmodel import Session
 
 from app.io import open_survey
-from app.jobs.guardrail_tasks import preview_correction
 from app.jobs.registry import task_for
+from app.review.guardrails import preview_correction
 from app.simulate.survey import SimulationConfig, simulate
 from app.store.audit import audit
 from app.store.guardrail_review import (

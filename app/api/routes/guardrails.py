@@ -19,8 +19,8 @@ from app.api.deps import Annotator, CurrentUser, Reviewer, SessionDep, wake_view
 from app.api.errors import errors
 from app.api.types import Id, Int64, Offset, Version
 from app.core.errors import ConflictError, NotFoundError
-from app.jobs.guardrail_tasks import preview_correction, slice_position
 from app.jobs.queue import enqueue
+from app.review.guardrails import preview_correction, slice_position
 from app.store.guardrail_review import (
     MAX_LABELS_PER_WRITE,
     GuardrailModelPublic,

@@ -20,7 +20,7 @@ import numpy as np
 from sqlmodel import col, select
 
 from app.core.errors import StaleWriteError
-from app.jobs.guardrail_tasks import load_stage, preview_correction
+from app.review.guardrails import load_stage, preview_correction
 from app.store.guardrail_review import (
     MAX_LABELS_PER_WRITE,
     SliceLabelEdit,

@@ -20,7 +20,7 @@ import numpy as np
 import trimesh
 
 from app.core.errors import StaleWriteError
-from app.jobs.guardrail_tasks import load_stage
+from app.review.guardrails import load_stage
 from app.store.guardrail_review import decide_model, latest_run, list_models, match_slices
 from app.store.models import GuardrailModel, ModelStatus, Role
 from app.viewer.label_feed import GUARDRAIL_RUN, MODEL_DECISIONS
