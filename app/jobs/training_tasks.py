@@ -11,11 +11,10 @@ from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, Field
-from sqlalchemy import text
 from sqlmodel import Session
 
 from app.core.bounds import Count, Metres, Rate, RecordId, Seconds, Seed, Share
-from app.core.errors import ConfigError, NotFoundError
+from app.core.errors import ConfigError
 from app.core.settings import Settings
 from app.io import open_survey
 from app.jobs.guardrail_tasks import FEATURES_FILE, promoted_classifier
@@ -41,9 +40,10 @@ from app.pipelines.phantom.pipeline import accumulate
 from app.pipelines.phantom.train import TrainConfig
 from app.store.guardrail_review import latest_run, match_slices
 from app.store.model_versions import ensure_shipped_version, promoted_version, register_version
-from app.store.models import Pipeline, Survey
+from app.store.models import Pipeline
 from app.store.pillar_labels import STORE_GRID, human_labels_since
-from app.store.training_labels import human_pillar_labels
+from app.store.surveys import get_survey
+from app.store.training_labels import human_pillar_labels, reviewed_slices
 
 PHANTOM_SAMPLE_BYTES = 30 * 24 * 24 + 6 * 31 * 31  # a window's counts + context bands, uint8
 
@@ -121,9 +121,7 @@ def train_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]
         total = sum(len(s.cells) for s in labels.values())
         surveys = {}
         for survey_id in labels:
-            record = session.get(Survey, survey_id)
-            if record is None:
-                raise NotFoundError(f"survey {survey_id} not found")
+            record = get_survey(session, survey_id)
             surveys[survey_id] = (record.name, record.source_path, record.format)
         base_path, base_id = _base_model(session)
     base_net, base_card = load_model(base_path)
@@ -231,26 +229,6 @@ class GuardrailRetrainConfig(BaseModel):
 
 def check_guardrail_config(config: dict[str, Any], _settings: Settings) -> None:
     validated(GuardrailRetrainConfig, config)
-
-
-def reviewed_slices(session: Session, survey_ids: list[int] | None) -> dict[int, np.ndarray]:
-    """survey id -> (S, 4) float64 [component, slice index, station, label] of the slices a
-    person labelled."""
-    rows = (
-        session.connection()
-        .execute(
-            text(
-                "SELECT survey_id, component_id, slice_index, station_m, label "
-                "FROM guardrail_slice WHERE labelled_by IS NOT NULL"
-            )
-        )
-        .all()
-    )
-    by_survey: dict[int, list] = {}
-    for survey, *rest in rows:
-        if survey_ids is None or survey in survey_ids:
-            by_survey.setdefault(int(survey), []).append(rest)
-    return {s: np.array(r, dtype=np.float64) for s, r in by_survey.items()}
 
 
 def _slice_samples(

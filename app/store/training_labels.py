@@ -1,7 +1,8 @@
-"""The human pillar labels retraining learns from, as arrays per survey, and where known
-whether each labelled pillar holds points: a survey's model pre-labels cover exactly the
-pillars its last phantom run found points in, so a human label with no model label beside it
-(on a survey that has model labels) lies where that run saw nothing to learn from."""
+"""The human labels retraining learns from, as arrays per survey: pillar labels, and where
+known whether each labelled pillar holds points (a survey's model pre-labels cover exactly the
+pillars its last phantom run found points in, so a human label with no model label beside it,
+on a survey that has model labels, lies where that run saw nothing to learn from); and the
+guardrail slices people labelled."""
 
 from __future__ import annotations
 
@@ -52,3 +53,23 @@ def human_pillar_labels(
             np.array(json.loads(flags), dtype=bool) if has_model else None,
         )
     return out
+
+
+def reviewed_slices(session: Session, survey_ids: list[int] | None) -> dict[int, np.ndarray]:
+    """survey id -> (S, 4) float64 [component, slice index, station, label] of the slices a
+    person labelled."""
+    rows = (
+        session.connection()
+        .execute(
+            text(
+                "SELECT survey_id, component_id, slice_index, station_m, label "
+                "FROM guardrail_slice WHERE labelled_by IS NOT NULL"
+            )
+        )
+        .all()
+    )
+    by_survey: dict[int, list] = {}
+    for survey, *rest in rows:
+        if survey_ids is None or survey in survey_ids:
+            by_survey.setdefault(int(survey), []).append(rest)
+    return {s: np.array(r, dtype=np.float64) for s, r in by_survey.items()}
