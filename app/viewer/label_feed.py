@@ -21,18 +21,17 @@ a label or review write so open viewers recolour within milliseconds instead of 
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from sqlalchemy import text
 from sqlalchemy.engine import Engine
 from sqlmodel import Session
 
 from app.jobs.queue import JOB_SUCCEEDED
+from app.store.audit_tail import batch_cells, events_after, newest_audit_id
 
 log = logging.getLogger(__name__)
 
@@ -48,26 +47,12 @@ REVIEW_ACTIONS = frozenset(
     {*CLUTTER_DECISIONS, CLUTTER_RUN, SLICE_LABEL, *MODEL_DECISIONS, *GUARDRAIL_RUN}
 )
 
-# the survey: the payload's survey_id (decisions, labels), else the survey the event names (runs)
-_NEW_EVENTS = text(
-    "SELECT id, action, entity_id, coalesce(json_extract(payload, '$.survey_id'), "
-    "CASE WHEN entity = 'survey' THEN entity_id END), json_extract(payload, '$.kind') "
-    "FROM audit_event WHERE id > :last "
-    "AND action IN (SELECT value FROM json_each(:actions)) ORDER BY id"
-)
-_ACTIONS = json.dumps(sorted({*LABEL_ACTIONS, *REVIEW_ACTIONS, JOB_SUCCEEDED}))
+_ACTIONS = frozenset({*LABEL_ACTIONS, *REVIEW_ACTIONS, JOB_SUCCEEDED})
 
 
 def job_succeeded(kind: str) -> str:
     """The review action a feed reports when a job of `kind` succeeded on a survey."""
     return f"{JOB_SUCCEEDED}:{kind}"
-
-
-_BATCH_CELLS = text(
-    "SELECT b.survey_id, json_group_array(e.cell_id) FROM pillar_edit AS e "
-    "JOIN pillar_edit_batch AS b ON b.id = e.batch_id "
-    "WHERE e.batch_id IN (SELECT value FROM json_each(:ids)) GROUP BY b.survey_id"
-)
 
 
 @dataclass
@@ -96,8 +81,7 @@ def read_events(
 ) -> tuple[int, list[LabelChange], list[ReviewChange]]:
     """(newest audit id seen, label changes per survey, review changes per survey) since audit
     id `after_id`."""
-    conn = session.connection()
-    events = conn.execute(_NEW_EVENTS, {"last": after_id, "actions": _ACTIONS}).all()
+    events = events_after(session, after_id, _ACTIONS)
     if not events:
         return after_id, [], []
     reviews: dict[int, ReviewChange] = {}
@@ -114,20 +98,13 @@ def read_events(
     changes: dict[int, LabelChange] = {}
     batches = [int(e[2]) for e in events if e[1] in BATCH_ACTIONS and e[2] is not None]
     if batches:
-        for survey_id, cells in conn.execute(_BATCH_CELLS, {"ids": json.dumps(batches)}).all():
-            changes[int(survey_id)] = LabelChange(
-                int(survey_id), np.unique(np.array(json.loads(cells), dtype=np.int64))
-            )
+        for survey_id, cells in batch_cells(session, batches).items():
+            changes[survey_id] = LabelChange(survey_id, np.unique(cells))
     for event in events:
         if event[1] == MODEL_ACTION and event[2] is not None:
             survey_id = int(event[2])
             changes.setdefault(survey_id, LabelChange(survey_id)).model_replaced = True
     return int(events[-1][0]), list(changes.values()), list(reviews.values())
-
-
-def newest_audit_id(session: Session) -> int:
-    value = session.connection().execute(text("SELECT max(id) FROM audit_event")).scalar()
-    return int(value or 0)
 
 
 class LabelFeed:

@@ -13,35 +13,22 @@ never overwritten unseen (the store refuses the batch and the view re-reads thos
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from sqlalchemy import text
 from sqlalchemy.engine import Engine
 from sqlmodel import Session
 
-from app.core.errors import NotFoundError
-from app.store.models import Survey
+from app.store.label_arrays import SurveyLabelArrays, survey_label_arrays
 from app.store.pillar_labels import human_columns
+from app.store.surveys import get_survey
 from app.viewer.pillar_colors import display_class, pillar_colors
 from app.viewer.survey_map import MapSource, SurveyMap, load_map
 
 log = logging.getLogger(__name__)
-
-# All labels of a survey as one row of JSON arrays (no Python object per label), read from the
-# covering index ix_pillar_label_tile; erased human labels (tombstones) come as "no human label"
-# (-1) with their version, which a write over them must send.
-_ALL_LABELS = (
-    "SELECT json_group_array(cell_id), json_group_array(human), json_group_array(label), "
-    "json_group_array(confidence), json_group_array(version) FROM "
-    "(SELECT cell_id, source = 'human' AS human, label, coalesce(confidence, -1.0) AS confidence,"
-    " version FROM pillar_label WHERE survey_id = :s "
-    "UNION ALL SELECT cell_id, 1, -1, -1.0, version FROM pillar_tombstone WHERE survey_id = :s)"
-)
 
 Listener = Callable[[np.ndarray], None]  # gets the indices (into map.cells) that changed
 
@@ -93,20 +80,15 @@ class SurveyView:
         """Re-read every label of the survey; returns the pillars whose colour changed."""
         with self._reading:
             with Session(self.engine) as session:
-                query = session.connection().execute(text(_ALL_LABELS), {"s": self.survey_id})
-                row = query.one()
-            changed = self._set_all(row)
+                labels = survey_label_arrays(session, self.survey_id)
+            changed = self._set_all(labels)
         self._announce(changed)
         return changed
 
-    def _set_all(self, row: tuple) -> np.ndarray:
-        cell_ids = np.array(json.loads(row[0]), dtype=np.int64)
-        is_human = np.array(json.loads(row[1]), dtype=bool)
-        labels = np.array(json.loads(row[2]), dtype=np.int8)
-        confidence = np.array(json.loads(row[3]), dtype=np.float32)
-        confidence[confidence < 0] = np.nan  # none (human labels): -1 in the query
-        versions = np.array(json.loads(row[4]), dtype=np.int64)
-        k, found = self.map.cell_index(cell_ids)
+    def _set_all(self, stored: SurveyLabelArrays) -> np.ndarray:
+        is_human, labels, confidence = stored.is_human, stored.labels, stored.confidence
+        versions = stored.versions
+        k, found = self.map.cell_index(stored.cell_ids)
         human = np.full(len(self.map.cells), -1, dtype=np.int8)
         version = np.zeros(len(self.map.cells), dtype=np.int64)
         model = np.full(len(self.map.cells), -1, dtype=np.int8)
@@ -223,9 +205,7 @@ class SurveyViews:
 
     def _open(self, survey_id: int) -> SurveyView:
         with Session(self.engine) as session:
-            record = session.get(Survey, survey_id)
-            if record is None:
-                raise NotFoundError(f"survey {survey_id} not found")
+            record = get_survey(session, survey_id)
             source = MapSource(
                 survey_id=survey_id,
                 source_path=record.source_path,
