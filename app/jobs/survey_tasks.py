@@ -1,8 +1,8 @@
 """`import:survey`: register a survey from a server path as a job, for drives whose opening takes
 long (a KITTI raw drive without OXTS gets its poses from LiDAR odometry first: 1.6 s for the
 20-frame sample drive, uncached). The import route of the API does the same in the request;
-both go through `import_source`. Config: `path` (inside the import root), optional `format`
-and `name`; result: the new survey's id and name.
+both go through `app.review.surveys.import_source`. Config: `path` (inside the import root),
+optional `format` and `name`; result: the new survey's id and name.
 """
 
 from __future__ import annotations
@@ -12,49 +12,14 @@ from typing import Any
 
 from sqlmodel import Session
 
-from app.core.errors import ConfigError, InputError, MmscleanError
+from app.core.errors import ConfigError
 from app.core.settings import Settings
-from app.io import open_survey
-from app.io.detect import detect_format
 from app.io.import_root import resolve_import_path
-from app.io.point_files import one_line
 from app.jobs.registry import JobContext, task
-from app.store.models import Survey
-from app.store.surveys import register_opened_survey
+from app.review.surveys import import_source
 
 KIND = "import:survey"
 FIELDS = ("path", "format", "name")
-
-
-def import_source(
-    session: Session,
-    source: Path,
-    fmt: str | None,
-    name: str | None,
-    user_id: int | None,
-    action: str,
-    **payload: Any,
-) -> Survey:
-    """Open SOURCE with its reader (format detected when not given) and register it."""
-    fmt = fmt or detect_format(source)
-    try:
-        opened = open_survey(source, fmt)
-        if not len(opened):
-            raise InputError(source, "holds no frames")
-        return register_opened_survey(
-            session,
-            opened,
-            format=fmt,
-            source_path=source,
-            name=name,
-            created_by=user_id,
-            action=action,
-            **payload,
-        )
-    except MmscleanError:
-        raise
-    except (OSError, ValueError) as exc:
-        raise InputError(source, one_line(exc)) from exc
 
 
 def check_import_config(config: dict[str, Any], settings: Settings) -> Path:

@@ -25,7 +25,7 @@ from app.api.types import FileName, Id, ImportPath
 from app.api.uploads import check_upload_name, extract_zip, receive_upload, remove_tree
 from app.core.errors import InputError
 from app.io.import_root import resolve_import_path
-from app.jobs.survey_tasks import import_source
+from app.review.surveys import import_source
 from app.store.models import Job, JobStatus, Survey
 from app.store.pillar_labels import label_counts
 from app.store.surveys import (
