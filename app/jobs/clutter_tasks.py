@@ -40,7 +40,7 @@ from app.jobs.task_config import refuse_model_path, validated
 from app.pipelines.clutter.accumulate import accumulate
 from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.pipeline import ClutterPipeline
-from app.pipelines.clutter.review_units import write_review_units
+from app.pipelines.clutter.review_units import apply_decisions, write_review_units
 from app.pipelines.clutter.run import (
     reference_metrics,
     run_clutter,
@@ -57,6 +57,8 @@ from app.store.surveys import get_survey, survey_footprint
 
 CLUTTER_BYTES_PER_POINT = 150.0  # per-frame evidence, maps, review units (measured: ~100)
 SEGMENTER_MB = 700.0  # ESPNetv2 and torch's buffers (measured: ~640 MB on SemanticKITTI 04)
+# a reviewer's decision as the review units' verdict: removed, kept, the pipeline's flag
+VERDICT = {Decision.approved: 1, Decision.rejected: 0, Decision.pending: -1}
 
 # share of the job's progress bar per pipeline stage: (start, span)
 _STAGES = {
@@ -213,7 +215,8 @@ def recompute_clutter(context: JobContext, config: dict[str, Any]) -> dict[str, 
     survey = open_survey(Path(source), fmt)
     run_config = _run_config(run)
     context.progress(0.05, "applying the decisions")
-    removed, in_view, pipeline_removed = apply_decisions(survey, run / "instances", decisions)
+    verdicts = [(frame_id, index, VERDICT[d]) for frame_id, index, d, _ in decisions]
+    removed, in_view, pipeline_removed = apply_decisions(survey, run / "instances", verdicts)
     context.progress(0.4, "accumulating the maps")
     out = context.workdir
     write_frame_labels(
@@ -262,46 +265,3 @@ def _run_config(run: Path) -> ClutterConfig:
         return ClutterConfig.model_validate(json.loads(path.read_text())["config"])
     except (OSError, ValueError, KeyError) as exc:
         raise InputError(path, f"is not the report of a clutter run ({exc})") from None
-
-
-def apply_decisions(
-    survey: Survey,
-    folder: Path,
-    decisions: list[tuple[str, int, Decision, str | None]],
-) -> tuple[list[np.ndarray], list[np.ndarray], int]:
-    """Per frame the removed flags after review and the camera-view flags, and how many points
-    the pipeline itself removed: approved instances go, rejected ones stay, pending ones keep
-    the pipeline's flag."""
-    verdict = {Decision.approved: 1, Decision.rejected: 0, Decision.pending: -1}
-    by_frame: dict[str, list[tuple[int, int]]] = {}
-    for frame_id, index, decision, _ in decisions:
-        by_frame.setdefault(frame_id, []).append((index, verdict[decision]))
-    removed, in_view = [], []
-    pipeline_removed = 0
-    for frame in survey.frames:
-        path = folder / f"{frame.frame_id}.npz"
-        try:
-            with np.load(path) as data:
-                owner, flags, view = data["instance"], data["removed"], data["in_view"]
-        except (OSError, KeyError, ValueError) as exc:
-            raise InputError(path, f"unreadable review membership ({exc})") from None
-        if frame.point_count is not None and len(owner) != frame.point_count:
-            raise InputError(
-                path, f"{len(owner)} points, frame {frame.frame_id} has {frame.point_count}"
-            )
-        state = np.full(int(owner.max(initial=-1)) + 1, -1, dtype=np.int8)
-        if frame.frame_id in by_frame:
-            index, value = np.array(by_frame.pop(frame.frame_id)).T
-            if index.max() >= len(state):
-                raise InputError(path, f"has no instance {int(index.max())} of the store")
-            state[index] = value
-        gone = flags.astype(bool, copy=True)
-        owned = owner >= 0
-        choice = state[owner[owned]]
-        gone[owned] = np.where(choice < 0, gone[owned], choice == 1)
-        pipeline_removed += int(flags.sum())
-        removed.append(gone)
-        in_view.append(view.astype(bool))
-    if by_frame:
-        raise InputError(folder, f"no frame {next(iter(by_frame))} in the survey")
-    return removed, in_view, pipeline_removed

@@ -12,7 +12,8 @@
 
 Per frame a run writes `<frame>.npz` (per point: `instance`, int32, -1 none; `removed`, the
 pipeline's own flag; `in_view`) and `<frame>/<index>.png`, each instance's mask image
-(`overlays.py`). The store rows are plain dicts: the clutter job stores them.
+(`overlays.py`). The store rows are plain dicts: the clutter job stores them. After review,
+`apply_decisions` reads the membership back and applies the reviewers' verdicts.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from app.core.errors import InputError
 from app.geometry.projection import pixel_indices, project
 from app.io.survey import Camera, Frame, Survey
 from app.pipelines.clutter.clusters import voxel_components
@@ -250,3 +252,45 @@ def _frame_rows(
             }
         )
     return rows
+
+
+def apply_decisions(
+    survey: Survey,
+    folder: Path,
+    verdicts: list[tuple[str, int, int]],
+) -> tuple[list[np.ndarray], list[np.ndarray], int]:
+    """Per frame the removed flags after review and the camera-view flags, and how many points
+    the pipeline itself removed. `verdicts`: (frame id, instance index, verdict) with verdict 1
+    (approved: its points go), 0 (rejected: they stay) or -1 (pending: the pipeline's flag)."""
+    by_frame: dict[str, list[tuple[int, int]]] = {}
+    for frame_id, index, verdict in verdicts:
+        by_frame.setdefault(frame_id, []).append((index, verdict))
+    removed, in_view = [], []
+    pipeline_removed = 0
+    for frame in survey.frames:
+        path = folder / f"{frame.frame_id}.npz"
+        try:
+            with np.load(path) as data:
+                owner, flags, view = data["instance"], data["removed"], data["in_view"]
+        except (OSError, KeyError, ValueError) as exc:
+            raise InputError(path, f"unreadable review membership ({exc})") from None
+        if frame.point_count is not None and len(owner) != frame.point_count:
+            raise InputError(
+                path, f"{len(owner)} points, frame {frame.frame_id} has {frame.point_count}"
+            )
+        state = np.full(int(owner.max(initial=-1)) + 1, -1, dtype=np.int8)
+        if frame.frame_id in by_frame:
+            index, value = np.array(by_frame.pop(frame.frame_id)).T
+            if index.max() >= len(state):
+                raise InputError(path, f"has no instance {int(index.max())} of the store")
+            state[index] = value
+        gone = flags.astype(bool, copy=True)
+        owned = owner >= 0
+        choice = state[owner[owned]]
+        gone[owned] = np.where(choice < 0, gone[owned], choice == 1)
+        pipeline_removed += int(flags.sum())
+        removed.append(gone)
+        in_view.append(view.astype(bool))
+    if by_frame:
+        raise InputError(folder, f"no frame {next(iter(by_frame))} in the survey")
+    return removed, in_view, pipeline_removed
