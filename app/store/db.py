@@ -188,6 +188,12 @@ def get_engine(url: str | None = None) -> Engine:
         return engine
 
 
+def ping(engine: Engine) -> None:
+    """Raise unless the database answers a trivial query (the health probe)."""
+    with engine.connect() as conn:
+        conn.execute(sa.text("SELECT 1"))
+
+
 def dispose_engines() -> None:
     """Close every shared engine's connections and forget them (tests, shutdown)."""
     with _engines_lock:

@@ -14,6 +14,21 @@ from app.store.db import commit
 from app.store.models import ModelVersion, Pipeline, utcnow
 
 
+def list_versions(session: Session, pipeline: Pipeline | None = None) -> list[ModelVersion]:
+    """Model versions (of PIPELINE, or all), newest first."""
+    query = select(ModelVersion).order_by(ModelVersion.id.desc())
+    if pipeline is not None:
+        query = query.where(ModelVersion.pipeline == pipeline)
+    return list(session.exec(query).all())
+
+
+def get_version(session: Session, version_id: int) -> ModelVersion:
+    version = session.get(ModelVersion, version_id)
+    if version is None:
+        raise NotFoundError(f"model version {version_id} not found")
+    return version
+
+
 def promoted_version(session: Session, pipeline: Pipeline) -> ModelVersion | None:
     query = select(ModelVersion).where(ModelVersion.pipeline == pipeline, ModelVersion.is_promoted)
     return session.exec(query.order_by(ModelVersion.id.desc())).first()
@@ -110,9 +125,7 @@ def _promote(session: Session, version: ModelVersion) -> None:
 
 def promote_version(session: Session, version_id: int, user_id: int | None) -> ModelVersion:
     """An admin's promotion, whatever the metrics say; commits."""
-    version = session.get(ModelVersion, version_id)
-    if version is None:
-        raise NotFoundError(f"model version {version_id} not found")
+    version = get_version(session, version_id)
     _promote(session, version)
     audit(session, user_id, "model.promote", "model_version", version.id, by="admin")
     commit(session)

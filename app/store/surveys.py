@@ -183,6 +183,10 @@ def get_survey(session: Session, survey_id: int) -> Survey:
     return survey
 
 
+def survey_exists(session: Session, survey_id: int) -> bool:
+    return session.get(Survey, survey_id) is not None
+
+
 def frames_summary(session: Session, survey_id: int) -> dict[str, Any]:
     """Counts, point statistics, time span and driven length of a survey's frames."""
     rows = session.exec(

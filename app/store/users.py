@@ -33,6 +33,18 @@ def check_new_credentials(username: str, password: str) -> None:
         raise ConfigError("password", f"must have at least {MIN_PASSWORD_LENGTH} characters")
 
 
+def all_users(session: Session) -> list[User]:
+    """Every user, by id."""
+    return list(session.exec(select(User).order_by(User.id)).all())
+
+
+def get_user(session: Session, user_id: int) -> User:
+    user = session.get(User, user_id)
+    if user is None:
+        raise NotFoundError(f"user {user_id} not found")
+    return user
+
+
 def get_user_by_name(session: Session, username: str) -> User | None:
     return session.exec(select(User).where(User.username == username)).first()
 

@@ -15,7 +15,6 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Query, Response
 from fastapi.responses import FileResponse, PlainTextResponse
 from pydantic import BaseModel, Field
-from sqlmodel import select
 
 from app.api.deps import Annotator, CurrentUser, SessionDep, SettingsDep
 from app.api.downloads import check_download, may_download
@@ -24,6 +23,7 @@ from app.api.types import FilePath, Id, Offset
 from app.core.errors import MmscleanError, NotFoundError, PermissionDeniedError
 from app.core.settings import Settings
 from app.jobs.queue import enqueue, get_job, request_cancel, requeue, resume
+from app.store import jobs as store_jobs
 from app.store.models import Job, JobStatus, Role, User
 from app.store.users import has_role
 
@@ -137,15 +137,8 @@ def list_jobs(
     offset: Offset = 0,
 ) -> list[JobPublic]:
     """Jobs, newest first."""
-    query = select(Job)
-    if status is not None:
-        query = query.where(Job.status == status)
-    if survey_id is not None:
-        query = query.where(Job.survey_id == survey_id)
-    if kind is not None:
-        query = query.where(Job.kind == kind)
-    query = query.order_by(Job.created_at.desc(), Job.id.desc()).offset(offset).limit(limit)
-    return [JobPublic.of(j) for j in session.exec(query).all()]
+    jobs = store_jobs.list_jobs(session, status, survey_id, kind, limit, offset)
+    return [JobPublic.of(j) for j in jobs]
 
 
 @router.get("/{job_id}", response_model=JobPublic, responses=errors(404))

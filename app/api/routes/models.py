@@ -7,15 +7,14 @@ from typing import Any
 
 from fastapi import APIRouter
 from pydantic import BaseModel, Field
-from sqlmodel import select
 
 from app.api.deps import Admin, CurrentUser, SessionDep, SettingsDep
 from app.api.errors import errors
 from app.api.types import Id
-from app.core.errors import ConfigError, NotFoundError
+from app.core.errors import ConfigError
 from app.jobs.queue import enqueue
 from app.jobs.retraining import retraining_state
-from app.store.model_versions import promote_version
+from app.store.model_versions import get_version, list_versions, promote_version
 from app.store.models import ModelVersion, Pipeline
 
 router = APIRouter(prefix="/models", tags=["models"], responses=errors(401))
@@ -65,10 +64,7 @@ def list_models(
     _: CurrentUser, session: SessionDep, pipeline: Pipeline | None = None
 ) -> list[ModelVersionPublic]:
     """Model versions, newest first, with validation metrics on held-out labels."""
-    query = select(ModelVersion).order_by(ModelVersion.id.desc())
-    if pipeline is not None:
-        query = query.where(ModelVersion.pipeline == pipeline)
-    return [ModelVersionPublic.of(m) for m in session.exec(query).all()]
+    return [ModelVersionPublic.of(m) for m in list_versions(session, pipeline)]
 
 
 @router.get("/retraining", response_model=RetrainingStatus)
@@ -79,10 +75,7 @@ def retraining(_: CurrentUser, session: SessionDep, settings: SettingsDep) -> Re
 
 @router.get("/{model_id}", response_model=ModelVersionPublic, responses=errors(404))
 def get_model(model_id: Id, _: CurrentUser, session: SessionDep) -> ModelVersionPublic:
-    model = session.get(ModelVersion, model_id)
-    if model is None:
-        raise NotFoundError(f"model version {model_id} not found")
-    return ModelVersionPublic.of(model)
+    return ModelVersionPublic.of(get_version(session, model_id))
 
 
 @router.post("/{model_id}/promote", response_model=ModelVersionPublic, responses=errors(403, 404))

@@ -5,19 +5,17 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 from pydantic import BaseModel, Field
-from sqlmodel import select
 
 from app.api.deps import Admin, CurrentLogin, CurrentUser, SessionDep
 from app.api.errors import errors
 from app.api.routes.auth import SessionPublic, SessionsEnded
 from app.api.schemas import UserPublic
 from app.api.types import Id
-from app.core.errors import NotFoundError
 from app.store.audit import audit
 from app.store.db import commit
-from app.store.models import Role, User
+from app.store.models import Role
 from app.store.sessions import EndReason, end_session, end_user_sessions, live_sessions
-from app.store.users import create_user, update_user
+from app.store.users import all_users, create_user, get_user, update_user
 
 router = APIRouter(prefix="/users", tags=["users"], responses=errors(401))
 
@@ -36,7 +34,7 @@ class UserUpdate(BaseModel):
 
 @router.get("", response_model=list[UserPublic])
 def list_users(_: CurrentUser, session: SessionDep) -> list[UserPublic]:
-    return [UserPublic.of(u) for u in session.exec(select(User).order_by(User.id)).all()]
+    return [UserPublic.of(u) for u in all_users(session)]
 
 
 @router.post("", response_model=UserPublic, status_code=201, responses=errors(403, 409, 422))
@@ -60,19 +58,12 @@ def change_user(user_id: Id, body: UserUpdate, admin: Admin, session: SessionDep
     return UserPublic.of(user)
 
 
-def _user(session: SessionDep, user_id: Id) -> User:
-    user = session.get(User, user_id)
-    if user is None:
-        raise NotFoundError(f"user {user_id} not found")
-    return user
-
-
 @router.get("/{user_id}/sessions", response_model=list[SessionPublic], responses=errors(403, 404))
 def list_user_sessions(
     user_id: Id, _: Admin, login: CurrentLogin, session: SessionDep
 ) -> list[SessionPublic]:
     """A user's live login sessions, newest first (admin only)."""
-    rows = live_sessions(session, _user(session, user_id).id)
+    rows = live_sessions(session, get_user(session, user_id).id)
     return [SessionPublic.of(row, login.session.id) for row in rows]
 
 
@@ -81,7 +72,7 @@ def end_user_all_sessions(
     user_id: Id, admin: Admin, login: CurrentLogin, session: SessionDep
 ) -> SessionsEnded:
     """End every live session of a user (admin only; the admin's own current one stays)."""
-    user = _user(session, user_id)
+    user = get_user(session, user_id)
     ended = end_user_sessions(session, user.id, EndReason.revoked, keep=login.session.id)
     audit(session, admin.id, "auth.revoke", "user", user.id, sessions=ended)
     commit(session)
@@ -91,7 +82,7 @@ def end_user_all_sessions(
 @router.delete("/{user_id}/sessions/{session_id}", status_code=204, responses=errors(403, 404))
 def end_user_session(user_id: Id, session_id: Id, admin: Admin, session: SessionDep) -> None:
     """End one live session of a user (admin only)."""
-    user = _user(session, user_id)
+    user = get_user(session, user_id)
     end_session(session, user.id, session_id, EndReason.revoked)
     audit(session, admin.id, "auth.revoke", "user", user.id, session_id=session_id)
     commit(session)

@@ -37,8 +37,9 @@ from app.api.errors import errors
 from app.api.types import Id
 from app.core.errors import ConfigError, NotFoundError
 from app.core.limits import INT64_MAX
-from app.store.models import Survey, User
 from app.store.sessions import live_session, touch
+from app.store.surveys import get_survey, survey_exists
+from app.store.users import get_user
 from app.viewer.modes import MODES
 from app.viewer.relay import relay
 
@@ -111,8 +112,8 @@ def viewer_page(
         mode = mode if mode in MODE_KEYS else None
     if mode is not None and mode not in MODE_KEYS:
         raise ConfigError("mode", f"unknown viewer mode {mode!r}; known: {MODE_LIST}")
-    if survey is not None and session.get(Survey, survey) is None:
-        raise NotFoundError(f"survey {survey} not found")
+    if survey is not None:
+        get_survey(session, survey)  # 404 for a survey that is not there
     expected = relay_url(request, survey, mode)
     if websocket != expected:  # only ever point the page at our own relay
         return RedirectResponse(
@@ -149,16 +150,19 @@ def _login(websocket: WebSocket, query_token: str | None) -> Login | None:
         if survey is None:
             return login
         number = survey_number(survey)
-        exists = number is not None and session.get(Survey, number) is not None
+        exists = number is not None and survey_exists(session, number)
         return login if exists else None
 
 
 def _still_logged_in(websocket: WebSocket, user_id: int, session_id: int) -> bool:
     """The relay's login session is live and its user active (marks the session as used)."""
     with Session(websocket.app.state.engine, expire_on_commit=False) as session:
-        user = session.get(User, user_id)
+        try:
+            user = get_user(session, user_id)
+        except NotFoundError:
+            return False
         row = live_session(session, session_id, user_id)
-        if user is None or not user.is_active or row is None:
+        if not user.is_active or row is None:
             return False
         touch(session, row)
         return True
