@@ -31,11 +31,11 @@ from app.pipelines.guardrail.pipeline import (
     GuardrailConfig,
     GuardrailInstance,
     GuardrailPipeline,
-    GuardrailResult,
     ReconstructionInput,
     rebuild_guardrails,
 )
 from app.pipelines.guardrail.run import write_guardrail_folder
+from app.pipelines.guardrail.slice_stage import save_slice_features
 from app.pipelines.guardrail.train import load_heads
 from app.pipelines.outputs import write_report
 from app.review.guardrails import current_run, load_stage, stage_rows
@@ -105,24 +105,6 @@ def promoted_classifier(session: Session) -> Path:
     return Path(
         ensure_shipped_version(session, Pipeline.guardrail, DEFAULT_MODEL, card).checkpoint_path
     )
-
-
-def save_slice_features(path: Path, result: GuardrailResult) -> Path:
-    """Per slice: its key (component, slice index), the classifier's inputs (image embedding
-    as float16, geometric features) and whether a camera crop showed it."""
-    stage = result.stage
-    partial = path.with_suffix(".partial.npz")
-    np.savez(
-        partial,
-        component=stage.slices.component,
-        slice_index=stage.slices.station_index,
-        embedding=stage.embedding.astype(np.float16),
-        geometry=stage.geometry.astype(np.float32),
-        geometry_names=np.array(stage.geometry_names),
-        has_crop=stage.has_crop,
-    )
-    partial.replace(path)
-    return path
 
 
 def _survey_id(context: JobContext) -> int:
@@ -221,7 +203,7 @@ def run_guardrail(context: JobContext, config: dict[str, Any]) -> dict[str, Any]
     report = write_guardrail_folder(survey, pipeline, result, out, started)
     saved = ReconstructionInput.of(result.stage, pipeline.config)
     stage_path = saved.save(out / STAGE_FILE)
-    save_slice_features(out / FEATURES_FILE, result)
+    save_slice_features(out / FEATURES_FILE, result.stage)
     entries = {e["id"]: e for e in report["guardrails"]}
     files = [
         {k: str(out / v) for k, v in entries[g.id]["files"].items()}

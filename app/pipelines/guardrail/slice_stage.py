@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -94,6 +95,24 @@ def prepare_slices(
         points, trajectory, road, components, slices, geometry, names, embedding, has_crop,
         crop_frames, crop_boxes, {k: round(v, 3) for k, v in timings.items()},
     )  # fmt: skip
+
+
+def save_slice_features(path: Path, stage: SliceStage) -> Path:
+    """Per slice: its key (component, slice index), the classifier's inputs (image embedding
+    as float16, geometric features) and whether a camera crop showed it: what retraining the
+    classifier on reviewed slices reads."""
+    partial = path.with_suffix(".partial.npz")
+    np.savez(
+        partial,
+        component=stage.slices.component,
+        slice_index=stage.slices.station_index,
+        embedding=stage.embedding.astype(np.float16),
+        geometry=stage.geometry.astype(np.float32),
+        geometry_names=np.array(stage.geometry_names),
+        has_crop=stage.has_crop,
+    )
+    partial.replace(path)
+    return path
 
 
 def slice_truth(stage: SliceStage, guardrail_index: np.ndarray) -> np.ndarray:
