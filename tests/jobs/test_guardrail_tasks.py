@@ -3,25 +3,21 @@ guardrail (synthetic), called directly with a hand-built JobContext."""
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
 import trimesh
-from sqlmodel import Session, select
+from sqlmodel import select
 
 from app.core.errors import ConfigError, ConflictError, NotFoundError
-from app.core.settings import Settings
 from app.jobs.guardrail_tasks import (
     STAGE_FILE,
     rebuild_guardrail_models,
     run_guardrail,
 )
-from app.jobs.registry import JobContext, check_config, task_for
-from app.simulate.survey import SimulationConfig, simulate
-from app.store.db import init_db, make_engine
+from app.jobs.registry import check_config, task_for
 from app.store.guardrail_review import (
     SliceLabelEdit,
     decide_model,
@@ -31,77 +27,15 @@ from app.store.guardrail_review import (
 from app.store.models import (
     AuditEvent,
     GuardrailSlice,
-    Job,
-    JobStatus,
     ModelStatus,
     ModelVersion,
-    Role,
-    Survey,
-    User,
 )
-
-# the geometry head without camera images keeps a run at a few seconds
-CONFIG = {"head": "geometry"}
+from tests.jobs.guardrail_street import Jobs, simulate_street
 
 
 @pytest.fixture(scope="module")
 def sim_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("guardrail-jobs") / "sim"
-    simulate(
-        SimulationConfig(scene="urban", length=30.0, seed=7, scanner="profile", camera=False), out
-    )
-    return out
-
-
-class Jobs:
-    """A database with one survey and two users; `context()` makes the next job's context."""
-
-    def __init__(self, root: Path, sim_dir: Path):
-        self.settings = Settings(data_dir=root / "var", sample_dir=None)
-        self.engine = make_engine(self.settings.database_url)
-        init_db(self.engine)
-        with Session(self.engine, expire_on_commit=False) as session:
-            survey = Survey(name="street", format="sim", source_path=str(sim_dir))
-            annotator = User(username="ann", hashed_password="-", role=Role.annotator)
-            reviewer = User(username="rev", hashed_password="-", role=Role.reviewer)
-            session.add_all([survey, annotator, reviewer])
-            session.commit()
-            self.survey_id, self.annotator, self.reviewer = survey.id, annotator, reviewer
-        self.progress: list[tuple[int, float, str]] = []
-
-    def context(self, kind: str) -> JobContext:
-        with Session(self.engine) as session:
-            job = Job(
-                kind=kind,
-                survey_id=self.survey_id,
-                created_by=self.reviewer.id,
-                status=JobStatus.running,
-            )
-            session.add(job)
-            session.commit()
-            job_id = job.id
-        workdir = self.settings.jobs_dir / str(job_id)
-        workdir.mkdir(parents=True)
-        return JobContext(
-            job_id=job_id,
-            survey_id=self.survey_id,
-            user_id=self.reviewer.id,
-            engine=self.engine,
-            settings=self.settings,
-            workdir=workdir,
-            log=logging.getLogger("test-guardrail-job"),
-            report_progress=lambda f, m: self.progress.append((job_id, f, m)) and False,
-        )
-
-    def run(self, config: dict | None = None) -> dict:
-        context = self.context("run:guardrail")
-        return task_for("run:guardrail")(context, {**CONFIG, **(config or {})})
-
-    def rebuild(self, config: dict | None = None) -> dict:
-        return task_for("guardrail:rebuild")(self.context("guardrail:rebuild"), config or {})
-
-    def session(self) -> Session:
-        return Session(self.engine, expire_on_commit=False)
+    return simulate_street(tmp_path_factory.mktemp("guardrail-jobs"))
 
 
 @pytest.fixture

@@ -6,7 +6,7 @@ import numpy as np
 
 from app.review.guardrails import preview_correction
 from app.store.guardrail_review import slice_table
-from tests.jobs.test_guardrail_tasks import Jobs
+from tests.jobs.guardrail_street import Jobs
 
 
 def test_preview_correction_fills_a_gap_without_saving(jobs: Jobs) -> None:
