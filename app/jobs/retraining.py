@@ -11,14 +11,15 @@ import threading
 from dataclasses import dataclass
 
 from sqlalchemy.engine import Engine
-from sqlmodel import Session, select
+from sqlmodel import Session
 
 from app.core.errors import MmscleanError
 from app.core.settings import Settings
 from app.jobs.phantom_training_data import label_counts, training_blocker
 from app.jobs.queue import enqueue
 from app.jobs.training_tasks import PhantomRetrainConfig
-from app.store.models import Job, JobStatus
+from app.store.jobs import newest_job_of_kind, pending_job_of_kind
+from app.store.models import Job
 from app.store.pillar_labels import human_labels_since
 from app.store.training_labels import human_pillar_labels
 
@@ -45,14 +46,8 @@ class RetrainingState:
 
 
 def retraining_state(session: Session, settings: Settings) -> RetrainingState:
-    last = session.exec(
-        select(Job).where(Job.kind == TRAIN_PHANTOM).order_by(Job.created_at.desc())
-    ).first()
-    pending = session.exec(
-        select(Job).where(
-            Job.kind == TRAIN_PHANTOM, Job.status.in_([JobStatus.queued, JobStatus.running])
-        )
-    ).first()
+    last = newest_job_of_kind(session, TRAIN_PHANTOM)
+    pending = pending_job_of_kind(session, TRAIN_PHANTOM)
     since = None if last is None else last.created_at
     state = RetrainingState(
         threshold=settings.retrain_every,

@@ -25,3 +25,15 @@ def list_jobs(
         query = query.where(Job.kind == kind)
     query = query.order_by(Job.created_at.desc(), Job.id.desc()).offset(offset).limit(limit)
     return list(session.exec(query).all())
+
+
+def newest_job_of_kind(session: Session, kind: str) -> Job | None:
+    """The job of KIND created last, whatever its status."""
+    return session.exec(select(Job).where(Job.kind == kind).order_by(Job.created_at.desc())).first()
+
+
+def pending_job_of_kind(session: Session, kind: str) -> Job | None:
+    """A queued or running job of KIND, if any."""
+    return session.exec(
+        select(Job).where(Job.kind == kind, Job.status.in_([JobStatus.queued, JobStatus.running]))
+    ).first()

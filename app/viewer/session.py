@@ -20,7 +20,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from sqlmodel import Session, select
+from sqlmodel import Session
 from viser import CameraHandle, ClientHandle, SceneClickEvent, SceneRectSelectEvent
 
 from app.core.errors import (
@@ -30,7 +30,8 @@ from app.core.errors import (
     StaleWriteError,
 )
 from app.store import pillar_labels
-from app.store.models import Role, Survey, User
+from app.store.models import Role, User
+from app.store.surveys import list_surveys
 from app.store.users import has_role
 from app.viewer.modes import MODES
 from app.viewer.modes.base import Mode
@@ -108,7 +109,7 @@ class ViewerSession:
     def _start(self) -> None:
         gui = self.client.gui
         with self.db() as session:
-            surveys = list(session.exec(select(Survey).order_by(Survey.id)).all())
+            surveys = list_surveys(session)
         self._survey_ids = {f"{s.id}: {s.name}": int(s.id) for s in surveys}
         self._gui.append(gui.add_markdown(f"Logged in as **{self.username}**"))
         if not surveys:
