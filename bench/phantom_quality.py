@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from app.core.labels import PillarClass
 from app.io import open_survey
 from app.metrics.classification import binary_scores, confusion_matrix, scores_from_confusion
 from app.pipelines.phantom.baselines import avg_distances, num_neighbors
@@ -18,7 +19,6 @@ from app.pipelines.phantom.evaluate import PAPER_OVERALL_EXCLUDES
 from app.pipelines.phantom.network import CLASS_NAMES
 from app.pipelines.phantom.pipeline import PhantomPipeline, PhantomResult
 from app.pipelines.phantom.reference import reference_pillar_labels, static_and_moving
-from app.simulate.classes import PillarClass
 from bench.common import markdown_table
 
 HELD_OUT_SEEDS = ((201, "urban"), (202, "highway"), (203, "mixed"))  # never used in training
@@ -53,10 +53,10 @@ class Tally:
         ref = reference_pillar_labels(pm, semantic, moving)
         self.confusion += confusion_matrix(ref, result.pillar_labels, 4)
         in_layer = pm.point_pillar >= 0
-        self.pillar_truth.append(ref == PillarClass.PHANTOM)
+        self.pillar_truth.append(ref == PillarClass.phantom)
         self.point_truth.append(moving[in_layer])
-        flags = {"Prop. 3D CNN (mmsclean)": result.point_labels == PillarClass.PHANTOM}
-        pillar_flags = {"Prop. 3D CNN (mmsclean)": result.pillar_labels == PillarClass.PHANTOM}
+        flags = {"Prop. 3D CNN (mmsclean)": result.point_labels == PillarClass.phantom}
+        pillar_flags = {"Prop. 3D CNN (mmsclean)": result.pillar_labels == PillarClass.phantom}
         if with_baselines:
             xyz = result.map.xyz
             for name, f in (

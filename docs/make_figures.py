@@ -14,9 +14,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from app.core.labels import CLUTTER_SEMANTIC
 from app.geometry.trajectory import station_offsets
 from app.io import open_survey
-from app.simulate.classes import CLUTTER_CLASSES
 from app.simulate.survey import SimulationConfig, simulate
 
 DOCS = Path(__file__).resolve().parent
@@ -31,7 +31,7 @@ def mask_overlay(survey_dir: Path, frame_id: str) -> np.ndarray:
     masks = survey_dir / "ground_truth" / "masks"
     semantic = cv2.imread(str(masks / f"{frame_id}_semantic.png"), cv2.IMREAD_UNCHANGED)
     instance = cv2.imread(str(masks / f"{frame_id}_instance.png"), cv2.IMREAD_UNCHANGED)
-    clutter = np.isin(semantic, [int(c) for c in CLUTTER_CLASSES]) & (instance > 0)
+    clutter = np.isin(semantic, [int(c) for c in CLUTTER_SEMANTIC]) & (instance > 0)
     hues = (instance.astype(np.int64) * 47) % 180  # a stable, distinct hue per instance
     hsv = np.stack([hues, np.full_like(hues, 230), np.full_like(hues, 255)], -1).astype(np.uint8)
     tint = cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR).astype(np.float64)

@@ -18,8 +18,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from app.core.labels import PillarClass
 from app.metrics.splits import held_out_blocks
-from app.store.models import PillarClass
 from app.store.pillar_labels import STORE_GRID
 from app.store.training_labels import SurveyLabels
 

@@ -101,6 +101,7 @@ def _clutter(survey: Survey, labels: list[np.ndarray]) -> dict:
 
 
 def _phantom(survey: Survey, labels: list[np.ndarray]) -> dict:
+    from app.core.labels import PillarClass
     from app.geometry.ground import estimate_ground
     from app.metrics.classification import confusion_matrix, scores_from_confusion
     from app.pipelines.phantom.config import PhantomConfig
@@ -110,7 +111,6 @@ def _phantom(survey: Survey, labels: list[np.ndarray]) -> dict:
     from app.pipelines.phantom.pipeline import accumulate
     from app.pipelines.phantom.point_labels import point_labels
     from app.pipelines.phantom.reference import reference_pillar_labels, static_and_moving
-    from app.simulate.classes import PillarClass
 
     amap = accumulate(survey)
     if "semantic" not in amap.reference:
@@ -131,13 +131,13 @@ def _phantom(survey: Survey, labels: list[np.ndarray]) -> dict:
             confusion, names, macro_exclude=PAPER_OVERALL_EXCLUDES
         ).as_dict(),
         "phantom_points": binary_scores(
-            moving & in_layer, (predicted == PillarClass.PHANTOM) & in_layer
+            moving & in_layer, (predicted == PillarClass.phantom) & in_layer
         ).as_dict(),
     }
 
 
 def _guardrail(survey: Survey, labels: list[np.ndarray]) -> dict:
-    from app.pipelines.guardrail.run import FENCE
+    from app.core.labels import FENCE
 
     kinds = survey.reference_label_kinds
     if "guardrail" in kinds:

@@ -18,12 +18,13 @@ import numpy as np
 from sqlmodel import Session
 
 from app.core.errors import NotFoundError
+from app.core.labels import PillarClass
 from app.core.settings import Settings
 from app.reports.qa_report import PIPELINE_JOBS, job_file
 from app.store.audit import audit
 from app.store.db import commit
 from app.store.exports import approved_guardrail_models, pillar_label_rows
-from app.store.models import GuardrailModel, PillarClass, Survey
+from app.store.models import GuardrailModel, Survey
 from app.store.pillar_labels import STORE_GRID
 from app.store.surveys import latest_succeeded_job
 

@@ -23,9 +23,10 @@ import cv2
 import numpy as np
 from sqlmodel import Session
 
+from app.core.labels import PILLAR_CLASS_NAMES, PillarClass
 from app.core.settings import Settings
 from app.metrics.plots import bar_image, confusion_image
-from app.store.models import Decision, Job, LabelSource, ModelStatus, PillarClass, Survey
+from app.store.models import Decision, Job, LabelSource, ModelStatus, Survey
 from app.store.review_counts import (
     clutter_decision_counts,
     clutter_instance_count,
@@ -39,7 +40,7 @@ PIPELINE_JOBS: dict[str, tuple[str, ...]] = {
     "phantom": ("run:phantom",),
     "guardrail": ("run:guardrail",),
 }
-PILLAR_NAMES = [c.name.replace("_", " ") for c in PillarClass]
+PILLAR_NAMES = list(PILLAR_CLASS_NAMES)
 
 _STYLE = """
 body{font-family:system-ui,sans-serif;margin:2em auto;max-width:1100px;color:#222}

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from app.simulate.classes import COLORS, SKY_COLOR
+from app.simulate.colors import COLORS, SKY_COLOR
 from app.simulate.raycast import RayCaster
 from app.simulate.scene import Scene
 

@@ -2,16 +2,8 @@
 phantom paper's pillar classes computed on the accumulated map.
 
 Pillar classes (Nagy & Benedek, label set L): the map is cut into 0.2 m x 0.2 m pillars that
-reach 3 m above the local ground (points higher up are ignored, as in the paper). Within a pillar
-the non-ground points decide:
-
-- fewer than `min_points` non-ground points: ground;
-- moving points are the majority of the non-ground points: phantom (moving vehicles,
-  cyclists, pedestrians, also a moving tram: the paper's phantoms are "effects of moving
-  vehicles and pedestrians");
-- otherwise the static non-ground points vote: high object (facades, trunks, poles, signs,
-  parked trucks / buses / trams) against short object (parked cars and vans, guardrails,
-  street furniture, standing people); ties go to high object.
+reach 3 m above the local ground (points higher up are ignored, as in the paper); the rule that
+classes a pillar from its points is the shared one in `app.core.labels.classify_pillar_groups`.
 
 Every point of a pillar carries the pillar's class (the paper's labelling); pipelines that keep
 ground points under phantoms apply their own rule on top.
@@ -23,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from app.core.labels import classify_pillar_groups
 from app.geometry.pillars import PillarGrid
-from app.simulate.classes import GROUND_CLASSES, HIGH_CLASSES, PillarClass
 from app.simulate.scene import Scene
 
 PILLAR_CELL = 0.2  # s_c, metres
@@ -110,28 +102,3 @@ def pillar_classes(
     _, inverse, _ = grid.group(xyz[:, :2])
     in_column = xyz[:, 2] - ground_height <= height
     return classify_pillar_groups(inverse, semantic, moving, in_column, min_points)[inverse]
-
-
-def classify_pillar_groups(
-    group: np.ndarray,
-    semantic: np.ndarray,
-    moving: np.ndarray,
-    in_column: np.ndarray,
-    min_points: int = 3,
-) -> np.ndarray:
-    """The pillar rule (module docstring) for points grouped into pillars: (G,) uint8 class of
-    each group id 0..G-1 from its points' static SemanticKITTI class and moving flag; only
-    points with `in_column` count."""
-    non_ground = in_column & ~np.isin(semantic, list(GROUND_CLASSES))
-    n = int(group.max()) + 1 if len(group) else 0
-    count = np.bincount(group, weights=non_ground, minlength=n)
-    moving_count = np.bincount(group, weights=non_ground & moving, minlength=n)
-    static = non_ground & ~moving
-    high = np.bincount(group, weights=static & np.isin(semantic, list(HIGH_CLASSES)), minlength=n)
-    short = count - moving_count - high
-    classes = np.full(n, PillarClass.GROUND, dtype=np.uint8)
-    occupied = count >= min_points
-    classes[occupied & (high >= short)] = PillarClass.HIGH_OBJECT
-    classes[occupied & (high < short)] = PillarClass.SHORT_OBJECT
-    classes[occupied & (2 * moving_count > count)] = PillarClass.PHANTOM
-    return classes

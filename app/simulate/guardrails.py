@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from app.simulate.classes import Part
+from app.core.labels import Part
 from app.simulate.meshes import box, cylinder, sweep_profile, tube
 from app.simulate.scene import Mesh
 

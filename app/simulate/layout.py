@@ -22,8 +22,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from app.core.labels import Semantic
 from app.simulate import objects
-from app.simulate.classes import COLORS, Semantic
+from app.simulate.colors import COLORS
 from app.simulate.guardrails import beam_guardrail, pipe_guardrail
 from app.simulate.meshes import strip
 from app.simulate.road import Centerline, RoadProfile

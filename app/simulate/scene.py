@@ -5,7 +5,7 @@ semantic class, an instance id and, when it moves, a `Motion` (pose as a functio
 Static bodies have identity motion, their mesh is already in world coordinates. Ground truth of
 every simulated point is read from the body (and triangle) its ray hit.
 
-Semantic class ids follow SemanticKITTI (`app.simulate.classes`), so code that maps real
+Semantic class ids follow SemanticKITTI (`app.core.labels`), so code that maps real
 SemanticKITTI labels serves simulated surveys too; `moving` is a separate per-point flag.
 """
 

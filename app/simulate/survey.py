@@ -22,10 +22,10 @@ from pydantic import BaseModel, Field
 
 from app import __version__
 from app.core.errors import InputError
+from app.core.labels import Semantic
 from app.geometry.transforms import apply, invert, make_transform
 from app.simulate import kitti_writer as kw
 from app.simulate.camera import CameraConfig, render
-from app.simulate.classes import Semantic
 from app.simulate.ground_truth import BodyTable, pillar_classes
 from app.simulate.layout import build_scene
 from app.simulate.raycast import RayCaster

@@ -102,15 +102,6 @@ class LabelSource(enum.StrEnum):
     model = "model"
 
 
-class PillarClass(enum.IntEnum):
-    """Pillar label values (Nagy & Benedek); same numbers as the phantom `labels/*.npy`."""
-
-    ground = 0
-    high_object = 1
-    short_object = 2
-    phantom = 3
-
-
 class Decision(enum.StrEnum):
     pending = "pending"
     approved = "approved"
@@ -321,7 +312,7 @@ class PillarLabel(Versioned, table=True):
 
     survey_id: int = _survey_fk()
     cell_id: int = Field(sa_type=sa.BigInteger, nullable=False)
-    label: int = Field(ge=0, le=3)  # PillarClass
+    label: int = Field(ge=0, le=3)  # app.core.labels.PillarClass
     source: LabelSource = Field(sa_type=_enum_type(LabelSource), nullable=False)
     confidence: float | None = Field(default=None, ge=0.0, le=1.0)
     user_id: int | None = _user_fk()

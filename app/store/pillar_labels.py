@@ -34,10 +34,11 @@ from sqlalchemy import text
 from sqlmodel import Session
 
 from app.core.errors import ConfigError, ConflictError
+from app.core.labels import PillarClass
 from app.geometry.pillars import PillarGrid
 from app.store.audit import audit
 from app.store.db import commit, write_transaction
-from app.store.models import EditState, LabelSource, PillarClass, PillarEditBatch, utcnow
+from app.store.models import EditState, LabelSource, PillarEditBatch, utcnow
 from app.store.versions import NOT_CHECKED, check_versions, refuse, stale
 
 STORE_GRID = PillarGrid(0.0, 0.0, 0.2)  # s_c = 0.2 m (Nagy & Benedek)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from app.store.models import PillarClass
+from app.core.labels import PillarClass
 
 CLASS_NAMES = {
     PillarClass.ground: "Ground",

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from app.core.labels import Semantic
 from app.simulate.camera import CameraConfig, render
-from app.simulate.classes import COLORS, SKY_COLOR, Semantic
+from app.simulate.colors import COLORS, SKY_COLOR
 from app.simulate.raycast import RayCaster
 from tests.simulate.test_raycast import body, box_mesh, linear_motion, scene_of
 

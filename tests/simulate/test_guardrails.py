@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from app.simulate.classes import Part
+from app.core.labels import Part
 from app.simulate.guardrails import (
     PIPE_DESIGNS,
     W_BEAM_CORRUGATION,

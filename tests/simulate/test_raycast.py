@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from app.simulate.classes import COLORS, Semantic
+from app.core.labels import Semantic
+from app.simulate.colors import COLORS
 from app.simulate.raycast import RayCaster, inflate
 from app.simulate.scene import Body, Mesh, Motion, Scene
 

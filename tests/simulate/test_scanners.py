@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from app.core.labels import Semantic
 from app.io.velodyne_bin import sweep_fraction
-from app.simulate.classes import Semantic
 from app.simulate.raycast import RayCaster
 from app.simulate.scanners import (
     HDL64Config,

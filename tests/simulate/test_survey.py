@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from app.core.labels import GROUND_CLASSES, HIGH_CLASSES, PillarClass
 from app.geometry.projection import project
 from app.io import open_survey
-from app.simulate.classes import GROUND_CLASSES, HIGH_CLASSES, PillarClass
 from app.simulate.ground_truth import PILLAR_CELL, PILLAR_HEIGHT
 from app.simulate.guardrails import surface_distance
 from app.simulate.survey import SimulationConfig, rebuild_scene, simulate
@@ -115,14 +115,14 @@ def test_pillar_classes_follow_the_definition(small_survey: Path) -> None:
         objects = column[~np.isin(label["semantic"][column], list(GROUND_CLASSES))]
         moving = label["moving"][objects]
         if len(objects) < 3:
-            expected = PillarClass.GROUND
+            expected = PillarClass.ground
         elif moving.sum() * 2 > len(objects):
-            expected = PillarClass.PHANTOM
+            expected = PillarClass.phantom
         else:
             static = objects[~moving]
             high = np.isin(label["semantic"][static], list(HIGH_CLASSES)).sum()
             short = len(static) - high
-            expected = PillarClass.HIGH_OBJECT if high >= short else PillarClass.SHORT_OBJECT
+            expected = PillarClass.high_object if high >= short else PillarClass.short_object
         assert (label["pillar_class"][idx] == expected).all()
     assert {0, 1, 2, 3} <= set(np.unique(label["pillar_class"]).tolist())
 

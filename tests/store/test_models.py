@@ -9,6 +9,7 @@ from sqlalchemy.engine import Engine
 from sqlalchemy.exc import IntegrityError, StatementError
 from sqlmodel import Session, func, select
 
+from app.core.labels import PillarClass
 from app.store.models import (
     TABLES,
     AuditEvent,
@@ -27,7 +28,6 @@ from app.store.models import (
     LoginThrottle,
     ModelStatus,
     ModelVersion,
-    PillarClass,
     PillarEdit,
     PillarEditBatch,
     PillarLabel,

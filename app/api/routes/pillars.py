@@ -15,7 +15,8 @@ from pydantic import BaseModel, Field, model_validator
 from app.api.deps import Annotator, CurrentUser, SessionDep, wake_viewer
 from app.api.errors import errors
 from app.api.types import CellId, Coordinate, Id, Version
-from app.store.models import LabelSource, PillarClass
+from app.core.labels import PillarClass
+from app.store.models import LabelSource
 from app.store.pillar_labels import (
     NO_LABEL,
     STORE_GRID,

@@ -12,11 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from app.core.labels import MOVABLE_IDS, MOVING_IDS, UNSCORED_IDS
 from app.metrics.removal import dynamic_scores, error_matrix
-
-MOVING_IDS = np.arange(252, 260)
-MOVABLE_IDS = np.array([10, 11, 13, 15, 16, 18, 20, 30, 31, 32, *MOVING_IDS])
-UNSCORED_IDS = np.array([0, 1])
 
 
 def reference_masks(

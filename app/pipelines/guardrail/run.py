@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from app.core.labels import FENCE
 from app.io.asprs import GUARDRAIL_ASPRS
 from app.io.las import write_laz
 from app.io.survey import Survey
@@ -22,8 +23,6 @@ from app.pipelines.guardrail.pipeline import (
 )
 from app.pipelines.guardrail.slice_stage import point_reference, slice_truth
 from app.pipelines.outputs import write_frame_labels, write_report
-
-FENCE = 51  # SemanticKITTI labels highway guardrails "fence"
 
 
 def reference_points(survey: Survey, result: GuardrailResult) -> tuple[np.ndarray, str] | None:

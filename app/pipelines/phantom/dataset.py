@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from app.core.labels import PillarClass
 from app.geometry.ground import estimate_ground
 from app.io.survey import Survey
 from app.pipelines.phantom.classify import band_tensor, window_tensor
@@ -30,7 +31,6 @@ from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.network import CLASS_NAMES, CONTEXT_BANDS, CONTEXT_SPAN, COUNT_CLIP
 from app.pipelines.phantom.pillars import PillarMap, build_pillar_map
 from app.pipelines.phantom.reference import reference_pillar_labels, static_and_moving
-from app.simulate.classes import PillarClass
 
 N_CLASSES = len(CLASS_NAMES)
 TILE_PILLARS = 32  # windows are cut tile by tile so each dense block stays small
@@ -255,13 +255,13 @@ def pillar_samples(
             index = np.sort(rng.choice(index, size=cap, replace=False))
         chosen.append(index)
     # judged ground is rare on some maps (none on a flat road): top ground up with plain road
-    want = _cap(max_per_class, PillarClass.GROUND)
+    want = _cap(max_per_class, PillarClass.ground)
     want = max(len(c) for c in chosen) if want is None else want
-    plain = np.flatnonzero((labels == PillarClass.GROUND) & ~judged)
-    extra = min(max(want - len(chosen[PillarClass.GROUND]), 0), len(plain))
+    plain = np.flatnonzero((labels == PillarClass.ground) & ~judged)
+    extra = min(max(want - len(chosen[PillarClass.ground]), 0), len(plain))
     if extra:
         fill = rng.choice(plain, size=extra, replace=False)
-        chosen[PillarClass.GROUND] = np.sort(np.r_[chosen[PillarClass.GROUND], fill])
+        chosen[PillarClass.ground] = np.sort(np.r_[chosen[PillarClass.ground], fill])
     index = np.concatenate(chosen)
     y = labels[index].astype(np.int64)
     pillar_counts = np.bincount(labels, minlength=N_CLASSES)

@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from app.core.labels import PillarClass
 from app.metrics.classification import binary_scores, confusion_matrix, scores_from_confusion
 from app.pipelines.phantom.network import CLASS_NAMES
 from app.pipelines.phantom.pipeline import PhantomResult
 from app.pipelines.phantom.point_labels import point_labels
 from app.pipelines.phantom.reference import reference_pillar_labels, static_and_moving
-from app.simulate.classes import PillarClass
 
 PAPER_OVERALL_EXCLUDES = ("ground",)
 
@@ -41,7 +41,7 @@ def evaluate(result: PhantomResult, baselines: dict[str, np.ndarray] | None = No
     ).as_dict()
     # point-level phantom detection: a removed point should belong to a moving object
     truth = moving & in_layer
-    phantom = {"mmsclean": result.point_labels == PillarClass.PHANTOM}
+    phantom = {"mmsclean": result.point_labels == PillarClass.phantom}
     phantom.update(baselines or {})
     out["phantom_points"] = {
         name: binary_scores(truth, flags & in_layer).as_dict() for name, flags in phantom.items()

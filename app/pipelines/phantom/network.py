@@ -27,7 +27,9 @@ import torch
 import torch.nn.functional as F  # noqa: N812 (torch convention)
 from torch import nn
 
-CLASS_NAMES = ("ground", "high object", "short object", "phantom")
+from app.core.labels import PILLAR_CLASS_NAMES
+
+CLASS_NAMES = PILLAR_CLASS_NAMES  # the network's outputs, in pillar class order
 COUNT_CLIP = 255.0  # voxel counts saturate here (training windows are stored as uint8)
 CONTEXT_BANDS = 6  # height bands of the context branch: 0.5 m each over the 3 m pillar
 CONTEXT_DILATIONS = (1, 2, 4, 8)

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from app.core.labels import PillarClass
 from app.geometry.ground import estimate_ground
 from app.io.survey import Survey
 from app.pipelines.phantom.classify import classify_dense, classify_windows
@@ -21,7 +22,6 @@ from app.pipelines.phantom.pillars import PillarMap, build_pillar_map
 from app.pipelines.phantom.point_labels import point_labels
 from app.pipelines.phantom.priors import apply_priors
 from app.pipelines.phantom.refine import refine
-from app.simulate.classes import PillarClass
 
 Progress = Callable[[str, float], None]
 
@@ -119,7 +119,7 @@ class PhantomPipeline:
         lap("pillars")
         which = pm.candidates()  # the rest is plain ground (PillarMap.candidates)
         probs = np.zeros((len(pm.pillars), 4), dtype=np.float32)
-        probs[:, PillarClass.GROUND] = 1.0
+        probs[:, PillarClass.ground] = 1.0
 
         def step(fraction: float) -> None:
             report("classify", fraction)

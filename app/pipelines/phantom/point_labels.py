@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from app.core.labels import PillarClass
 from app.pipelines.phantom.pillars import PillarMap
-from app.simulate.classes import PillarClass
 
 
 def point_labels(pm: PillarMap, pillar_labels: np.ndarray) -> np.ndarray:
@@ -24,4 +24,4 @@ def point_labels(pm: PillarMap, pillar_labels: np.ndarray) -> np.ndarray:
 
 def kept(labels: np.ndarray) -> np.ndarray:
     """Points of the cleaned map: everything but phantoms."""
-    return labels != PillarClass.PHANTOM
+    return labels != PillarClass.phantom

@@ -2,8 +2,8 @@
 
 Simulated surveys and SemanticKITTI both carry SemanticKITTI class ids; moving objects are either
 flagged (simulator) or have the moving ids 252-259 (SemanticKITTI), which map back to their static
-class. The pillar rule is the simulator's (`app.simulate.ground_truth`): moving points the
-majority of a pillar's non-ground points -> phantom; otherwise high vs short object by vote;
+class. The pillar rule is the shared one (`app.core.labels`, also the simulator's): moving points
+the majority of a pillar's non-ground points -> phantom; otherwise high vs short object by vote;
 fewer than 3 non-ground points -> ground. Unlabeled (0) and outlier (1) points do not vote.
 """
 
@@ -11,12 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from app.core.labels import MOVING_TO_STATIC, Semantic, classify_pillar_groups
 from app.pipelines.phantom.pillars import PillarMap
-from app.simulate.classes import Semantic
-from app.simulate.ground_truth import classify_pillar_groups
-
-# SemanticKITTI moving class -> its static class
-MOVING_TO_STATIC = {252: 10, 253: 31, 254: 30, 255: 32, 256: 16, 257: 13, 258: 18, 259: 20}
 
 
 def static_and_moving(reference: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:

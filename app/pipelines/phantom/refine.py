@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from app.simulate.classes import PillarClass
+from app.core.labels import PillarClass
 
 _BIAS = 1 << 30
 
@@ -33,11 +33,11 @@ def refine(pillars: np.ndarray, labels: np.ndarray, window: int = 5) -> np.ndarr
             found = sorted_keys[pos] == neighbour
             label = labels[order[pos[found]]]
             np.add.at(votes, (np.flatnonzero(found), label), 1)
-    votes[:, PillarClass.GROUND] = 0
+    votes[:, PillarClass.ground] = 0
     own = np.zeros_like(votes)
     own[np.arange(len(labels)), labels] = 1
     best = np.argmax(votes * 2 + own, axis=1)  # ties: own label first, then lower class id
     refined = labels.copy()
-    change = (labels != PillarClass.GROUND) & (votes.max(axis=1) > 0)
+    change = (labels != PillarClass.ground) & (votes.max(axis=1) > 0)
     refined[change] = best[change]
     return refined.astype(np.uint8)

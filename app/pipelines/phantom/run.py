@@ -5,12 +5,12 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from app.core.labels import PillarClass
 from app.io.survey import Survey
 from app.pipelines.outputs import write_frame_labels, write_report
 from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.outputs import write_confusion_plots, write_maps
 from app.pipelines.phantom.pipeline import PhantomPipeline, Progress
-from app.simulate.classes import PillarClass
 
 
 def run_phantom_to_folder(
@@ -50,7 +50,7 @@ def run_phantom_to_folder(
             "pillars_per_class": {
                 name.name.lower(): int((result.pillar_labels == name).sum()) for name in PillarClass
             },
-            "phantom_points": int((result.point_labels == PillarClass.PHANTOM).sum()),
+            "phantom_points": int((result.point_labels == PillarClass.phantom).sum()),
         },
         "timings": dict(result.timings),
         "files": files,

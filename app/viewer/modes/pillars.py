@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from app.core.errors import StaleWriteError
-from app.store.models import PillarClass
+from app.core.labels import PillarClass
 from app.store.pillar_labels import NO_LABEL, uncertain_areas
 from app.viewer.modes.base import Mode
 from app.viewer.picking import in_screen_rect, pillars_in_disc, ray_ground_hit

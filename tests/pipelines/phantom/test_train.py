@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from app.core.labels import PillarClass, Semantic
 from app.pipelines.phantom.classify import window_tensor
 from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.dataset import (
@@ -29,7 +30,6 @@ from app.pipelines.phantom.train import (
     train,
     train_phantom_model,
 )
-from app.simulate.classes import PillarClass, Semantic
 
 GROUND, HIGH, SHORT, PHANTOM = (int(c) for c in PillarClass)
 
