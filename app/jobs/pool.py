@@ -23,14 +23,13 @@ from dataclasses import dataclass
 from multiprocessing.process import BaseProcess
 from pathlib import Path
 
-import sqlalchemy as sa
 from sqlalchemy.engine import Engine
 
 from app.core.settings import Settings
-from app.jobs.queue import finish, mark_interrupted
 from app.jobs.worker import discard_outputs, worker_main
 from app.store.db import make_engine
-from app.store.models import Job, JobStatus
+from app.store.jobs import cancel_requests, finish, mark_interrupted
+from app.store.models import JobStatus
 
 log = logging.getLogger(__name__)
 
@@ -174,12 +173,7 @@ class WorkerPool:
         first seen; remove its partial outputs and end it `cancelled`."""
         with self._lock:
             live = {s.process.pid: s.process for s in self._slots if s.process is not None}
-        with self.engine.connect() as conn:
-            pending = conn.execute(
-                sa.select(Job.id, Job.worker_pid, Job.result_path).where(
-                    Job.status == JobStatus.running, Job.cancel_requested
-                )
-            ).all()
+        pending = cancel_requests(self.engine)
         now = time.monotonic()
         asked = {job_id: now for job_id, _, _ in pending}
         self._cancel_seen = {**asked, **{j: t for j, t in self._cancel_seen.items() if j in asked}}

@@ -27,9 +27,9 @@ from sqlalchemy.engine import Engine
 
 from app.core.errors import ConfigError, MmscleanError
 from app.core.settings import Settings
-from app.jobs.queue import claim_next, finish, report_progress, set_workdir
 from app.jobs.registry import JobCancelled, JobContext, TaskFn, load_tasks
 from app.store.db import make_engine
+from app.store.jobs import claim_next, finish, report_progress, set_workdir
 from app.store.models import Job, JobStatus
 
 POLL_S = 0.2  # idle: look for a queued job this often

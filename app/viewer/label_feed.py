@@ -30,8 +30,8 @@ import numpy as np
 from sqlalchemy.engine import Engine
 from sqlmodel import Session
 
-from app.jobs.queue import JOB_SUCCEEDED
 from app.store.audit_tail import batch_cells, events_after, newest_audit_id
+from app.store.jobs import JOB_SUCCEEDED
 
 log = logging.getLogger(__name__)
 

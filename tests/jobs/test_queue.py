@@ -14,19 +14,18 @@ from sqlmodel import Session, select
 import tests.jobs.sample_tasks  # noqa: F401  (registers the test:* kinds)
 from app.core.errors import ConfigError, ConflictError, NotFoundError
 from app.core.settings import Settings
-from app.jobs.queue import (
+from app.jobs.queue import enqueue, requeue
+from app.pipelines.guardrail.pipeline import DEFAULT_MODEL as DEFAULT_CLASSIFIER
+from app.pipelines.phantom.model import PAPER_MODEL
+from app.store.db import make_engine
+from app.store.jobs import (
     claim_next,
-    enqueue,
     finish,
     mark_interrupted,
     report_progress,
     request_cancel,
-    requeue,
     resume,
 )
-from app.pipelines.guardrail.pipeline import DEFAULT_MODEL as DEFAULT_CLASSIFIER
-from app.pipelines.phantom.model import PAPER_MODEL
-from app.store.db import make_engine
 from app.store.model_versions import ensure_shipped_version
 from app.store.models import AuditEvent, Job, JobStatus, Pipeline, Survey
 

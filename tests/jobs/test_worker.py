@@ -20,10 +20,11 @@ import app.jobs.pool as pool_module
 import app.jobs.worker as worker_module
 from app.core.settings import Settings
 from app.jobs.pool import WorkerPool
-from app.jobs.queue import claim_next, enqueue, request_cancel, resume
+from app.jobs.queue import enqueue
 from app.jobs.registry import EXTRA_TASK_MODULES_ENV, load_tasks
 from app.jobs.worker import ProgressReporter, one_line, run_job
 from app.store.db import init_db, make_engine
+from app.store.jobs import claim_next, request_cancel, resume
 from app.store.models import Job, JobStatus
 from tests.jobs.sample_tasks import MODULE as SAMPLE_TASKS
 

@@ -20,11 +20,12 @@ from sqlmodel import Session
 from app.core.settings import Settings
 from app.io import open_survey
 from app.io.las import read_las_points
-from app.jobs.queue import claim_next, enqueue
+from app.jobs.queue import enqueue
 from app.jobs.registry import load_tasks
 from app.jobs.worker import run_job
 from app.simulate.survey import SimulationConfig, simulate
 from app.store.clutter_review import DecisionWrite, decide, list_instances
+from app.store.jobs import claim_next
 from app.store.models import Decision, Job, JobStatus
 from app.store.surveys import register_opened_survey
 from app.viewer.modes.qa import CLEANED, ORIGINAL, REMOVED_RGB, QAMode, percent

@@ -22,8 +22,9 @@ from app.api.errors import errors
 from app.api.types import FilePath, Id, Offset
 from app.core.errors import MmscleanError, NotFoundError, PermissionDeniedError
 from app.core.settings import Settings
-from app.jobs.queue import enqueue, get_job, request_cancel, requeue, resume
+from app.jobs.queue import enqueue, requeue
 from app.store import jobs as store_jobs
+from app.store.jobs import get_job, request_cancel, resume
 from app.store.models import Job, JobStatus, Role, User
 from app.store.users import has_role
 
