@@ -220,6 +220,26 @@ def slice_table(session: Session, survey_id: int) -> SliceTable:
     return SliceTable(a[:, 0], a[:, 1], a[:, 2], a[:, 3], a[:, 4], a[:, 5].astype(bool))
 
 
+def review_slice_rows(session: Session, survey_id: int) -> list[tuple]:
+    """(id, component, slice index, label, labelled by a person, version, probability) of every
+    slice of the survey, by id: what the viewer's review mode shows and checks writes against."""
+    return list(
+        session.exec(
+            select(
+                GuardrailSlice.id,
+                GuardrailSlice.component_id,
+                GuardrailSlice.slice_index,
+                GuardrailSlice.label,
+                col(GuardrailSlice.labelled_by).is_not(None),
+                GuardrailSlice.version,
+                GuardrailSlice.probability,
+            )
+            .where(GuardrailSlice.survey_id == survey_id)
+            .order_by(GuardrailSlice.id)
+        ).all()
+    )
+
+
 # --- human writes -------------------------------------------------------------------------
 
 

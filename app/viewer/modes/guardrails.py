@@ -17,7 +17,6 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from sqlmodel import col, select
 
 from app.core.errors import StaleWriteError
 from app.review.guardrails import load_stage, preview_correction
@@ -28,6 +27,7 @@ from app.store.guardrail_review import (
     match_slices,
     next_uncertain,
     put_slice_labels,
+    review_slice_rows,
 )
 from app.store.models import GuardrailSlice, Role
 from app.viewer.label_feed import GUARDRAIL_RUN, SLICE_LABEL
@@ -82,19 +82,7 @@ class SliceRows:
 
 def read_slices(session: ViewerSession, survey_id: int) -> SliceRows:
     with session.db() as db:
-        rows = db.exec(
-            select(
-                GuardrailSlice.id,
-                GuardrailSlice.component_id,
-                GuardrailSlice.slice_index,
-                GuardrailSlice.label,
-                col(GuardrailSlice.labelled_by).is_not(None),
-                GuardrailSlice.version,
-                GuardrailSlice.probability,
-            )
-            .where(GuardrailSlice.survey_id == survey_id)
-            .order_by(GuardrailSlice.id)
-        ).all()
+        rows = review_slice_rows(db, survey_id)
     return SliceRows([tuple(np.nan if v is None else v for v in r) for r in rows])
 
 
