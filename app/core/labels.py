@@ -1,5 +1,6 @@
-"""The label vocabulary every layer shares: SemanticKITTI class ids, guardrail parts, the phantom
-paper's pillar classes and the rule that derives a pillar's reference class from its points.
+"""The label vocabulary every layer shares: SemanticKITTI class ids, guardrail parts, the per-point
+label values the three pipelines write (clutter, phantom = pillar classes, guardrail) and the rule
+that derives a pillar's reference class from its points.
 
 It lives at the bottom (core) so the simulator, the pipelines, the metrics and the store read one
 definition; pure numpy, nothing else of `app`.
@@ -97,6 +98,20 @@ class PillarClass(IntEnum):
 
 
 PILLAR_CLASS_NAMES = tuple(c.name.replace("_", " ") for c in PillarClass)  # for people
+
+
+class ClutterLabel(IntEnum):
+    """Per-point label of a clutter run (`labels/*.npy`, the command-line contract)."""
+
+    KEPT = 0
+    REMOVED = 1
+
+
+class GuardrailLabel(IntEnum):
+    """Per-point label of a guardrail run (`labels/*.npy`, the command-line contract)."""
+
+    OTHER = 0
+    GUARDRAIL = 1
 
 
 def classify_pillar_groups(

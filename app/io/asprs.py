@@ -14,6 +14,8 @@ from enum import IntEnum
 
 import numpy as np
 
+from app.core.labels import ClutterLabel, GuardrailLabel, PillarClass, Semantic
+
 
 class AsprsClass(IntEnum):
     """ASPRS standard point classes (LAS 1.4, point formats 6-10)."""
@@ -55,10 +57,10 @@ and phantom pipeline label 3. They are real laser returns from objects that do n
 static map, not sensor noise, so they get their own user-defined code instead of 7/18."""
 
 PHANTOM_LABEL_TO_ASPRS: dict[int, int] = {
-    0: int(AsprsClass.GROUND),  # ground
-    1: int(AsprsClass.UNCLASSIFIED),  # high object: trees, poles, walls... not only buildings
-    2: int(AsprsClass.UNCLASSIFIED),  # short static object: kerbs, bins, parked things
-    3: REMOVED_CLUTTER_ASPRS,  # phantom: trace of a moving object
+    PillarClass.ground: int(AsprsClass.GROUND),
+    PillarClass.high_object: int(AsprsClass.UNCLASSIFIED),  # trees, poles, walls, not only houses
+    PillarClass.short_object: int(AsprsClass.UNCLASSIFIED),  # kerbs, bins, parked things
+    PillarClass.phantom: REMOVED_CLUTTER_ASPRS,  # trace of a moving object
 }
 """Phantom pipeline label (0 ground, 1 high object, 2 short object, 3 phantom) -> ASPRS code.
 
@@ -71,14 +73,14 @@ moving-object point whichever pipeline found it.
 """
 
 CLUTTER_LABEL_TO_ASPRS: dict[int, int] = {
-    0: int(AsprsClass.UNCLASSIFIED),  # kept
-    1: REMOVED_CLUTTER_ASPRS,  # removed
+    ClutterLabel.KEPT: int(AsprsClass.UNCLASSIFIED),
+    ClutterLabel.REMOVED: REMOVED_CLUTTER_ASPRS,
 }
 """Clutter pipeline label (0 kept, 1 removed) -> ASPRS code."""
 
 GUARDRAIL_LABEL_TO_ASPRS: dict[int, int] = {
-    0: int(AsprsClass.UNCLASSIFIED),  # other
-    1: GUARDRAIL_ASPRS,  # guardrail
+    GuardrailLabel.OTHER: int(AsprsClass.UNCLASSIFIED),
+    GuardrailLabel.GUARDRAIL: GUARDRAIL_ASPRS,
 }
 """Guardrail pipeline label (0 other, 1 guardrail) -> ASPRS code."""
 
@@ -98,15 +100,15 @@ def to_asprs(labels: np.ndarray, mapping: dict[int, int], default: int = 1) -> n
 
 
 SEMANTICKITTI_TO_ASPRS: dict[int, int] = {
-    40: int(AsprsClass.ROAD_SURFACE),  # road
-    44: int(AsprsClass.ROAD_SURFACE),  # parking
-    60: int(AsprsClass.ROAD_SURFACE),  # lane-marking
-    48: int(AsprsClass.GROUND),  # sidewalk
-    49: int(AsprsClass.GROUND),  # other-ground
-    72: int(AsprsClass.GROUND),  # terrain
-    50: int(AsprsClass.BUILDING),  # building
-    70: int(AsprsClass.HIGH_VEGETATION),  # vegetation
-    71: int(AsprsClass.HIGH_VEGETATION),  # trunk
+    Semantic.ROAD: int(AsprsClass.ROAD_SURFACE),
+    Semantic.PARKING: int(AsprsClass.ROAD_SURFACE),
+    Semantic.LANE_MARKING: int(AsprsClass.ROAD_SURFACE),
+    Semantic.SIDEWALK: int(AsprsClass.GROUND),
+    Semantic.OTHER_GROUND: int(AsprsClass.GROUND),
+    Semantic.TERRAIN: int(AsprsClass.GROUND),
+    Semantic.BUILDING: int(AsprsClass.BUILDING),
+    Semantic.VEGETATION: int(AsprsClass.HIGH_VEGETATION),
+    Semantic.TRUNK: int(AsprsClass.HIGH_VEGETATION),
 }
 """Static SemanticKITTI class id (0..99) -> ASPRS code; the rest (vehicles, poles, signs,
 fences, people) have no ASPRS class and stay 1 (unclassified)."""
