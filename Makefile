@@ -30,9 +30,11 @@ system-deps:
 	  apt-get install -y -q chromium >/dev/null 2>&1 || \
 	  { apt-get update -q >/dev/null && apt-get install -y -q chromium >/dev/null; }; }
 
+# lint-imports checks the layering contracts in pyproject.toml ([tool.importlinter]).
 lint: $(STAMP)
 	$(VENV)/bin/ruff check app tests bench
 	$(VENV)/bin/ruff format --check app tests bench
+	$(VENV)/bin/lint-imports --no-cache
 
 # pytest exits 5 when it collected no tests: that is a failure here, never a pass.
 test: system-deps $(STAMP) lint
