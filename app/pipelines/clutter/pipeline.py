@@ -19,14 +19,13 @@ per-point flags, not point clouds.
 
 from __future__ import annotations
 
-import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from app.core.errors import ConfigError
+from app.core.progress import Progress, Stopwatch
 from app.io.survey import Camera, Frame, Survey
 from app.pipelines.clutter.clusters import frame_clusters
 from app.pipelines.clutter.config import ClutterConfig
@@ -38,7 +37,6 @@ from app.pipelines.clutter.masking import mask_points
 from app.pipelines.clutter.motion import object_shape
 from app.pipelines.clutter.tracking import Observation, Tracker, TrackEvidence
 
-Progress = Callable[[str, float], None]
 ClassMaps = Callable[[Frame], np.ndarray]  # frame -> (H, W) uint8 clutter class map
 
 FRAME_PERIOD = 0.1  # seconds between frames when the survey has no timestamps (10 Hz)
@@ -202,25 +200,6 @@ class ClutterPipeline:
             mask_class=mask_class,
         )
         return evidence, observation
-
-
-class Stopwatch:
-    """Seconds per stage, summed over frames: `with clock("stage"): ...`."""
-
-    def __init__(self) -> None:
-        self.seconds: dict[str, float] = {}
-
-    @contextmanager
-    def __call__(self, stage: str) -> Iterator[None]:
-        started = time.perf_counter()
-        try:
-            yield
-        finally:
-            elapsed = time.perf_counter() - started
-            self.seconds[stage] = self.seconds.get(stage, 0.0) + elapsed
-
-    def rounded(self) -> dict[str, float]:
-        return {k: round(v, 3) for k, v in self.seconds.items()}
 
 
 def _frame_times(frames: list[Frame]) -> np.ndarray:

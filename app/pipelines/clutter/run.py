@@ -9,12 +9,13 @@ from pathlib import Path
 
 import numpy as np
 
+from app.core.progress import Progress
 from app.io.asprs import REMOVED_CLUTTER_ASPRS
 from app.io.las import write_laz
 from app.io.survey import Frame, Survey
 from app.pipelines.clutter.accumulate import WorldMap, accumulate
 from app.pipelines.clutter.config import ClutterConfig
-from app.pipelines.clutter.pipeline import ClassMaps, ClutterPipeline, ClutterResult, Progress
+from app.pipelines.clutter.pipeline import ClassMaps, ClutterPipeline, ClutterResult
 from app.pipelines.clutter.segmenter import CachedSegmenter, Segmenter, overlay_png
 from app.pipelines.outputs import write_frame_labels, write_report
 

@@ -8,12 +8,12 @@ the crop embeddings are the expensive part and never change for a given survey.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from app.core.progress import Progress
 from app.core.settings import get_settings
 from app.io import open_survey
 from app.pipelines.guardrail.classifier import CropEncoder
@@ -42,8 +42,6 @@ PRESETS = ("urban", "highway", "mixed")  # seeds cycle through them
 TRAIN_SEEDS = tuple(range(401, 410))  # 9 surveys
 VALIDATION_SEEDS = (410, 411, 412)  # for the card and for choosing settings
 HELD_OUT_SEEDS = (501, 502, 503)  # bench/guardrail.py only: never trained on or tuned with
-
-Progress = Callable[[str, float], None]
 
 
 def preset_of(seed: int) -> str:

@@ -4,8 +4,6 @@ poles, unit shapes, superimposition, pipe / beam reconstruction -> meshes."""
 
 from __future__ import annotations
 
-import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -14,6 +12,7 @@ import numpy as np
 from pydantic import BaseModel, Field
 
 from app.core.bounds import Count, Metres, ObjectMetres, Resolution, Share
+from app.core.progress import Progress, Stopwatch, no_progress
 from app.io.survey import Survey
 from app.pipelines.guardrail.classifier import CropEncoder, predict
 from app.pipelines.guardrail.correction import correct_labels
@@ -21,7 +20,6 @@ from app.pipelines.guardrail.slice_stage import SliceStage, prepare_slices
 from app.pipelines.guardrail.slices import SliceSet
 from app.pipelines.guardrail.train import load_heads
 
-Progress = Callable[[str, float], None]
 DEFAULT_MODEL = Path(__file__).resolve().parents[3] / "models" / "guardrail" / "slice_classifier.pt"
 
 
@@ -92,30 +90,29 @@ class GuardrailPipeline:
 
     def run(self, survey: Survey, progress: Progress | None = None) -> GuardrailResult:
         cfg = self.config
-        report = progress or (lambda stage, fraction: None)
+        report = progress or no_progress
         uses_image = "image" in cfg.head
         encoder = CropEncoder() if uses_image and survey.cameras else None
         stage = prepare_slices(survey, encoder, cfg.spacing, report)
-        timings = dict(stage.timings)
-        t0 = time.perf_counter()
-        report("classifier", 0.7)
-        probability = self.classify(stage)
-        raw = probability >= cfg.threshold
-        corrected = correct_labels(
-            stage.slices, raw, max_gap=cfg.max_gap, max_isolated=cfg.max_isolated
-        ).astype(bool)
-        timings["classify"] = round(time.perf_counter() - t0, 3)
+        clock = Stopwatch()
+        with clock("classify"):
+            report("classifier", 0.7)
+            probability = self.classify(stage)
+            raw = probability >= cfg.threshold
+            corrected = correct_labels(
+                stage.slices, raw, max_gap=cfg.max_gap, max_isolated=cfg.max_isolated
+            ).astype(bool)
         point_slice = stage.slices.point_slice
         point_labels = np.zeros(len(stage.points), dtype=np.uint8)
         inside = point_slice >= 0
         point_labels[inside] = corrected[point_slice[inside]]
         guardrails = self.instances(stage, corrected)
         if cfg.reconstruct:
-            t0 = time.perf_counter()
-            for i, g in enumerate(guardrails):
-                report("reconstruction", 0.8 + 0.2 * i / max(len(guardrails), 1))
-                self.reconstruct(stage, g)
-            timings["reconstruction"] = round(time.perf_counter() - t0, 3)
+            with clock("reconstruction"):
+                for i, g in enumerate(guardrails):
+                    report("reconstruction", 0.8 + 0.2 * i / max(len(guardrails), 1))
+                    self.reconstruct(stage, g)
+        timings = {**stage.timings, **clock.rounded()}
         frames = list(survey.frames)
         sizes = np.bincount(stage.points.frame, minlength=len(frames))
         frame_sizes = [

@@ -4,12 +4,12 @@ embeddings and geometric features."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from app.core.progress import Progress, Stopwatch, no_progress
 from app.io.survey import Survey
 from app.pipelines.guardrail.classifier import EMBEDDING, CropEncoder
 from app.pipelines.guardrail.components import (
@@ -22,8 +22,6 @@ from app.pipelines.guardrail.crops import slice_crops
 from app.pipelines.guardrail.features import slice_features
 from app.pipelines.guardrail.road import RoadRemoval, road_removal
 from app.pipelines.guardrail.slices import SliceSet, cut_slices
-
-Progress = Callable[[str, float], None]
 
 
 @dataclass
@@ -50,50 +48,42 @@ def prepare_slices(
     min_slice_points: int = 5,
 ) -> SliceStage:
     """Everything the classifier needs; `encoder=None` skips the images (geometry only)."""
-    import time
-
-    report = progress or (lambda stage, fraction: None)
-    timings: dict[str, float] = {}
-    t0 = time.perf_counter()
-    report("points", 0.0)
-    points = load_scan_points(survey)
-    trajectory = survey.poses()[:, :3, 3]
-    timings["load"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    report("road removal", 0.1)
-    road = road_removal(points.xyz, trajectory)
-    timings["road"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    report("components", 0.2)
-    components = connected_components(points, road.keep, above_ground=road.above_ground)
-    timings["components"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    slices = cut_slices(points.xyz, components.label, trajectory, spacing,
-                        min_points=min_slice_points)  # fmt: skip
-    geometry, names = slice_features(points.xyz, slices, above_ground=road.above_ground)
-    timings["slices"] = time.perf_counter() - t0
+    report = progress or no_progress
+    clock = Stopwatch()
+    with clock("load"):
+        report("points", 0.0)
+        points = load_scan_points(survey)
+        trajectory = survey.poses()[:, :3, 3]
+    with clock("road"):
+        report("road removal", 0.1)
+        road = road_removal(points.xyz, trajectory)
+    with clock("components"):
+        report("components", 0.2)
+        components = connected_components(points, road.keep, above_ground=road.above_ground)
+    with clock("slices"):
+        slices = cut_slices(points.xyz, components.label, trajectory, spacing,
+                            min_points=min_slice_points)  # fmt: skip
+        geometry, names = slice_features(points.xyz, slices, above_ground=road.above_ground)
     k = len(slices)
     embedding = np.zeros((k, EMBEDDING), dtype=np.float32)
     has_crop = np.zeros(k, dtype=bool)
     crop_frames = np.full(k, -1, dtype=np.int64)
     crop_boxes = np.full((k, 4), -1, dtype=np.int64)
     if encoder is not None and survey.cameras and k:
-        t0 = time.perf_counter()
-        report("crops", 0.4)
-        crops = slice_crops(survey, slices, points.xyz)
-        timings["crops"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        report("crop embeddings", 0.6)
-        if crops:
-            which = np.array([c.slice for c in crops], dtype=np.int64)
-            embedding[which] = encoder.embed([c.image for c in crops])
-            has_crop[which] = True
-            crop_frames[which] = [c.frame for c in crops]
-            crop_boxes[which] = [c.box for c in crops]
-        timings["embeddings"] = time.perf_counter() - t0
+        with clock("crops"):
+            report("crops", 0.4)
+            crops = slice_crops(survey, slices, points.xyz)
+        with clock("embeddings"):
+            report("crop embeddings", 0.6)
+            if crops:
+                which = np.array([c.slice for c in crops], dtype=np.int64)
+                embedding[which] = encoder.embed([c.image for c in crops])
+                has_crop[which] = True
+                crop_frames[which] = [c.frame for c in crops]
+                crop_boxes[which] = [c.box for c in crops]
     return SliceStage(
         points, trajectory, road, components, slices, geometry, names, embedding, has_crop,
-        crop_frames, crop_boxes, {k: round(v, 3) for k, v in timings.items()},
+        crop_frames, crop_boxes, clock.rounded(),
     )  # fmt: skip
 
 

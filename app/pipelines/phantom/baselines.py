@@ -21,7 +21,7 @@ from collections.abc import Callable
 import numpy as np
 from scipy.spatial import cKDTree
 
-Progress = Callable[[int, int], None]  # (points done, points in all)
+PointsDone = Callable[[int, int], None]  # (points done, points in all)
 
 NUM_NEIGHBORS_CHUNK = 1_000_000  # counts only: 8 bytes per point of the chunk
 AVG_DISTANCES_CHUNK = 100_000  # (k + 1) distances and indices per point: ~160 MB at k = 100
@@ -53,7 +53,7 @@ def neighbor_counts(
     xyz: np.ndarray,
     radius: float = 0.2,  # r
     chunk_size: int = NUM_NEIGHBORS_CHUNK,
-    progress: Progress | None = None,
+    progress: PointsDone | None = None,
 ) -> np.ndarray:
     """(N,) int64: number of *other* points within `radius` (distance <= r) of each point.
 
@@ -81,7 +81,7 @@ def num_neighbors(
     radius: float = 0.2,  # r, metres
     threshold: int = 100,  # t
     chunk_size: int = NUM_NEIGHBORS_CHUNK,
-    progress: Progress | None = None,
+    progress: PointsDone | None = None,
 ) -> np.ndarray:
     """(N,) bool: phantom where a point has fewer than t other points within r.
 
@@ -95,7 +95,7 @@ def mean_neighbor_distances(
     xyz: np.ndarray,
     k: int = 100,  # k
     chunk_size: int = AVG_DISTANCES_CHUNK,
-    progress: Progress | None = None,
+    progress: PointsDone | None = None,
 ) -> np.ndarray:
     """(N,) float64: mean distance of each point to its k nearest *other* points.
 
@@ -126,7 +126,7 @@ def avg_distances(
     k: int = 100,  # k
     std_ratio: float = 1.0,  # PCL's stddev multiplier
     chunk_size: int = AVG_DISTANCES_CHUNK,
-    progress: Progress | None = None,
+    progress: PointsDone | None = None,
 ) -> np.ndarray:
     """(N,) bool: phantom where the mean k-NN distance is above mean + std_ratio * std.
 

@@ -13,7 +13,7 @@ import torch
 from app.pipelines.phantom.network import CONTEXT_BANDS, CONTEXT_SPAN, PillarCNN, dense_logits
 from app.pipelines.phantom.pillars import PillarMap, window_origin
 
-Progress = Callable[[float], None]
+FractionDone = Callable[[float], None]  # inside one stage: the stage reports it as Progress
 
 
 def window_tensor(pm: PillarMap, pillars: np.ndarray) -> torch.Tensor:
@@ -58,7 +58,7 @@ def classify_windows(
     net: PillarCNN,
     pm: PillarMap,
     batch: int = 512,
-    progress: Progress | None = None,
+    progress: FractionDone | None = None,
     which: np.ndarray | None = None,
 ) -> np.ndarray:
     """Reference path: each pillar's window through the network on its own."""
@@ -78,7 +78,7 @@ def classify_dense(
     net: PillarCNN,
     pm: PillarMap,
     tile: int = 32,
-    progress: Progress | None = None,
+    progress: FractionDone | None = None,
     which: np.ndarray | None = None,
 ) -> np.ndarray:
     """Dense path: tiles of `tile` x `tile` pillars, each computed fully-convolutionally from

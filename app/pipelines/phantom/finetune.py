@@ -15,12 +15,12 @@ hand-labelled pillars): the labels come as pillar indices on the world grid of `
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
+from app.core.progress import Progress
 from app.geometry.ground import estimate_ground
 from app.metrics.classification import Scores
 from app.pipelines.phantom.classify import band_tensor
@@ -41,8 +41,6 @@ from app.pipelines.phantom.train import (
     pillar_scores,
     train,
 )
-
-Progress = Callable[[str, float], None]
 
 
 @dataclass

@@ -5,7 +5,6 @@ labels, the paper's metrics."""
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -13,6 +12,7 @@ import numpy as np
 import torch
 
 from app.core.labels import PillarClass
+from app.core.progress import Progress
 from app.geometry.ground import estimate_ground
 from app.io.survey import Survey
 from app.pipelines.phantom.classify import classify_dense, classify_windows
@@ -22,8 +22,6 @@ from app.pipelines.phantom.pillars import PillarMap, build_pillar_map
 from app.pipelines.phantom.point_labels import point_labels
 from app.pipelines.phantom.priors import apply_priors
 from app.pipelines.phantom.refine import refine
-
-Progress = Callable[[str, float], None]
 
 
 @dataclass

@@ -6,11 +6,12 @@ import time
 from pathlib import Path
 
 from app.core.labels import PillarClass
+from app.core.progress import Progress
 from app.io.survey import Survey
 from app.pipelines.outputs import write_frame_labels, write_report
 from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.outputs import write_confusion_plots, write_maps
-from app.pipelines.phantom.pipeline import PhantomPipeline, Progress
+from app.pipelines.phantom.pipeline import PhantomPipeline
 
 
 def run_phantom_to_folder(

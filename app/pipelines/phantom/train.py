@@ -42,6 +42,7 @@ from pydantic import BaseModel, Field
 from torch.nn.functional import cross_entropy
 
 from app.core.bounds import Count, Epochs, Metres, Rate, Seconds, Seed, Threads
+from app.core.progress import Progress
 from app.core.settings import get_settings
 from app.io import open_survey
 from app.metrics.classification import confusion_matrix, scores_from_confusion
@@ -59,8 +60,6 @@ from app.pipelines.phantom.model import save_model
 from app.pipelines.phantom.network import CLASS_NAMES, PillarCNN
 from app.pipelines.phantom.priors import class_priors
 from app.simulate.survey import SimulationConfig, simulate
-
-Progress = Callable[[str, float], None]  # (stage, fraction done)
 
 SIM_PRESETS = ("urban", "highway", "mixed")
 Channels = Annotated[int, Field(ge=1, le=1024)]  # width of a network layer
