@@ -13,6 +13,7 @@ from sqlalchemy.engine import Engine
 from app.core.settings import Settings
 from app.jobs.registry import JobContext
 from app.store.db import init_db, make_engine
+from tests.jobs.guardrail_street import jobs, sim_dir  # noqa: F401  (guardrail street fixtures)
 
 
 @pytest.fixture

@@ -5,8 +5,10 @@ a worker would give the next job, so tasks are called directly."""
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
 from pathlib import Path
 
+import pytest
 from sqlmodel import Session
 
 from app.core.settings import Settings
@@ -77,3 +79,17 @@ class Jobs:
 
     def session(self) -> Session:
         return Session(self.engine, expire_on_commit=False)
+
+
+@pytest.fixture(scope="module")
+def sim_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The street, simulated once per test module."""
+    return simulate_street(tmp_path_factory.mktemp("guardrail-jobs"))
+
+
+@pytest.fixture
+def jobs(tmp_path: Path, sim_dir: Path) -> Iterator[Jobs]:
+    """A store and job helpers of their own per test, over the shared street."""
+    jobs = Jobs(tmp_path, sim_dir)
+    yield jobs
+    jobs.engine.dispose()

@@ -3,7 +3,6 @@ guardrail (synthetic), called directly with a hand-built JobContext."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -30,19 +29,7 @@ from app.store.models import (
     ModelStatus,
     ModelVersion,
 )
-from tests.jobs.guardrail_street import Jobs, simulate_street
-
-
-@pytest.fixture(scope="module")
-def sim_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return simulate_street(tmp_path_factory.mktemp("guardrail-jobs"))
-
-
-@pytest.fixture
-def jobs(tmp_path: Path, sim_dir: Path) -> Iterator[Jobs]:
-    jobs = Jobs(tmp_path, sim_dir)
-    yield jobs
-    jobs.engine.dispose()
+from tests.jobs.guardrail_street import Jobs  # its fixtures come through tests/jobs/conftest.py
 
 
 def test_run_ingests_slices_and_models(jobs: Jobs) -> None:
