@@ -137,17 +137,13 @@ def _phantom(survey: Survey, labels: list[np.ndarray]) -> dict:
 
 
 def _guardrail(survey: Survey, labels: list[np.ndarray]) -> dict:
-    from app.core.labels import FENCE
+    from app.pipelines.guardrail.reference import DESCRIPTIONS, guardrail_truth, reference_kind
 
-    kinds = survey.reference_label_kinds
-    if "guardrail" in kinds:
-        truth = [f.reference_labels()["guardrail"] >= 0 for f in survey.frames]
-        reference = "simulator guardrails"
-    elif "semantic" in kinds:
-        truth = [(f.reference_labels()["semantic"] & 0xFFFF) == FENCE for f in survey.frames]
-        reference = "SemanticKITTI fence (51); not every urban fence is a guardrail"
-    else:
+    kind = reference_kind(survey.reference_label_kinds)
+    if kind is None:
         raise InputError(survey.source, "has no guardrail or semantic reference labels")
+    truth = [guardrail_truth(kind, f.reference_labels()[kind]) for f in survey.frames]
+    reference = DESCRIPTIONS[kind]
     predicted = np.concatenate(labels) == 1
     return {
         "reference": reference,

@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 
-from app.core.labels import FENCE
 from app.io.asprs import GUARDRAIL_ASPRS
 from app.io.las import write_laz
 from app.io.survey import Survey
@@ -21,20 +20,18 @@ from app.pipelines.guardrail.pipeline import (
     GuardrailResult,
     Progress,
 )
+from app.pipelines.guardrail.reference import DESCRIPTIONS, guardrail_truth, reference_kind
 from app.pipelines.guardrail.slice_stage import point_reference, slice_truth
 from app.pipelines.outputs import write_frame_labels, write_report
 
 
 def reference_points(survey: Survey, result: GuardrailResult) -> tuple[np.ndarray, str] | None:
     """Per point of the run: True on a guardrail (simulator) or a fence (SemanticKITTI)."""
-    kinds = survey.reference_label_kinds
-    points = result.stage.points
-    if "guardrail" in kinds:
-        return point_reference(survey, points, "guardrail") >= 0, "simulator guardrails"
-    if "semantic" in kinds:
-        semantic = point_reference(survey, points, "semantic") & 0xFFFF
-        return semantic == FENCE, "SemanticKITTI fence (51); not every urban fence is a guardrail"
-    return None
+    kind = reference_kind(survey.reference_label_kinds)
+    if kind is None:
+        return None
+    values = point_reference(survey, result.stage.points, kind)
+    return guardrail_truth(kind, values), DESCRIPTIONS[kind]
 
 
 def slice_metrics(result: GuardrailResult, truth_points: np.ndarray) -> dict:
