@@ -36,7 +36,7 @@ from app.jobs.memory import (
     survey_text,
 )
 from app.jobs.registry import JobContext, task
-from app.jobs.task_config import refuse_model_path, validated
+from app.jobs.task_config import validated
 from app.pipelines.clutter.accumulate import accumulate
 from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.pipeline import ClutterPipeline
@@ -162,13 +162,7 @@ def run_clutter_task(context: JobContext, config: dict[str, Any]) -> dict[str, A
 
 def clutter_config(config: dict[str, Any]) -> ClutterConfig:
     """The job config as a ClutterConfig; an unknown key or a bad value names the field."""
-    config = dict(config or {})
-    refuse_model_path(config)
-    unknown = sorted(set(config) - set(ClutterConfig.model_fields))
-    if unknown:
-        known = ", ".join(ClutterConfig.model_fields)
-        raise ConfigError(f"config.{unknown[0]}", f"unknown field; known: {known}")
-    return validated(ClutterConfig, config)
+    return validated(ClutterConfig, config, known=tuple(ClutterConfig.model_fields))
 
 
 def survey_id(context: JobContext) -> int:

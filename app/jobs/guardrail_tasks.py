@@ -59,13 +59,6 @@ GUARDRAIL_BYTES_PER_POINT = 200.0  # points, road / component / slice labels, cr
 # --- configuration ------------------------------------------------------------------------
 
 
-def _validated(values: dict[str, Any], known: tuple[str, ...]) -> GuardrailConfig:
-    unknown = sorted(set(values) - set(known))
-    if unknown:
-        raise ConfigError(f"config.{unknown[0]}", f"unknown field; known: {', '.join(known)}")
-    return validated(GuardrailConfig, values)
-
-
 class ModelChoice(BaseModel):
     model_config = ConfigDict(protected_namespaces=())
 
@@ -81,7 +74,7 @@ def guardrail_options(
     values = dict(config or {})
     refuse_model_path(values)
     choice = validated(ModelChoice, {"model_id": values.pop("model_id", None)})
-    cfg = _validated(values, (*GuardrailConfig.model_fields, "model_id"))
+    cfg = validated(GuardrailConfig, values, known=(*GuardrailConfig.model_fields, "model_id"))
     return cfg, choice.model_id
 
 
@@ -182,7 +175,7 @@ def estimate_run(session: Session, survey: int | None, config: dict[str, Any]) -
 
 
 def check_rebuild_config(config: dict[str, Any], settings: Settings) -> None:
-    _validated(dict(config or {}), REBUILD_FIELDS)
+    validated(GuardrailConfig, config, known=REBUILD_FIELDS)
 
 
 @task("run:guardrail", check=check_run_config, model="guardrail", estimate=estimate_run)
@@ -250,7 +243,7 @@ def run_guardrail(context: JobContext, config: dict[str, Any]) -> dict[str, Any]
 @task("guardrail:rebuild", check=check_rebuild_config)
 def rebuild_guardrail_models(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
     survey_id = _survey_id(context)
-    _validated(dict(config or {}), REBUILD_FIELDS)
+    validated(GuardrailConfig, config, known=REBUILD_FIELDS)
     with Session(context.engine) as session:
         run = current_run(session, survey_id)
         table = slice_table(session, survey_id)
@@ -259,8 +252,10 @@ def rebuild_guardrail_models(context: JobContext, config: dict[str, Any]) -> dic
     at = stage_rows(saved, table.component, table.slice_index)
     labels = np.zeros(len(saved.slices), dtype=bool)
     labels[at] = table.label.astype(bool)
-    cfg = _validated(
-        {**saved.config.model_dump(), **(config or {})}, tuple(GuardrailConfig.model_fields)
+    cfg = validated(
+        GuardrailConfig,
+        {**saved.config.model_dump(), **(config or {})},
+        known=tuple(GuardrailConfig.model_fields),
     )
     guardrails = rebuild_guardrails(
         saved, labels, cfg, lambda stage, f: context.progress(0.05 + 0.85 * f, stage)

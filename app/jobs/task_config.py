@@ -30,9 +30,16 @@ def refuse_model_path(values: dict[str, Any] | None) -> None:
         raise ConfigError("config.model_path", MODEL_PATH_REFUSED)
 
 
-def validated(model: type[Config], values: dict[str, Any] | None) -> Config:
-    """`model` from a job's config dict; the first problem as ConfigError('config.<field>')."""
+def validated(
+    model: type[Config], values: dict[str, Any] | None, known: tuple[str, ...] | None = None
+) -> Config:
+    """`model` from a job's config dict; the first problem as ConfigError('config.<field>').
+    With `known`, a key outside it is refused first, naming the fields a job may set."""
     refuse_model_path(values)
+    if known is not None:
+        unknown = sorted(set(values or {}) - set(known))
+        if unknown:
+            raise ConfigError(f"config.{unknown[0]}", f"unknown field; known: {', '.join(known)}")
     try:
         return model.model_validate(dict(values or {}))
     except ValidationError as exc:
