@@ -68,7 +68,24 @@ def read_las(path: str | Path) -> Survey:
         partial(_load_points, path, n),
         partial(_load_reference, path, n) if has_classes else None,
         ("classification",) if has_classes else (),
+        partial(_first_points, path),
     )
+
+
+def _first_points(path: Path, n: int) -> PointCloud:
+    """The first n points' coordinates and times (one read of n records, not the whole file)."""
+
+    def read() -> PointCloud:
+        with laspy.open(path) as reader:
+            points = reader.read_points(min(n, int(reader.header.point_count)))
+        xyz = np.stack(
+            [np.asarray(points.x), np.asarray(points.y), np.asarray(points.z)], axis=1
+        ).astype(np.float64)
+        dims = set(points.point_format.dimension_names)
+        time = np.asarray(points.gps_time, dtype=np.float64) if "gps_time" in dims else None
+        return PointCloud(xyz, time=time)
+
+    return guarded(path, "points", read)
 
 
 def _read_header(path: Path) -> laspy.LasHeader:

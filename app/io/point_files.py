@@ -9,6 +9,7 @@ from __future__ import annotations
 import io
 import os
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import TypeVar
 
@@ -32,8 +33,11 @@ def map_survey(
     load_points: Callable[[], PointCloud],
     load_reference: Callable[[], dict[str, np.ndarray]] | None,
     labels: tuple[str, ...],
+    sample_points: Callable[[int], PointCloud] | None = None,
 ) -> Survey:
-    """An accumulated map: one frame `map`, identity pose, points already in world coordinates."""
+    """An accumulated map: one frame `map`, identity pose, points already in world coordinates.
+
+    `sample_points(n)` reads the first n points; by default the whole file is read and cut."""
     frame = Frame(
         index=0,
         frame_id=MAP_FRAME_ID,
@@ -44,7 +48,21 @@ def map_survey(
         _load_reference=load_reference,
     )
     return Survey(
-        name=path.stem, source=path, format=fmt, frames=[frame], reference_label_kinds=labels
+        name=path.stem,
+        source=path,
+        format=fmt,
+        frames=[frame],
+        reference_label_kinds=labels,
+        sample_points=sample_points or partial(_first_points, load_points),
+    )
+
+
+def _first_points(load_points: Callable[[], PointCloud], n: int) -> PointCloud:
+    cloud = load_points()
+    return PointCloud(
+        cloud.xyz[:n],
+        None if cloud.intensity is None else cloud.intensity[:n],
+        None if cloud.time is None else cloud.time[:n],
     )
 
 

@@ -121,6 +121,8 @@ class Survey:
     reference_label_kinds: tuple[str, ...] = ()  # e.g. ("semantic", "instance"); empty = none
     trajectory: np.ndarray | None = None  # (M, 4, 4) sensor poses when known, for maps
     scanner: str | None = None  # e.g. "hdl64", "profile"; None when unknown
+    # a map's first N points without reading the whole file (sensor-kind detection)
+    sample_points: Callable[[int], PointCloud] | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
         return len(self.frames)
