@@ -25,10 +25,10 @@ import numpy as np
 from app.io import open_survey
 from app.metrics.classification import binary_scores
 from app.pipelines.guardrail.correction import correct_labels
-from app.pipelines.guardrail.dataset import HELD_OUT_SEEDS, preset_of, simulated_survey
+from app.pipelines.guardrail.evaluation.reference import point_reference, slice_truth
 from app.pipelines.guardrail.pipeline import GuardrailConfig, GuardrailPipeline
 from app.pipelines.guardrail.run import reference_points, slice_metrics
-from app.pipelines.guardrail.slice_stage import point_reference, slice_truth
+from app.pipelines.guardrail.training.dataset import HELD_OUT_SEEDS, preset_of, simulated_survey
 from bench.common import append_results, markdown_table
 
 COMMAND = "MMSCLEAN_DATA_DIR=/tmp/mmsvar .venv/bin/python -m bench.guardrail"
@@ -97,7 +97,7 @@ def _length(model: dict) -> float:
 
 def reconstruction_table(reconstructions) -> str:
     """Each reconstructed guardrail against the true guardrail most of its points belong to."""
-    from app.pipelines.guardrail.reconstruction_metrics import evaluate_guardrail
+    from app.pipelines.guardrail.evaluation.reconstruction_metrics import evaluate_guardrail
 
     poles, radii, sections, recovered, pipes, stacked, kinds = [], [], [], 0, 0, [], []
     for result, models, truth_index in reconstructions:
@@ -142,7 +142,7 @@ def reconstruction_table(reconstructions) -> str:
 def _pipes_vs_units(reconstructions) -> dict[int, float]:
     """The paper's finding (4 units stacked recover far less than 25): share of true pipes
     recovered when only k units are stacked, pooled over the held-out pipe guardrails."""
-    from app.pipelines.guardrail.reconstruction_metrics import pipes_recovered_vs_units
+    from app.pipelines.guardrail.evaluation.reconstruction_metrics import pipes_recovered_vs_units
 
     shares: dict[int, list[float]] = {}
     for result, models, truth_index in reconstructions:

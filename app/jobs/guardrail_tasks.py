@@ -26,6 +26,7 @@ from app.io import open_survey
 from app.jobs.memory import MemoryEstimate, per_point_estimate
 from app.jobs.registry import JobContext, task
 from app.jobs.task_config import job_model, refuse_model_path, validated
+from app.pipelines.guardrail.classifier import load_heads
 from app.pipelines.guardrail.pipeline import (
     DEFAULT_MODEL,
     GuardrailConfig,
@@ -35,8 +36,7 @@ from app.pipelines.guardrail.pipeline import (
     rebuild_guardrails,
 )
 from app.pipelines.guardrail.run import write_guardrail_folder
-from app.pipelines.guardrail.slice_stage import save_slice_features
-from app.pipelines.guardrail.train import load_heads
+from app.pipelines.guardrail.segmentation import save_slice_features
 from app.pipelines.outputs import write_report
 from app.review.guardrails import current_run, load_stage, stage_rows
 from app.store.guardrail_review import (
@@ -260,7 +260,7 @@ def rebuild_guardrail_models(context: JobContext, config: dict[str, Any]) -> dic
     guardrails = rebuild_guardrails(
         saved, labels, cfg, lambda stage, f: context.progress(0.05 + 0.85 * f, stage)
     )
-    from app.pipelines.guardrail.assemble import export_guardrail
+    from app.pipelines.guardrail.reconstruction import export_guardrail
 
     out = context.workdir
     files = [

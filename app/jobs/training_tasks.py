@@ -17,6 +17,7 @@ from app.core.bounds import Count, Metres, Rate, RecordId, Seconds, Seed, Share
 from app.core.errors import ConfigError
 from app.core.settings import Settings
 from app.io import open_survey
+from app.io.accumulate import accumulate
 from app.jobs.guardrail_tasks import FEATURES_FILE, promoted_classifier
 from app.jobs.memory import MB, MemoryEstimate
 from app.jobs.phantom_training_data import (
@@ -29,14 +30,13 @@ from app.jobs.registry import JobContext, task
 from app.jobs.task_config import validated
 from app.metrics.classification import binary_scores
 from app.metrics.splits import held_out_blocks
-from app.pipelines.guardrail.classifier import SliceHead, predict
-from app.pipelines.guardrail.dataset import SliceSamples
-from app.pipelines.guardrail.train import fit_head, load_heads, save_heads
+from app.pipelines.guardrail.classifier import SliceHead, load_heads, predict, save_heads
+from app.pipelines.guardrail.training.dataset import SliceSamples
+from app.pipelines.guardrail.training.train import fit_head
 from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.dataset import Samples, concatenate
 from app.pipelines.phantom.finetune import LabelledPillars, finetune, labelled_samples, score
 from app.pipelines.phantom.model import DEFAULT_MODEL, load_model, save_model
-from app.pipelines.phantom.pipeline import accumulate
 from app.pipelines.phantom.train import TrainConfig
 from app.store.guardrail_review import latest_run, match_slices
 from app.store.model_versions import ensure_shipped_version, promoted_version, register_version

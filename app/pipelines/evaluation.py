@@ -137,7 +137,11 @@ def _phantom(survey: Survey, labels: list[np.ndarray]) -> dict:
 
 
 def _guardrail(survey: Survey, labels: list[np.ndarray]) -> dict:
-    from app.pipelines.guardrail.reference import DESCRIPTIONS, guardrail_truth, reference_kind
+    from app.pipelines.guardrail.evaluation.reference import (
+        DESCRIPTIONS,
+        guardrail_truth,
+        reference_kind,
+    )
 
     kind = reference_kind(survey.reference_label_kinds)
     if kind is None:

@@ -22,8 +22,8 @@ from sqlmodel import Session
 
 from app.core.errors import InputError
 from app.jobs.task_config import MODEL_PATH_REFUSED
+from app.pipelines.guardrail.classifier import load_heads
 from app.pipelines.guardrail.pipeline import DEFAULT_MODEL as DEFAULT_CLASSIFIER
-from app.pipelines.guardrail.train import load_heads
 from app.pipelines.phantom.model import DEFAULT_MODEL, load_model
 from app.simulate.survey import SimulationConfig, simulate
 from app.store.db import make_engine

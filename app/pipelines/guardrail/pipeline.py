@@ -14,11 +14,10 @@ from pydantic import BaseModel, Field
 from app.core.bounds import Count, Metres, ObjectMetres, Resolution, Share
 from app.core.progress import Progress, Stopwatch, no_progress
 from app.io.survey import Survey
-from app.pipelines.guardrail.classifier import CropEncoder, predict
+from app.pipelines.guardrail.classifier import CropEncoder, load_heads, predict
 from app.pipelines.guardrail.correction import correct_labels
-from app.pipelines.guardrail.slice_stage import SliceStage, prepare_slices
+from app.pipelines.guardrail.segmentation import SliceStage, prepare_slices
 from app.pipelines.guardrail.slices import SliceSet
-from app.pipelines.guardrail.train import load_heads
 
 DEFAULT_MODEL = Path(__file__).resolve().parents[3] / "models" / "guardrail" / "slice_classifier.pt"
 
@@ -179,7 +178,7 @@ def group_guardrails(
 
 def reconstruct_instance(xyz: np.ndarray, trajectory: np.ndarray, g: GuardrailInstance) -> None:
     """Fill `g.model` from its points, or `g.error` with why it could not be reconstructed."""
-    from app.pipelines.guardrail.assemble import reconstruct_guardrail
+    from app.pipelines.guardrail.reconstruction import reconstruct_guardrail
 
     try:
         g.model = reconstruct_guardrail(xyz[g.points], trajectory)

@@ -14,14 +14,19 @@ from app.io.asprs import GUARDRAIL_ASPRS
 from app.io.las import write_laz
 from app.io.survey import Survey
 from app.metrics.classification import binary_scores
+from app.pipelines.guardrail.evaluation.reference import (
+    DESCRIPTIONS,
+    guardrail_truth,
+    point_reference,
+    reference_kind,
+    slice_truth,
+)
 from app.pipelines.guardrail.pipeline import (
     GuardrailConfig,
     GuardrailPipeline,
     GuardrailResult,
     Progress,
 )
-from app.pipelines.guardrail.reference import DESCRIPTIONS, guardrail_truth, reference_kind
-from app.pipelines.guardrail.slice_stage import point_reference, slice_truth
 from app.pipelines.outputs import write_frame_labels, write_report
 
 
@@ -85,7 +90,7 @@ def write_guardrail_folder(
     for g in result.guardrails:
         entry: dict = {"id": g.id, "slices": int(len(g.slices)), "points": int(len(g.points))}
         if g.model is not None:
-            from app.pipelines.guardrail.assemble import export_guardrail
+            from app.pipelines.guardrail.reconstruction import export_guardrail
 
             written = export_guardrail(g.model, out / "guardrails", g.id)
             entry["files"] = {k: str(Path("guardrails") / Path(v).name) for k, v in written.items()}

@@ -8,14 +8,15 @@ import numpy as np
 import pytest
 
 from app.core.errors import InputError
-from app.pipelines.guardrail.classifier import EMBEDDING, CropEncoder, predict
-from app.pipelines.guardrail.dataset import SliceSamples
-from app.pipelines.guardrail.train import (
-    fit_head,
+from app.pipelines.guardrail.classifier import (
+    EMBEDDING,
+    CropEncoder,
     load_heads,
+    predict,
     save_heads,
-    slice_scores,
 )
+from app.pipelines.guardrail.training.dataset import SliceSamples
+from app.pipelines.guardrail.training.train import fit_head, slice_scores
 
 
 def _samples(n: int, seed: int) -> SliceSamples:

@@ -6,7 +6,11 @@ from __future__ import annotations
 import numpy as np
 
 from app.core.labels import FENCE
-from app.pipelines.guardrail.reference import DESCRIPTIONS, guardrail_truth, reference_kind
+from app.pipelines.guardrail.evaluation.reference import (
+    DESCRIPTIONS,
+    guardrail_truth,
+    reference_kind,
+)
 
 
 def test_the_simulator_reference_comes_first_then_semantickitti() -> None:

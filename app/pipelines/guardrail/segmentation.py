@@ -103,24 +103,3 @@ def save_slice_features(path: Path, stage: SliceStage) -> Path:
     )
     partial.replace(path)
     return path
-
-
-def slice_truth(stage: SliceStage, guardrail_index: np.ndarray) -> np.ndarray:
-    """(K,) int64 reference slice label: 1 when most of its points belong to a guardrail.
-
-    `guardrail_index` is the simulator's per-point guardrail index (-1 elsewhere), in the order
-    of `stage.points`.
-    """
-    s = stage.slices
-    on_rail = (guardrail_index[s.indices] >= 0).astype(np.int64)
-    per_slice = np.add.reduceat(on_rail, s.offsets[:-1]) if len(s) else np.zeros(0, np.int64)
-    return (2 * per_slice > np.diff(s.offsets)).astype(np.int64)
-
-
-def point_reference(survey: Survey, points: ScanPoints, kind: str) -> np.ndarray:
-    """A per-frame reference label (e.g. "guardrail", "semantic") in the order of `points`."""
-    out = np.zeros(len(points), dtype=np.int64)
-    for f in np.unique(points.frame):
-        sel = points.frame == f
-        out[sel] = survey.frames[int(f)].reference_labels()[kind][points.index[sel]]
-    return out

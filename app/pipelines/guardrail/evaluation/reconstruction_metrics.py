@@ -202,7 +202,7 @@ def pipes_recovered_vs_units(
 ) -> dict[int, float]:
     """Share of the true pipes recovered when only `k` units are stacked, per k (the
     reconstruction runs once per k with `max_units=k`)."""
-    from app.pipelines.guardrail.assemble import reconstruct_guardrail
+    from app.pipelines.guardrail.reconstruction import reconstruct_guardrail
 
     out = {}
     for k in counts:

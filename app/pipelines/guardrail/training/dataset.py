@@ -17,7 +17,8 @@ from app.core.progress import Progress
 from app.core.settings import get_settings
 from app.io import open_survey
 from app.pipelines.guardrail.classifier import CropEncoder
-from app.pipelines.guardrail.slice_stage import point_reference, prepare_slices, slice_truth
+from app.pipelines.guardrail.evaluation.reference import point_reference, slice_truth
+from app.pipelines.guardrail.segmentation import prepare_slices
 
 
 @dataclass

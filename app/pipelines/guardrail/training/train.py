@@ -1,4 +1,5 @@
-"""Training the slice classifier's head, saving and loading it with its model card.
+"""Training the slice classifier's heads and writing them with their model card (saving and
+loading a checkpoint is `classifier.save_heads` / `load_heads`).
 
 Samples are slices with their crop embedding, geometric features and label (guardrail or
 other); `group` names the survey a slice came from, so validation slices never share a survey
@@ -8,20 +9,15 @@ weights the classes by their inverse frequency: guardrail slices are a few perce
 
 from __future__ import annotations
 
-import datetime
-import json
-import os
 from pathlib import Path
 
 import numpy as np
 import torch
 from torch import nn
 
-from app.core.errors import InputError
 from app.metrics.classification import binary_scores
-from app.pipelines.checkpoints import load_checkpoint
-from app.pipelines.guardrail.classifier import Inputs, SliceHead, predict
-from app.pipelines.guardrail.dataset import (
+from app.pipelines.guardrail.classifier import Inputs, SliceHead, predict, save_heads
+from app.pipelines.guardrail.training.dataset import (
     HELD_OUT_SEEDS,
     TRAIN_SEEDS,
     VALIDATION_SEEDS,
@@ -76,48 +72,6 @@ def slice_scores(head: SliceHead, samples: SliceSamples) -> dict:
     """Precision / recall / F of the guardrail class (the paper's Table 2), percent."""
     guess = predict(head, samples.embedding, samples.geometry).argmax(axis=1) == 1
     return binary_scores(samples.label == 1, guess).as_dict()
-
-
-def save_heads(path: Path, heads: dict[str, SliceHead], card: dict) -> Path:
-    """One checkpoint holding a head per input set (`image`, `geometry`, `image+geometry`) and
-    the card; the card also goes beside it as JSON. Written atomically. It holds only state
-    dicts, strings, ints and the card's plain types, so `load_heads` reads it with
-    weights_only=True."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    card = {"created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"), **card}
-    card = json.loads(json.dumps(card, default=str))  # plain types: loads weights_only=True
-    blob = {
-        "heads": {
-            name: {"state_dict": h.state_dict(), "inputs": h.inputs, "n_geometry": h.n_geometry}
-            for name, h in heads.items()
-        },
-        "card": card,
-    }
-    partial = path.with_suffix(".partial")
-    torch.save(blob, partial)
-    os.replace(partial, path)
-    path.with_suffix(".json").write_text(json.dumps(card, indent=1, sort_keys=True) + "\n")
-    return path
-
-
-def load_heads(path: Path) -> tuple[dict[str, SliceHead], dict]:
-    """The heads (eval mode) and the card; the file is read as data only (`load_checkpoint`),
-    anything else in it is one InputError."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "guardrail classifier checkpoint is missing")
-    blob = load_checkpoint(path, "guardrail classifier")
-    try:
-        heads = {}
-        for name, h in blob["heads"].items():
-            head = SliceHead(h["inputs"], int(h["n_geometry"]))
-            head.load_state_dict(h["state_dict"])
-            heads[name] = head.eval()
-    except Exception as exc:  # any failure means the file is unusable
-        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise InputError(path, f"not a guardrail classifier checkpoint ({reason})") from None
-    return heads, blob.get("card", {})
 
 
 HEAD_INPUTS: tuple[Inputs, ...] = ("image+geometry", "image", "geometry")
