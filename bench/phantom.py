@@ -48,11 +48,11 @@ def simulated(scene: str, length: float, seed: int, scanner: str = "profile") ->
 
 def part_speed(args) -> tuple[str, str, str]:
     from app.geometry.ground import estimate_ground
+    from app.io.accumulate import accumulate
     from app.pipelines.phantom.classify import classify_dense, classify_windows
     from app.pipelines.phantom.config import PhantomConfig
     from app.pipelines.phantom.model import load_model
     from app.pipelines.phantom.pillars import build_pillar_map
-    from app.pipelines.phantom.pipeline import accumulate
 
     survey = open_survey(simulated("mixed", 100.0, 301), "sim")
     amap = accumulate(survey, with_reference=False)

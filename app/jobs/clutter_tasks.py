@@ -37,7 +37,7 @@ from app.jobs.memory import (
 )
 from app.jobs.registry import JobContext, task
 from app.jobs.task_config import validated
-from app.pipelines.clutter.accumulate import accumulate
+from app.pipelines.clutter.accumulate import kept_and_removed
 from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.pipeline import ClutterPipeline
 from app.pipelines.clutter.review_units import apply_decisions, write_review_units
@@ -216,7 +216,7 @@ def recompute_clutter(context: JobContext, config: dict[str, Any]) -> dict[str, 
     write_frame_labels(
         out, {f.frame_id: r.astype(np.uint8) for f, r in zip(survey.frames, removed, strict=True)}
     )
-    kept_map, removed_map = accumulate(survey, removed, run_config.voxel_dedup)
+    kept_map, removed_map = kept_and_removed(survey, removed, run_config.voxel_dedup)
     context.progress(0.8, "writing the maps")
     files = {
         name: str((out / path).resolve())

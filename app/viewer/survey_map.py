@@ -30,6 +30,7 @@ from app.geometry.ground import GroundModel, estimate_ground
 from app.geometry.pillars import PillarGrid
 from app.geometry.voxels import voxel_downsample
 from app.io import open_survey
+from app.io.accumulate import accumulate
 from app.store.pillar_labels import STORE_GRID
 
 CACHE_VERSION = 2
@@ -115,17 +116,10 @@ class SurveyMap:
 
 
 def accumulate_local(source: MapSource) -> tuple[np.ndarray, np.ndarray]:
-    """(local float32 xyz, world float64 xy) of every frame's points in world coordinates."""
+    """(local float32 xyz, world float64 xy) of every frame's points (`app.io.accumulate`)."""
     survey = open_survey(source.source_path, source.format)
-    origin = np.asarray(source.origin, dtype=np.float64)
-    local, world_xy = [], []
-    for frame in survey.frames:
-        xyz = frame.world_points().xyz
-        world_xy.append(xyz[:, :2])
-        local.append((xyz - origin).astype(np.float32))
-    if not local:
-        return np.zeros((0, 3), dtype=np.float32), np.zeros((0, 2))
-    return np.concatenate(local), np.concatenate(world_xy)
+    amap = accumulate(survey, origin=np.asarray(source.origin, dtype=np.float64))
+    return amap.xyz, amap.world_xy
 
 
 def build_map(source: MapSource, overview_points: int) -> SurveyMap:

@@ -10,10 +10,11 @@ from pathlib import Path
 import numpy as np
 
 from app.core.progress import Progress
+from app.io.accumulate import AccumulatedMap
 from app.io.asprs import REMOVED_CLUTTER_ASPRS
 from app.io.las import write_laz
 from app.io.survey import Frame, Survey
-from app.pipelines.clutter.accumulate import WorldMap, accumulate
+from app.pipelines.clutter.accumulate import kept_and_removed
 from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.pipeline import ClassMaps, ClutterPipeline, ClutterResult
 from app.pipelines.clutter.segmenter import CachedSegmenter, Segmenter, overlay_png
@@ -100,7 +101,7 @@ def write_clutter_outputs(
     out.mkdir(parents=True, exist_ok=True)
     write_frame_labels(out, result.frame_labels())
     t0 = time.perf_counter()
-    kept, removed = accumulate(survey, result.removed, config.voxel_dedup)
+    kept, removed = kept_and_removed(survey, result.removed, config.voxel_dedup)
     result.timings["accumulation"] = round(time.perf_counter() - t0, 3)
     files = write_maps(out, kept, removed)
     camera = ClutterPipeline(config).camera(survey)
@@ -148,7 +149,7 @@ def reference_metrics(
     return removal_metrics(semantic, np.concatenate(removed), np.concatenate(in_view), moving)
 
 
-def write_maps(out: Path, kept: WorldMap, removed: WorldMap) -> dict[str, str]:
+def write_maps(out: Path, kept: AccumulatedMap, removed: AccumulatedMap) -> dict[str, str]:
     """cleaned.laz and removed.laz in `out`; returns {name: file name}."""
     written = {}
     for name, world, label in (("cleaned.laz", kept, 0), ("removed.laz", removed, 1)):

@@ -5,7 +5,7 @@ labels, the paper's metrics."""
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +14,7 @@ import torch
 from app.core.labels import PillarClass
 from app.core.progress import Progress
 from app.geometry.ground import estimate_ground
+from app.io.accumulate import AccumulatedMap, accumulate
 from app.io.survey import Survey
 from app.pipelines.phantom.classify import classify_dense, classify_windows
 from app.pipelines.phantom.config import PhantomConfig
@@ -22,46 +23,6 @@ from app.pipelines.phantom.pillars import PillarMap, build_pillar_map
 from app.pipelines.phantom.point_labels import point_labels
 from app.pipelines.phantom.priors import apply_priors
 from app.pipelines.phantom.refine import refine
-
-
-@dataclass
-class AccumulatedMap:
-    """All frames of a survey in world coordinates, with where each point came from."""
-
-    xyz: np.ndarray  # (N, 3) float64
-    frame_ids: list[str]
-    frame_sizes: list[int]
-    reference: dict[str, np.ndarray] = field(default_factory=dict)  # per point, when present
-
-    def split(self, values: np.ndarray) -> dict[str, np.ndarray]:
-        """Per-point values back into per-frame arrays (file order)."""
-        parts = np.split(values, np.cumsum(self.frame_sizes)[:-1])
-        return dict(zip(self.frame_ids, parts, strict=True))
-
-    @property
-    def source_frame(self) -> np.ndarray:
-        return np.repeat(np.arange(len(self.frame_sizes), dtype=np.uint32), self.frame_sizes)
-
-    @property
-    def source_index(self) -> np.ndarray:
-        return np.concatenate([np.arange(n, dtype=np.uint32) for n in self.frame_sizes])
-
-
-def accumulate(survey: Survey, with_reference: bool = True) -> AccumulatedMap:
-    clouds, refs = [], []
-    for frame in survey.frames:
-        clouds.append(frame.world_points().xyz)
-        if with_reference and survey.reference_label_kinds:
-            refs.append(frame.reference_labels())
-    reference = {}
-    if refs and all(refs):
-        reference = {k: np.concatenate([r[k] for r in refs]) for k in refs[0]}
-    return AccumulatedMap(
-        xyz=np.concatenate(clouds) if clouds else np.zeros((0, 3)),
-        frame_ids=[f.frame_id for f in survey.frames],
-        frame_sizes=[len(c) for c in clouds],
-        reference=reference,
-    )
 
 
 @dataclass
@@ -109,7 +70,7 @@ class PhantomPipeline:
             clock = now
 
         report("accumulate", 0.0)
-        amap = accumulate(survey)
+        amap = accumulate(survey, with_reference=True)
         lap("accumulate")
         ground = estimate_ground(amap.xyz, cfg.ground_cell, cfg.ground_opening)
         lap("ground")

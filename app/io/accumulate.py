@@ -1,0 +1,111 @@
+"""Accumulation: a survey's frames posed into one map, with where each point came from.
+
+Every reader of a whole survey at once (the phantom pipeline and its evaluation, clutter's cleaned
+and removed maps, the viewer's map) builds it here, each frame read once. Points stay in frame
+order and, inside a frame, in file order, so per-point results split back into per-frame arrays
+(`split`), `source_frame` / `source_index` say where each point came from, and `select` keeps a
+subset in that order (clutter's kept and removed points).
+
+World coordinates stay float64. With an `origin`, the points are re-centred on it as float32
+frame by frame (what a viewer sends; float32 of world coordinates loses centimetres), and
+`world_xy` keeps the exact float64 world xy beside them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from app.io.survey import Survey
+
+
+@dataclass
+class AccumulatedMap:
+    """Frames of a survey in the map frame, with where each point came from."""
+
+    xyz: np.ndarray  # (N, 3) float64 world; float32 relative to the origin when one was given
+    frame_ids: list[str]
+    frame_sizes: list[int]  # points of each frame in this map
+    reference: dict[str, np.ndarray] = field(default_factory=dict)  # per point, when present
+    intensity: np.ndarray | None = None  # (N,) float32, when asked for and every frame has it
+    world_xy: np.ndarray | None = None  # (N, 2) float64 world xy, beside re-centred xyz
+    index: np.ndarray | None = None  # (N,) uint32 point of its frame; None: all, in file order
+
+    def split(self, values: np.ndarray) -> dict[str, np.ndarray]:
+        """Per-point values back into per-frame arrays (file order)."""
+        parts = np.split(values, np.cumsum(self.frame_sizes)[:-1])
+        return dict(zip(self.frame_ids, parts, strict=True))
+
+    @property
+    def source_frame(self) -> np.ndarray:
+        """(N,) uint32 index of each point's frame."""
+        return np.repeat(np.arange(len(self.frame_sizes), dtype=np.uint32), self.frame_sizes)
+
+    @property
+    def source_index(self) -> np.ndarray:
+        """(N,) uint32 index of each point in its frame."""
+        if self.index is not None:
+            return self.index
+        if not self.frame_sizes:
+            return np.zeros(0, dtype=np.uint32)
+        return np.concatenate([np.arange(n, dtype=np.uint32) for n in self.frame_sizes])
+
+    def select(self, which: np.ndarray) -> AccumulatedMap:
+        """The points `which` (a boolean mask, or ascending indices), in the same order."""
+        frame = self.source_frame[which]
+        return AccumulatedMap(
+            xyz=self.xyz[which],
+            frame_ids=self.frame_ids,
+            frame_sizes=np.bincount(frame, minlength=len(self.frame_ids)).tolist(),
+            reference={name: values[which] for name, values in self.reference.items()},
+            intensity=None if self.intensity is None else self.intensity[which],
+            world_xy=None if self.world_xy is None else self.world_xy[which],
+            index=self.source_index[which],
+        )
+
+
+def accumulate(
+    survey: Survey,
+    with_reference: bool = False,
+    with_intensity: bool = False,
+    origin: np.ndarray | None = None,
+) -> AccumulatedMap:
+    """Every frame's points posed into the map frame. `with_reference` keeps the survey's
+    reference labels (when every frame has them), `with_intensity` the intensities as float32
+    (when every frame has them), `origin` re-centres the points on it as float32."""
+    if origin is not None:
+        origin = np.asarray(origin, dtype=np.float64)
+    clouds, refs, intensities, world_xy = [], [], [], []
+    for frame in survey.frames:
+        cloud = frame.world_points()
+        xyz = cloud.xyz
+        if origin is not None:
+            world_xy.append(xyz[:, :2].copy())  # a copy: the float64 frame is not kept alive
+            xyz = (xyz - origin).astype(np.float32)
+        clouds.append(xyz)
+        if with_intensity:
+            values = cloud.intensity
+            intensities.append(None if values is None else np.asarray(values, np.float32))
+        if with_reference and survey.reference_label_kinds:
+            refs.append(frame.reference_labels())
+    if not clouds:
+        local = origin is not None
+        return AccumulatedMap(
+            xyz=np.zeros((0, 3), dtype=np.float32 if local else np.float64),
+            frame_ids=[],
+            frame_sizes=[],
+            world_xy=np.zeros((0, 2)) if local else None,
+        )
+    reference = {}
+    if refs and all(refs):
+        reference = {k: np.concatenate([r[k] for r in refs]) for k in refs[0]}
+    with_values = with_intensity and all(v is not None for v in intensities)
+    return AccumulatedMap(
+        xyz=np.concatenate(clouds),
+        frame_ids=[f.frame_id for f in survey.frames],
+        frame_sizes=[len(c) for c in clouds],
+        reference=reference,
+        intensity=np.concatenate(intensities) if with_values else None,
+        world_xy=np.concatenate(world_xy) if origin is not None else None,
+    )

@@ -1,0 +1,93 @@
+"""The one accumulation gives its three users (clutter's kept / removed maps, the phantom map
+with reference labels, the viewer's re-centred map) the arrays their own loops gave (synthetic)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app.geometry.voxels import voxel_downsample
+from app.io import open_survey
+from app.io.accumulate import accumulate
+from app.io.survey import Survey
+from app.pipelines.clutter.accumulate import kept_and_removed
+from app.simulate.survey import SimulationConfig, simulate
+from app.viewer.survey_map import MapSource, accumulate_local
+
+
+@pytest.fixture(scope="module")
+def survey(tmp_path_factory: pytest.TempPathFactory) -> Survey:
+    out = tmp_path_factory.mktemp("accumulate") / "sim"
+    simulate(SimulationConfig(scene="mixed", length=6.0, seed=3, camera=False), out)
+    return open_survey(out, "sim")
+
+
+def posed(survey: Survey):
+    """(frame number, frame, cloud, world xyz) frame by frame, as each user computed them."""
+    for i, frame in enumerate(survey.frames):
+        cloud = frame.points()
+        yield i, frame, cloud, cloud.xyz @ frame.pose[:3, :3].T + frame.pose[:3, 3]
+
+
+def same(a: np.ndarray, b: np.ndarray) -> None:
+    assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+@pytest.mark.parametrize("voxel", [None, 0.3])
+def test_clutter_maps_are_the_selected_points_of_each_frame(survey: Survey, voxel) -> None:
+    rng = np.random.default_rng(0)
+    removed = [rng.random(len(f.points())) < 0.3 for f in survey.frames]
+    kept, gone = kept_and_removed(survey, removed, voxel)
+    for flag, got in ((False, kept), (True, gone)):
+        xyz, intensity, frame, index = [], [], [], []
+        for i, _, cloud, world in posed(survey):
+            picked = np.flatnonzero(removed[i] == flag)
+            xyz.append(world[picked])
+            intensity.append(np.asarray(cloud.intensity, np.float32)[picked])
+            frame.append(np.full(len(picked), i, dtype=np.uint32))
+            index.append(picked.astype(np.uint32))
+        want = [np.concatenate(v) for v in (xyz, intensity, frame, index)]
+        if voxel and not flag:
+            first = voxel_downsample(want[0], voxel, origin=want[0].min(axis=0))
+            want = [v[first] for v in want]
+        got_arrays = (got.xyz, got.intensity, got.source_frame, got.source_index)
+        for a, b in zip(want, got_arrays, strict=True):
+            same(a, b)
+    with pytest.raises(ValueError, match="decisions"):
+        kept_and_removed(survey, [r[:-1] for r in removed])
+
+
+def test_phantom_map_keeps_reference_labels_and_splits_back(survey: Survey) -> None:
+    amap = accumulate(survey, with_reference=True)
+    parts = list(posed(survey))
+    same(amap.xyz, np.concatenate([world for *_, world in parts]))
+    references = [frame.reference_labels() for _, frame, _, _ in parts]
+    assert set(amap.reference) == set(references[0]) and "semantic" in amap.reference
+    for name, values in amap.reference.items():
+        same(values, np.concatenate([r[name] for r in references]))
+    same(amap.source_index, np.concatenate([np.arange(len(c), dtype=np.uint32) for *_, c in parts]))
+    split = amap.split(np.arange(len(amap.xyz)))
+    assert list(split) == [f.frame_id for f in survey.frames]
+    assert [len(v) for v in split.values()] == [len(c) for *_, c in parts]
+    assert accumulate(survey).reference == {} and accumulate(survey).intensity is None
+
+
+def test_viewer_map_is_recentred_float32_beside_exact_world_xy(survey: Survey) -> None:
+    origin = (1.5, -2.25, 0.125)
+    local, world_xy = accumulate_local(MapSource(1, str(survey.source), "sim", origin, 0, 0))
+    worlds = [world for *_, world in posed(survey)]
+    same(local, np.concatenate([(w - np.asarray(origin)).astype(np.float32) for w in worlds]))
+    same(world_xy, np.concatenate([w[:, :2] for w in worlds]))
+
+
+def test_a_survey_without_frames_gives_empty_maps() -> None:
+    empty = Survey("empty", Path("."), "sim", [])
+    same(accumulate(empty).xyz, np.zeros((0, 3)))
+    local = accumulate(empty, origin=np.zeros(3))
+    same(local.xyz, np.zeros((0, 3), np.float32))
+    same(local.world_xy, np.zeros((0, 2)))
+    kept, gone = kept_and_removed(empty, [], 0.3)
+    same(kept.source_frame, np.zeros(0, np.uint32))
+    same(gone.source_index, np.zeros(0, np.uint32))
