@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from app.pipelines.guardrail.pipes import taubin_smooth
+from app.pipelines.guardrail.polylines import taubin_smooth
 
 
 @dataclass

@@ -27,14 +27,8 @@ import numpy as np
 from app.pipelines.guardrail import meshes
 from app.pipelines.guardrail.beams import BeamModel, beam_section, looks_like_beam
 from app.pipelines.guardrail.pipes import PipeModel, reconstruct_pipes
-from app.pipelines.guardrail.poles import (
-    Pole,
-    RailCurve,
-    detect_poles,
-    place_poles,
-    pole_spacing,
-    rail_curve,
-)
+from app.pipelines.guardrail.poles import Pole, detect_poles, place_poles, pole_spacing
+from app.pipelines.guardrail.rail_curve import RailCurve, rail_curve
 from app.pipelines.guardrail.superimpose import Stack, superimpose
 from app.pipelines.guardrail.units import Unit, split_units, unit_frame
 

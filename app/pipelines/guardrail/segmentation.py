@@ -12,15 +12,11 @@ import numpy as np
 from app.core.progress import Progress, Stopwatch, no_progress
 from app.io.survey import Survey
 from app.pipelines.guardrail.classifier import EMBEDDING, CropEncoder
-from app.pipelines.guardrail.components import (
-    Components,
-    ScanPoints,
-    connected_components,
-    load_scan_points,
-)
+from app.pipelines.guardrail.components import Components, connected_components
 from app.pipelines.guardrail.crops import slice_crops
 from app.pipelines.guardrail.features import slice_features
 from app.pipelines.guardrail.road import RoadRemoval, road_removal
+from app.pipelines.guardrail.scan_points import ScanPoints, load_scan_points
 from app.pipelines.guardrail.slices import SliceSet, cut_slices
 
 

@@ -15,7 +15,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from app.pipelines.guardrail.poles import Pole, RailCurve
+from app.pipelines.guardrail.poles import Pole
+from app.pipelines.guardrail.rail_curve import RailCurve
 
 _Z = np.array([0.0, 0.0, 1.0])
 

@@ -16,12 +16,14 @@ import pytest
 import trimesh
 
 from app.pipelines.guardrail.beams import looks_like_beam
+from app.pipelines.guardrail.circles import fit_circle_ransac
 from app.pipelines.guardrail.evaluation.reconstruction_metrics import (
     evaluate_guardrail,
     pipes_recovered_vs_units,
 )
-from app.pipelines.guardrail.pipes import strip_components, taubin_smooth
-from app.pipelines.guardrail.poles import Pole, fit_circle_ransac, pole_spacing
+from app.pipelines.guardrail.pipes import strip_components
+from app.pipelines.guardrail.poles import Pole, pole_spacing
+from app.pipelines.guardrail.polylines import taubin_smooth
 from app.pipelines.guardrail.reconstruction import export_guardrail, reconstruct_guardrail
 from app.pipelines.guardrail.superimpose import superimpose
 from app.pipelines.guardrail.units import Unit, UnitFrame

@@ -14,18 +14,18 @@ import pytest
 
 from app.geometry.projection import project
 from app.io.registry import open_survey
-from app.pipelines.guardrail.components import (
+from app.pipelines.guardrail.components import connected_components
+from app.pipelines.guardrail.correction import correct_labels
+from app.pipelines.guardrail.crops import slice_crops
+from app.pipelines.guardrail.features import FEATURE_NAMES, slice_features
+from app.pipelines.guardrail.road import remove_road, road_removal
+from app.pipelines.guardrail.scan_points import (
     ScanPoints,
-    connected_components,
     load_scan_points,
     profile_lattice,
     rings_from_elevation,
     rings_from_order,
 )
-from app.pipelines.guardrail.correction import correct_labels
-from app.pipelines.guardrail.crops import slice_crops
-from app.pipelines.guardrail.features import FEATURE_NAMES, slice_features
-from app.pipelines.guardrail.road import remove_road, road_removal
 from app.pipelines.guardrail.slices import cut_slices
 
 SAMPLE = Path(__file__).resolve().parents[3] / "data_samples" / "urban-60m"

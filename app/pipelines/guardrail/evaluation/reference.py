@@ -12,7 +12,7 @@ import numpy as np
 
 from app.core.labels import FENCE
 from app.io.survey import Survey
-from app.pipelines.guardrail.components import ScanPoints
+from app.pipelines.guardrail.scan_points import ScanPoints
 from app.pipelines.guardrail.segmentation import SliceStage
 
 # reference label kind -> what the scores are measured against
