@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 import sqlalchemy as sa
-from pydantic import BaseModel
-from sqlmodel import Session, col, func, select
+from pydantic import ConfigDict
+from sqlmodel import Session, SQLModel, col, func, select
 
 from app.core.errors import (
     ConfigError,
@@ -40,6 +40,7 @@ from app.store.models import (
     GuardrailKind,
     GuardrailModel,
     GuardrailSlice,
+    GuardrailSliceBase,
     ModelStatus,
     Role,
     User,
@@ -56,26 +57,18 @@ MAX_LABELS_PER_WRITE = 5000
 # --- public shapes ------------------------------------------------------------------------
 
 
-class GuardrailSlicePublic(BaseModel):
+class GuardrailSlicePublic(GuardrailSliceBase):
+    model_config = ConfigDict(json_schema_serialization_defaults_required=True)  # all answered
+
     id: int
-    survey_id: int
-    component_id: int
-    slice_index: int
-    station_m: float
-    predicted_label: int
-    probability: float | None
-    corrected_label: int | None
-    label: int
-    labelled_by: int | None
     version: int
     updated_at: datetime
 
-    @classmethod
-    def of(cls, row: GuardrailSlice) -> GuardrailSlicePublic:
-        return cls.model_validate(row, from_attributes=True)
 
-
-class GuardrailModelPublic(BaseModel):
+# The row's columns but the mesh path, a summary of its parameters (computed in `of`) and, on
+# request, the parameters whole. It names its fields: a base shared with the table would
+# reorder the table's columns.
+class GuardrailModelPublic(SQLModel):
     id: int
     survey_id: int
     guardrail_index: int
@@ -97,28 +90,19 @@ class GuardrailModelPublic(BaseModel):
     def of(cls, row: GuardrailModel, with_params: bool = False) -> GuardrailModelPublic:
         p = row.params or {}
         span = p.get("station_m")
-        return cls(
-            id=row.id,
-            survey_id=row.survey_id,
-            guardrail_index=row.guardrail_index,
-            kind=row.kind,
-            status=row.status,
-            unit_count=row.unit_count,
-            icp_residual=row.icp_residual,
-            unit_length=p.get("unit_length"),
-            pole_count=len(p.get("poles") or []),
-            slice_count=len(p.get("slices") or []),
-            station_m=tuple(span) if span else None,
-            formats=sorted((p.get("files") or {}).keys()),
-            decided_by=row.decided_by,
-            decided_at=row.decided_at,
-            version=row.version,
-            params=dict(p) if with_params else None,
-        )
+        summary = {
+            "unit_length": p.get("unit_length"),
+            "pole_count": len(p.get("poles") or []),
+            "slice_count": len(p.get("slices") or []),
+            "station_m": tuple(span) if span else None,
+            "formats": sorted((p.get("files") or {}).keys()),
+            "params": dict(p) if with_params else None,
+        }
+        return cls.model_validate(row, update=summary)
 
 
 def _current(rows: Sequence[GuardrailSlice]) -> list[dict[str, Any]]:
-    return [GuardrailSlicePublic.of(r).model_dump(mode="json") for r in rows]
+    return [GuardrailSlicePublic.model_validate(r).model_dump(mode="json") for r in rows]
 
 
 # --- lookups ------------------------------------------------------------------------------

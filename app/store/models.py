@@ -14,6 +14,9 @@ Conventions every table keeps:
   first; setting `version` by hand is honoured instead of the automatic bump. `Job` has no
   version: workers write its progress while users only cancel it.
 - `updated_at` refreshes itself on every UPDATE.
+- The API's `XPublic` shapes are read from rows by attribute. Where the columns it shows follow
+  the table's own in schema order, they live in an `XBase` the table and `XPublic` both inherit
+  (full-stack-fastapi-template's Base / table / Public); a base never reorders a table's columns.
 - Children of a survey go with it (`ON DELETE CASCADE`, enforced: the engine turns SQLite's
   `foreign_keys` on); references to users, jobs and model versions become NULL instead.
 - JSON dict columns are `MutableDict`s, so `job.config["x"] = 1` is saved like an assignment
@@ -216,8 +219,8 @@ class LoginThrottle(Record, table=True):
     locked_until: datetime | None = Field(default=None, sa_type=UTCDateTime)
 
 
-class Survey(Versioned, table=True):
-    __tablename__ = "survey"
+class SurveyBase(Versioned):
+    """A survey's columns the API shows as they are (`SurveyPublic`)."""
 
     name: str = Field(max_length=255, index=True)
     format: str = Field(max_length=32)  # reader name: kitti-raw, semantickitti, las, ply, pcd, sim
@@ -226,10 +229,20 @@ class Survey(Versioned, table=True):
     point_count: int = Field(default=0, ge=0, sa_type=sa.BigInteger)
     has_reference_labels: bool = Field(default=False)
     poses_estimated: bool = Field(default=False)  # poses came from odometry, not GNSS/INS
+
+
+class Survey(SurveyBase, table=True):
+    __tablename__ = "survey"
+
     origin_x: float = Field(default=0.0, sa_type=sa.Double)
     origin_y: float = Field(default=0.0, sa_type=sa.Double)
     origin_z: float = Field(default=0.0, sa_type=sa.Double)
     created_by: int | None = _user_fk()
+
+    @property
+    def origin(self) -> tuple[float, float, float]:
+        """The local origin (x, y, z), float64."""
+        return (self.origin_x, self.origin_y, self.origin_z)
 
 
 class Frame(Created, table=True):
@@ -272,9 +285,9 @@ class Job(Timestamped, table=True):
     result: dict[str, Any] = Field(default_factory=dict, sa_type=JSONDict, nullable=False)
 
 
-class ModelVersion(Versioned, table=True):
-    __tablename__ = "model_version"
-    __table_args__ = (sa.UniqueConstraint("pipeline", "name", name="uq_model_version_name"),)
+class ModelVersionBase(Created):
+    """A model version's columns the API shows (`ModelVersionPublic`); the table adds
+    `Versioned`'s after `created_at` (column order is the schema's)."""
 
     pipeline: Pipeline = Field(sa_type=_enum_type(Pipeline), nullable=False, index=True)
     name: str = Field(max_length=128)
@@ -283,6 +296,11 @@ class ModelVersion(Versioned, table=True):
     trained_on: dict[str, Any] = Field(default_factory=dict, sa_type=JSONDict, nullable=False)
     is_promoted: bool = Field(default=False, index=True)
     job_id: int | None = Field(default=None, foreign_key="job.id", ondelete="SET NULL")
+
+
+class ModelVersion(ModelVersionBase, Versioned, table=True):
+    __tablename__ = "model_version"
+    __table_args__ = (sa.UniqueConstraint("pipeline", "name", name="uq_model_version_name"),)
 
 
 class PillarLabel(Versioned, table=True):
@@ -425,7 +443,22 @@ class ClutterDecision(Versioned, table=True):
     instance: ClutterInstance = Relationship(back_populates="decision")
 
 
-class GuardrailSlice(Versioned, table=True):
+class GuardrailSliceBase(Record):
+    """A slice's columns the API shows (`GuardrailSlicePublic`); the table adds `Versioned`'s
+    after `id` (column order is the schema's)."""
+
+    survey_id: int = _survey_fk()
+    slice_index: int
+    component_id: int
+    station_m: float = Field(sa_type=sa.Double)  # distance along the trajectory
+    predicted_label: int = Field(ge=0, le=1)  # CNN: 1 guardrail
+    probability: float | None = Field(default=None, ge=0.0, le=1.0)
+    corrected_label: int | None = Field(default=None, ge=0, le=1)  # after adjacency correction
+    label: int = Field(ge=0, le=1)  # current label (human when labelled_by is set)
+    labelled_by: int | None = _user_fk()
+
+
+class GuardrailSlice(GuardrailSliceBase, Versioned, table=True):
     """A 0.5 m slice of a roadside component: CNN prediction, adjacency correction, human label."""
 
     __tablename__ = "guardrail_slice"
@@ -444,16 +477,6 @@ class GuardrailSlice(Versioned, table=True):
             name="ck_guardrail_slice_probability",
         ),
     )
-
-    survey_id: int = _survey_fk()
-    slice_index: int
-    component_id: int
-    station_m: float = Field(sa_type=sa.Double)  # distance along the trajectory
-    predicted_label: int = Field(ge=0, le=1)  # CNN: 1 guardrail
-    probability: float | None = Field(default=None, ge=0.0, le=1.0)
-    corrected_label: int | None = Field(default=None, ge=0, le=1)  # after adjacency correction
-    label: int = Field(ge=0, le=1)  # current label (human when labelled_by is set)
-    labelled_by: int | None = _user_fk()
 
 
 class GuardrailModel(Versioned, table=True):

@@ -14,7 +14,7 @@ from datetime import datetime, timedelta
 
 from fastapi import APIRouter, HTTPException, Request, Response, status
 from pydantic import BaseModel, Field
-from sqlmodel import Session
+from sqlmodel import Session, SQLModel
 
 from app.api.deps import TOKEN_COOKIE, CurrentLogin, CurrentUser, SessionDep, SettingsDep
 from app.api.errors import errors
@@ -60,7 +60,7 @@ class Token(BaseModel):
     user: UserPublic
 
 
-class SessionPublic(BaseModel):
+class SessionPublic(SQLModel):
     id: int
     created_at: datetime
     last_seen_at: datetime = Field(description="updated at most once a minute")
@@ -71,15 +71,7 @@ class SessionPublic(BaseModel):
 
     @classmethod
     def of(cls, row: AuthSession, current_id: int | None) -> SessionPublic:
-        return cls(
-            id=row.id,
-            created_at=row.created_at,
-            last_seen_at=row.last_seen_at,
-            expires_at=row.expires_at,
-            client_address=row.client_address,
-            user_agent=row.user_agent,
-            current=row.id == current_id,
-        )
+        return cls.model_validate(row, update={"current": row.id == current_id})
 
 
 class SessionsEnded(BaseModel):
@@ -175,7 +167,9 @@ def login(
     response.set_cookie(
         TOKEN_COOKIE, token, max_age=TOKEN_LIFETIME_S, httponly=True, samesite="strict"
     )
-    return Token(access_token=token, expires_in=TOKEN_LIFETIME_S, user=UserPublic.of(user))
+    return Token(
+        access_token=token, expires_in=TOKEN_LIFETIME_S, user=UserPublic.model_validate(user)
+    )
 
 
 @router.post("/logout", status_code=204, responses=errors(401))
@@ -189,7 +183,7 @@ def logout(login: CurrentLogin, response: Response, session: SessionDep) -> None
 
 @router.get("/me", response_model=UserPublic, responses=errors(401))
 def me(user: CurrentUser) -> UserPublic:
-    return UserPublic.of(user)
+    return UserPublic.model_validate(user)
 
 
 @router.get("/sessions", response_model=list[SessionPublic], responses=errors(401))

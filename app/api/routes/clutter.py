@@ -17,10 +17,11 @@ from typing import Annotated
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field
+from sqlmodel import SQLModel
 
 from app.api.deps import CurrentUser, Reviewer, SessionDep, SettingsDep, wake_viewer
 from app.api.errors import errors
-from app.api.routes.jobs import JobPublic
+from app.api.schemas import JobPublic
 from app.api.types import Id, Offset, Version
 from app.core.errors import ConflictError, NotFoundError
 from app.jobs.queue import enqueue
@@ -45,7 +46,7 @@ router = APIRouter(
 MAX_DECISIONS = 10_000
 
 
-class InstancePublic(BaseModel):
+class InstancePublic(SQLModel):
     id: int
     frame_id: str
     instance_index: int = Field(description="the instance's number in its frame's membership")
@@ -62,23 +63,9 @@ class InstancePublic(BaseModel):
 
     @classmethod
     def of(cls, s: InstanceState) -> InstancePublic:
-        return cls(
-            id=s.id,
-            frame_id=s.frame_id,
-            instance_index=s.instance_index,
-            class_name=s.class_name,
-            point_count=s.point_count,
-            bbox=s.bbox,
-            moving=s.moving,
-            track_id=s.track_id,
-            decision=s.decision,
-            version=s.version,
-            user_id=s.user_id,
-            decided_at=s.decided_at,
-            mask_url=None
-            if s.mask_path is None
-            else f"/surveys/{s.survey_id}/clutter/instances/{s.id}/mask",
-        )
+        """The instance as listed; its mask's URL is the one field computed here."""
+        url = f"/surveys/{s.survey_id}/clutter/instances/{s.id}/mask"
+        return cls.model_validate(s, update={"mask_url": None if s.mask_path is None else url})
 
 
 class InstancePage(BaseModel):
@@ -179,4 +166,6 @@ def post_recompute(
     get_survey(session, survey_id)
     if not has_review(session, survey_id):
         raise ConflictError(f"survey {survey_id} has no clutter run to review; run clutter first")
-    return JobPublic.of(enqueue(session, RECOMPUTE_KIND, {}, survey_id, user.id, settings))
+    return JobPublic.model_validate(
+        enqueue(session, RECOMPUTE_KIND, {}, survey_id, user.id, settings)
+    )

@@ -135,7 +135,7 @@ def get_slices(
         session, survey_id, component=component, label=label, labelled=labelled,
         uncertain_first=uncertain_first, offset=offset, limit=limit,
     )  # fmt: skip
-    items = [GuardrailSlicePublic.of(r) for r in rows]
+    items = [GuardrailSlicePublic.model_validate(r) for r in rows]
     return SlicePage(total=total, offset=offset, limit=limit, items=items)
 
 
@@ -147,7 +147,7 @@ def put_slices(
     edits = [SliceLabelEdit(s.id, s.version, s.label) for s in body.slices]
     rows = put_slice_labels(session, survey_id, edits, user)
     wake_viewer(request)
-    return [GuardrailSlicePublic.of(r) for r in rows]
+    return [GuardrailSlicePublic.model_validate(r) for r in rows]
 
 
 @router.get("/slices/next-uncertain", response_model=NextUncertain)
@@ -157,7 +157,9 @@ def get_next_uncertain(survey_id: Id, _: CurrentUser, session: SessionDep) -> Ne
     if row is None:
         return NextUncertain(slice=None, position=None, remaining=0)
     position = slice_position(session, survey_id, row)
-    return NextUncertain(slice=GuardrailSlicePublic.of(row), position=position, remaining=remaining)
+    return NextUncertain(
+        slice=GuardrailSlicePublic.model_validate(row), position=position, remaining=remaining
+    )
 
 
 @router.post("/slices/preview-correction", response_model=PreviewOut, responses=errors(409, 422))

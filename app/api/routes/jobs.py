@@ -8,7 +8,6 @@ their own; reviewers and admins control anyone's; `train:*` jobs are for admins.
 from __future__ import annotations
 
 from collections import deque
-from datetime import datetime
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -19,6 +18,7 @@ from pydantic import BaseModel, Field
 from app.api.deps import Annotator, CurrentUser, SessionDep, SettingsDep
 from app.api.downloads import check_download, may_download
 from app.api.errors import errors
+from app.api.schemas import JobPublic
 from app.api.types import FilePath, Id, Offset
 from app.core.errors import MmscleanError, NotFoundError, PermissionDeniedError
 from app.core.settings import Settings
@@ -37,52 +37,6 @@ class JobCreate(BaseModel):
     kind: str = Field(min_length=1, max_length=64, description="e.g. run:phantom, train:phantom")
     survey_id: Id | None = Field(None, description="the survey a run:* job works on")
     config: dict[str, Any] = Field(default_factory=dict, description="the kind's options")
-
-
-class JobPublic(BaseModel):
-    id: int
-    kind: str
-    survey_id: int | None
-    config: dict[str, Any]
-    status: JobStatus
-    progress: float = Field(description="0..1")
-    message: str
-    created_by: int | None
-    created_at: datetime
-    updated_at: datetime
-    started_at: datetime | None
-    finished_at: datetime | None
-    seconds: float | None = Field(description="run time of the last attempt so far")
-    attempts: int
-    cancel_requested: bool
-    worker_pid: int | None
-    result: dict[str, Any]
-
-    @classmethod
-    def of(cls, job: Job) -> JobPublic:
-        seconds = None
-        if job.started_at is not None:
-            end = job.finished_at or job.updated_at
-            seconds = round(max((end - job.started_at).total_seconds(), 0.0), 3)
-        return cls(
-            id=job.id,
-            kind=job.kind,
-            survey_id=job.survey_id,
-            config=dict(job.config),
-            status=job.status,
-            progress=job.progress,
-            message=job.message,
-            created_by=job.created_by,
-            created_at=job.created_at,
-            updated_at=job.updated_at,
-            started_at=job.started_at,
-            finished_at=job.finished_at,
-            seconds=seconds,
-            attempts=job.attempts,
-            cancel_requested=job.cancel_requested,
-            worker_pid=job.worker_pid,
-            result=dict(job.result),
-        )
 
 
 class JobFile(BaseModel):
@@ -124,7 +78,7 @@ def create_job(
     now (422 names the field)."""
     may_start(user, body.kind)
     job = enqueue(session, body.kind, body.config, body.survey_id, user.id, settings)
-    return JobPublic.of(job)
+    return JobPublic.model_validate(job)
 
 
 @router.get("", response_model=list[JobPublic], responses=errors(422))
@@ -139,13 +93,13 @@ def list_jobs(
 ) -> list[JobPublic]:
     """Jobs, newest first."""
     jobs = store_jobs.list_jobs(session, status, survey_id, kind, limit, offset)
-    return [JobPublic.of(j) for j in jobs]
+    return [JobPublic.model_validate(j) for j in jobs]
 
 
 @router.get("/{job_id}", response_model=JobPublic, responses=errors(404))
 def read_job(job_id: Id, _: CurrentUser, session: SessionDep) -> JobPublic:
     """Status, progress, message, timings and (once succeeded) the result summary."""
-    return JobPublic.of(get_job(session, job_id))
+    return JobPublic.model_validate(get_job(session, job_id))
 
 
 @router.get(
@@ -178,14 +132,14 @@ def cancel_job(job_id: Id, user: Annotator, session: SessionDep) -> JobPublic:
     """Cancel: a queued job at once, a running one at its next progress report (409 when it
     already ended)."""
     may_control(user, get_job(session, job_id))
-    return JobPublic.of(request_cancel(session, job_id, user.id))
+    return JobPublic.model_validate(request_cancel(session, job_id, user.id))
 
 
 @router.post("/{job_id}/resume", response_model=JobPublic, responses=errors(403, 404, 409))
 def resume_job(job_id: Id, user: Annotator, session: SessionDep) -> JobPublic:
     """Queue an interrupted, failed or cancelled job again under the same id and config."""
     may_control(user, get_job(session, job_id))
-    return JobPublic.of(resume(session, job_id, user.id))
+    return JobPublic.model_validate(resume(session, job_id, user.id))
 
 
 @router.post(
@@ -199,7 +153,7 @@ def requeue_job(
 ) -> JobPublic:
     """A new job with the same kind, survey and config (409 while the old one is active)."""
     may_start(user, get_job(session, job_id).kind)
-    return JobPublic.of(requeue(session, job_id, user.id, settings))
+    return JobPublic.model_validate(requeue(session, job_id, user.id, settings))
 
 
 @router.get("/{job_id}/results", response_model=JobResults, responses=errors(404))

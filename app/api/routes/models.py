@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-from datetime import datetime
 from typing import Any
 
 from fastapi import APIRouter
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 from app.api.deps import Admin, CurrentUser, SessionDep, SettingsDep
 from app.api.errors import errors
@@ -15,28 +14,18 @@ from app.core.errors import ConfigError
 from app.jobs.queue import enqueue
 from app.jobs.retraining import retraining_state
 from app.store.model_versions import get_version, list_versions, promote_version
-from app.store.models import ModelVersion, Pipeline
+from app.store.models import ModelVersionBase, Pipeline
 
 router = APIRouter(prefix="/models", tags=["models"], responses=errors(401))
 
 TRAINABLE = {Pipeline.phantom: "train:phantom", Pipeline.guardrail: "train:guardrail"}
 
 
-class ModelVersionPublic(BaseModel):
-    id: int
-    pipeline: Pipeline
-    name: str
-    checkpoint_path: str
-    metrics: dict[str, Any]
-    trained_on: dict[str, Any]
-    is_promoted: bool
-    job_id: int | None
-    created_at: datetime
-    version: int
+class ModelVersionPublic(ModelVersionBase):
+    model_config = ConfigDict(json_schema_serialization_defaults_required=True)  # all answered
 
-    @classmethod
-    def of(cls, m: ModelVersion) -> ModelVersionPublic:
-        return cls.model_validate(m, from_attributes=True)
+    id: int
+    version: int
 
 
 class RetrainRequest(BaseModel):
@@ -64,7 +53,7 @@ def list_models(
     _: CurrentUser, session: SessionDep, pipeline: Pipeline | None = None
 ) -> list[ModelVersionPublic]:
     """Model versions, newest first, with validation metrics on held-out labels."""
-    return [ModelVersionPublic.of(m) for m in list_versions(session, pipeline)]
+    return [ModelVersionPublic.model_validate(m) for m in list_versions(session, pipeline)]
 
 
 @router.get("/retraining", response_model=RetrainingStatus)
@@ -75,13 +64,13 @@ def retraining(_: CurrentUser, session: SessionDep, settings: SettingsDep) -> Re
 
 @router.get("/{model_id}", response_model=ModelVersionPublic, responses=errors(404))
 def get_model(model_id: Id, _: CurrentUser, session: SessionDep) -> ModelVersionPublic:
-    return ModelVersionPublic.of(get_version(session, model_id))
+    return ModelVersionPublic.model_validate(get_version(session, model_id))
 
 
 @router.post("/{model_id}/promote", response_model=ModelVersionPublic, responses=errors(403, 404))
 def promote(model_id: Id, admin: Admin, session: SessionDep) -> ModelVersionPublic:
     """Make this version the one its pipeline runs with (admin; metrics are not checked)."""
-    return ModelVersionPublic.of(promote_version(session, model_id, admin.id))
+    return ModelVersionPublic.model_validate(promote_version(session, model_id, admin.id))
 
 
 @router.post("/retrain", response_model=JobRef, status_code=202, responses=errors(403, 422))

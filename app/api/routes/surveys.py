@@ -11,22 +11,22 @@ from __future__ import annotations
 
 import re
 import uuid
-from datetime import datetime
 from pathlib import Path
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Request, Response
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 from starlette.concurrency import run_in_threadpool
 
 from app.api.deps import Annotator, CurrentUser, Reviewer, SessionDep, SettingsDep
 from app.api.errors import errors
+from app.api.schemas import JobBrief
 from app.api.types import FileName, Id, ImportPath
 from app.api.uploads import check_upload_name, extract_zip, receive_upload, remove_tree
 from app.core.errors import InputError
 from app.io.import_root import resolve_import_path
 from app.review.surveys import import_source
-from app.store.models import Job, JobStatus, Survey
+from app.store.models import SurveyBase
 from app.store.pillar_labels import label_counts
 from app.store.surveys import (
     delete_survey,
@@ -42,60 +42,12 @@ router = APIRouter(prefix="/surveys", tags=["surveys"], responses=errors(401))
 UPLOAD_FOLDER = re.compile(r"^[0-9a-f]{32}$")  # uuid4().hex: only folders uploads made
 
 
-class SurveyPublic(BaseModel):
+class SurveyPublic(SurveyBase):  # the origin as one (x, y, z): `Survey.origin`
+    model_config = ConfigDict(json_schema_serialization_defaults_required=True)  # all answered
+
     id: int
-    name: str
-    format: str
-    source_path: str
-    frame_count: int
-    point_count: int
-    has_reference_labels: bool
-    poses_estimated: bool
     origin: tuple[float, float, float]
     created_by: int | None
-    created_at: datetime
-    updated_at: datetime
-    version: int
-
-    @classmethod
-    def of(cls, s: Survey) -> SurveyPublic:
-        return cls(
-            id=s.id,
-            name=s.name,
-            format=s.format,
-            source_path=s.source_path,
-            frame_count=s.frame_count,
-            point_count=s.point_count,
-            has_reference_labels=s.has_reference_labels,
-            poses_estimated=s.poses_estimated,
-            origin=(s.origin_x, s.origin_y, s.origin_z),
-            created_by=s.created_by,
-            created_at=s.created_at,
-            updated_at=s.updated_at,
-            version=s.version,
-        )
-
-
-class JobBrief(BaseModel):
-    id: int
-    kind: str
-    status: JobStatus
-    progress: float
-    message: str
-    created_at: datetime
-    finished_at: datetime | None
-
-    @classmethod
-    def of(cls, job: Job) -> JobBrief:
-        return cls(
-            id=job.id,
-            kind=job.kind,
-            status=job.status,
-            progress=job.progress,
-            message=job.message,
-            created_at=job.created_at,
-            finished_at=job.finished_at,
-        )
 
 
 class SurveyDetail(SurveyPublic):
@@ -113,18 +65,21 @@ class SurveyImport(BaseModel):
 @router.get("", response_model=list[SurveyPublic])
 def surveys(_: CurrentUser, session: SessionDep) -> list[SurveyPublic]:
     """Every survey with its frame and point counts."""
-    return [SurveyPublic.of(s) for s in list_surveys(session)]
+    return [SurveyPublic.model_validate(s) for s in list_surveys(session)]
 
 
 @router.get("/{survey_id}", response_model=SurveyDetail, responses=errors(404))
 def survey_detail(survey_id: Id, _: CurrentUser, session: SessionDep) -> SurveyDetail:
     """One survey: its frames summarised, the newest job of each kind, pillar label counts."""
     survey = get_survey(session, survey_id)
-    return SurveyDetail(
-        **SurveyPublic.of(survey).model_dump(),
-        frames=frames_summary(session, survey_id),
-        latest_jobs={k: JobBrief.of(j) for k, j in latest_jobs(session, survey_id).items()},
-        pillar_labels=label_counts(session, survey_id),
+    jobs = {k: JobBrief.model_validate(j) for k, j in latest_jobs(session, survey_id).items()}
+    return SurveyDetail.model_validate(
+        survey,
+        update={
+            "frames": frames_summary(session, survey_id),
+            "latest_jobs": jobs,
+            "pillar_labels": label_counts(session, survey_id),
+        },
     )
 
 
@@ -139,7 +94,7 @@ def import_survey(
     survey = import_source(
         session, source, body.format, body.name, user.id, "survey.import", requested=body.path
     )
-    return SurveyPublic.of(survey)
+    return SurveyPublic.model_validate(survey)
 
 
 @router.post(
@@ -198,7 +153,7 @@ async def upload_survey(
     except BaseException:
         remove_tree(folder)
         raise
-    return SurveyPublic.of(survey)
+    return SurveyPublic.model_validate(survey)
 
 
 def source_of_upload(folder: Path, filename: str) -> Path:

@@ -34,13 +34,15 @@ class UserUpdate(BaseModel):
 
 @router.get("", response_model=list[UserPublic])
 def list_users(_: CurrentUser, session: SessionDep) -> list[UserPublic]:
-    return [UserPublic.of(u) for u in all_users(session)]
+    return [UserPublic.model_validate(u) for u in all_users(session)]
 
 
 @router.post("", response_model=UserPublic, status_code=201, responses=errors(403, 409, 422))
 def add_user(body: UserCreate, admin: Admin, session: SessionDep) -> UserPublic:
     """Create a user (admin only)."""
-    return UserPublic.of(create_user(session, body.username, body.password, body.role, admin.id))
+    return UserPublic.model_validate(
+        create_user(session, body.username, body.password, body.role, admin.id)
+    )
 
 
 @router.patch("/{user_id}", response_model=UserPublic, responses=errors(403, 404, 409, 422))
@@ -55,7 +57,7 @@ def change_user(user_id: Id, body: UserUpdate, admin: Admin, session: SessionDep
         password=body.password,
         is_active=body.is_active,
     )
-    return UserPublic.of(user)
+    return UserPublic.model_validate(user)
 
 
 @router.get("/{user_id}/sessions", response_model=list[SessionPublic], responses=errors(403, 404))
