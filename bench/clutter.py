@@ -27,7 +27,7 @@ import numpy as np
 from app.io import open_survey
 from app.io.survey import Survey
 from app.pipelines.clutter.config import ClutterConfig
-from app.pipelines.clutter.evaluate import removal_metrics
+from app.pipelines.clutter.evaluation.removal_metrics import removal_metrics
 from app.pipelines.clutter.freespace import free_space_flags
 from app.pipelines.clutter.fusion import fuse
 from app.pipelines.clutter.masking import mask_points

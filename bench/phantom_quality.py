@@ -13,12 +13,12 @@ import numpy as np
 from app.core.labels import PillarClass
 from app.io import open_survey
 from app.metrics.classification import binary_scores, confusion_matrix, scores_from_confusion
-from app.pipelines.phantom.baselines import avg_distances, num_neighbors
 from app.pipelines.phantom.config import PhantomConfig
-from app.pipelines.phantom.evaluate import PAPER_OVERALL_EXCLUDES
+from app.pipelines.phantom.evaluation.baselines import avg_distances, num_neighbors
+from app.pipelines.phantom.evaluation.classification_metrics import PAPER_OVERALL_EXCLUDES
+from app.pipelines.phantom.evaluation.reference import reference_pillar_labels, static_and_moving
 from app.pipelines.phantom.network import CLASS_NAMES
 from app.pipelines.phantom.pipeline import PhantomPipeline, PhantomResult
-from app.pipelines.phantom.reference import reference_pillar_labels, static_and_moving
 from bench.common import markdown_table
 
 HELD_OUT_SEEDS = ((201, "urban"), (202, "highway"), (203, "mixed"))  # never used in training
@@ -139,7 +139,7 @@ def part_validation(args) -> tuple[str, str, str]:
 
 
 def part_kitti(args) -> tuple[str, str, str]:
-    from app.pipelines.phantom.train import TrainConfig, train_phantom_model
+    from app.pipelines.phantom.training.train import TrainConfig, train_phantom_model
 
     real = Path(os.environ["MMSCLEAN_REAL_DATA"]) / "semantickitti" / "sequences"
     rows_tables = []
@@ -177,7 +177,7 @@ def object_f(f1: dict[str, float]) -> float:
 
 def part_train(args) -> tuple[str, str, str]:
     from app.pipelines.phantom.model import DEFAULT_MODEL, PAPER_MODEL
-    from app.pipelines.phantom.train import TrainConfig, train_phantom_model
+    from app.pipelines.phantom.training.train import TrainConfig, train_phantom_model
 
     out = args.model or (DEFAULT_MODEL if args.context else PAPER_MODEL)
     config = TrainConfig(per_class=10_000, epochs=args.epochs, context=args.context)

@@ -34,10 +34,15 @@ from app.pipelines.guardrail.classifier import SliceHead, load_heads, predict, s
 from app.pipelines.guardrail.training.dataset import SliceSamples
 from app.pipelines.guardrail.training.train import fit_head
 from app.pipelines.phantom.config import PhantomConfig
-from app.pipelines.phantom.dataset import Samples, concatenate
-from app.pipelines.phantom.finetune import LabelledPillars, finetune, labelled_samples, score
 from app.pipelines.phantom.model import DEFAULT_MODEL, load_model, save_model
-from app.pipelines.phantom.train import TrainConfig
+from app.pipelines.phantom.training.dataset import Samples, concatenate
+from app.pipelines.phantom.training.finetune import (
+    LabelledPillars,
+    finetune,
+    labelled_samples,
+    score,
+)
+from app.pipelines.phantom.training.train import TrainConfig
 from app.store.guardrail_review import latest_run, match_slices
 from app.store.model_versions import ensure_shipped_version, promoted_version, register_version
 from app.store.models import Pipeline

@@ -106,11 +106,14 @@ def _phantom(survey: Survey, labels: list[np.ndarray]) -> dict:
     from app.io.accumulate import accumulate
     from app.metrics.classification import confusion_matrix, scores_from_confusion
     from app.pipelines.phantom.config import PhantomConfig
-    from app.pipelines.phantom.evaluate import PAPER_OVERALL_EXCLUDES
+    from app.pipelines.phantom.evaluation.classification_metrics import PAPER_OVERALL_EXCLUDES
+    from app.pipelines.phantom.evaluation.reference import (
+        reference_pillar_labels,
+        static_and_moving,
+    )
     from app.pipelines.phantom.network import CLASS_NAMES
     from app.pipelines.phantom.pillars import build_pillar_map
     from app.pipelines.phantom.point_labels import point_labels
-    from app.pipelines.phantom.reference import reference_pillar_labels, static_and_moving
 
     amap = accumulate(survey, with_reference=True)
     if "semantic" not in amap.reference:

@@ -19,7 +19,7 @@ from app.jobs.registry import JobContext, load_tasks
 from app.jobs.training_tasks import train_phantom
 from app.jobs.worker import run_job
 from app.pipelines.phantom.config import PhantomConfig
-from app.pipelines.phantom.dataset import labelled_map_from_survey, labelled_pillars
+from app.pipelines.phantom.training.dataset import labelled_map_from_survey, labelled_pillars
 from app.store.jobs import claim_next
 from app.store.models import Job, JobStatus, ModelVersion, Survey
 from app.store.pillar_labels import STORE_GRID, write_labels

@@ -11,7 +11,7 @@ import pytest
 from app.core.errors import InputError
 from app.io import open_survey
 from app.io.survey import Survey
-from app.pipelines.clutter.evaluate import reference_masks
+from app.pipelines.clutter.evaluation.removal_metrics import reference_masks
 from app.pipelines.evaluation import evaluate_labels, read_frame_labels
 from app.pipelines.outputs import write_frame_labels
 from app.pipelines.phantom.run import run_phantom_to_folder

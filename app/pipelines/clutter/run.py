@@ -139,7 +139,7 @@ def reference_metrics(
     labels; None when it has none."""
     if "semantic" not in survey.reference_label_kinds:
         return None
-    from app.pipelines.clutter.evaluate import removal_metrics
+    from app.pipelines.clutter.evaluation.removal_metrics import removal_metrics
 
     references = [f.reference_labels() for f in survey.frames]
     semantic = np.concatenate([r["semantic"] for r in references])

@@ -57,11 +57,11 @@ def run_phantom_to_folder(
         "files": files,
     }
     if "semantic" in result.map.reference:  # SemanticKITTI ids (simulator, SemanticKITTI)
-        from app.pipelines.phantom.evaluate import evaluate
+        from app.pipelines.phantom.evaluation.classification_metrics import evaluate
 
         flags = {}
         if baselines:
-            from app.pipelines.phantom.baselines import avg_distances, num_neighbors
+            from app.pipelines.phantom.evaluation.baselines import avg_distances, num_neighbors
 
             t0 = time.perf_counter()
             flags["num_neighbors"] = num_neighbors(result.map.xyz)

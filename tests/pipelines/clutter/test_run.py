@@ -16,7 +16,7 @@ from app.core.labels import MOVABLE_IDS
 from app.io import open_survey
 from app.io.survey import Frame, Survey
 from app.pipelines.clutter.config import ClutterConfig
-from app.pipelines.clutter.evaluate import removal_metrics
+from app.pipelines.clutter.evaluation.removal_metrics import removal_metrics
 from app.pipelines.clutter.pipeline import ClutterPipeline
 from app.pipelines.clutter.run import run_clutter_to_folder
 from app.simulate.survey import SimulationConfig, simulate

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.distance import cdist
 
-from app.pipelines.phantom.baselines import (
+from app.pipelines.phantom.evaluation.baselines import (
     avg_distances,
     mean_neighbor_distances,
     neighbor_counts,

@@ -9,7 +9,9 @@ import torch
 from app.core.labels import PillarClass, Semantic
 from app.pipelines.phantom.classify import window_tensor
 from app.pipelines.phantom.config import PhantomConfig
-from app.pipelines.phantom.dataset import (
+from app.pipelines.phantom.model import load_model, save_model
+from app.pipelines.phantom.network import CLASS_NAMES
+from app.pipelines.phantom.training.dataset import (
     LabelledMap,
     Samples,
     balanced,
@@ -20,9 +22,7 @@ from app.pipelines.phantom.dataset import (
     rotate_about_z,
     window_counts,
 )
-from app.pipelines.phantom.model import load_model, save_model
-from app.pipelines.phantom.network import CLASS_NAMES
-from app.pipelines.phantom.train import (
+from app.pipelines.phantom.training.train import (
     TrainConfig,
     build_training_set,
     split_groups,

@@ -12,10 +12,10 @@ import numpy as np
 
 from app.core.labels import PillarClass
 from app.metrics.classification import binary_scores, confusion_matrix, scores_from_confusion
+from app.pipelines.phantom.evaluation.reference import reference_pillar_labels, static_and_moving
 from app.pipelines.phantom.network import CLASS_NAMES
 from app.pipelines.phantom.pipeline import PhantomResult
 from app.pipelines.phantom.point_labels import point_labels
-from app.pipelines.phantom.reference import reference_pillar_labels, static_and_moving
 
 PAPER_OVERALL_EXCLUDES = ("ground",)
 

@@ -25,16 +25,16 @@ from app.geometry.ground import estimate_ground
 from app.metrics.classification import Scores
 from app.pipelines.phantom.classify import band_tensor
 from app.pipelines.phantom.config import PhantomConfig
-from app.pipelines.phantom.dataset import (
+from app.pipelines.phantom.network import PillarCNN
+from app.pipelines.phantom.pillars import build_pillar_map
+from app.pipelines.phantom.training.dataset import (
     Samples,
     balanced,
     concatenate,
     rotate_about_z,
     window_counts,
 )
-from app.pipelines.phantom.network import PillarCNN
-from app.pipelines.phantom.pillars import build_pillar_map
-from app.pipelines.phantom.train import (
+from app.pipelines.phantom.training.train import (
     TrainConfig,
     TrainResult,
     evaluate_net,

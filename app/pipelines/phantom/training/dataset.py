@@ -3,10 +3,11 @@
 one voxel of context, see network.py).
 
 The paper annotated pillars by hand; we take the pillar labels from per-point reference labels
-(simulator ground truth, SemanticKITTI labels) with the rule of `reference.py`. Before the ground
-estimate and the voxelisation the whole cloud is rotated about the vertical axis through its
-centroid by a random angle ("we have rotated the input point cloud segments around the vertical (z)
-axis with randomly selected angles"), so street directions do not become a feature.
+(simulator ground truth, SemanticKITTI labels) with the rule of `evaluation/reference.py`. Before
+the ground estimate and the voxelisation the whole cloud is rotated about the vertical axis
+through its centroid by a random angle ("we have rotated the input point cloud segments around
+the vertical (z) axis with randomly selected angles"), so street directions do not become a
+feature.
 
 Storage: a float32 window is 24 * 24 * 30 * 4 B = 69 KB, 40,000 of them 2.8 GB. Windows are kept
 as uint8 point counts clipped at 255 (17 KB each, 0.7 GB for 40,000) and turned into float32 per
@@ -28,9 +29,9 @@ from app.geometry.ground import estimate_ground
 from app.io.survey import Survey
 from app.pipelines.phantom.classify import band_tensor, window_tensor
 from app.pipelines.phantom.config import PhantomConfig
+from app.pipelines.phantom.evaluation.reference import reference_pillar_labels, static_and_moving
 from app.pipelines.phantom.network import CLASS_NAMES, CONTEXT_BANDS, CONTEXT_SPAN, COUNT_CLIP
 from app.pipelines.phantom.pillars import PillarMap, build_pillar_map
-from app.pipelines.phantom.reference import reference_pillar_labels, static_and_moving
 
 N_CLASSES = len(CLASS_NAMES)
 TILE_PILLARS = 32  # windows are cut tile by tile so each dense block stays small

@@ -46,9 +46,12 @@ from app.core.progress import Progress
 from app.core.settings import get_settings
 from app.io import open_survey
 from app.metrics.classification import confusion_matrix, scores_from_confusion
-from app.pipelines.phantom import reference
 from app.pipelines.phantom.config import PhantomConfig
-from app.pipelines.phantom.dataset import (
+from app.pipelines.phantom.evaluation import reference
+from app.pipelines.phantom.model import save_model
+from app.pipelines.phantom.network import CLASS_NAMES, PillarCNN
+from app.pipelines.phantom.priors import class_priors
+from app.pipelines.phantom.training.dataset import (
     N_CLASSES,
     Samples,
     balanced,
@@ -56,9 +59,6 @@ from app.pipelines.phantom.dataset import (
     labelled_map_from_survey,
     pillar_samples,
 )
-from app.pipelines.phantom.model import save_model
-from app.pipelines.phantom.network import CLASS_NAMES, PillarCNN
-from app.pipelines.phantom.priors import class_priors
 from app.simulate.survey import SimulationConfig, simulate
 
 SIM_PRESETS = ("urban", "highway", "mixed")
