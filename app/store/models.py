@@ -1,82 +1,41 @@
 """SQLModel tables: everything mmsclean remembers between runs.
 
 One table per record kind; the shape follows fastapi/full-stack-fastapi-template (`models.py`).
-Conventions every table keeps:
+Conventions every table keeps (the column types and shared columns: `app.store.columns`):
 
-- Integer primary keys `id` (from `Record`), explicit snake_case table names.
-- Timestamps are timezone-aware UTC (`UTCDateTime`): naive datetimes are taken as UTC on write,
-  and every datetime read back carries `tzinfo=UTC`, whatever the backend stores.
+- Explicit snake_case table names; integer ids, timestamps and versions from `app.store.columns`.
 - Records a user edits (users, surveys, labels, decisions, slices, guardrail models, model
-  versions) carry `version: int`, wired as SQLAlchemy's `version_id_col`: every ORM UPDATE runs
-  `... WHERE id = ? AND version = <version loaded>` and bumps it, so two writers starting from
-  the same version cannot both win; the loser gets `StaleDataError` (`app.store.db` turns it
-  into `ConflictError`). Label operations compare the client's version with the loaded one
-  first; setting `version` by hand is honoured instead of the automatic bump. `Job` has no
+  versions) are `Versioned` (optimistic concurrency, see `app.store.columns`). `Job` has no
   version: workers write its progress while users only cancel it.
-- `updated_at` refreshes itself on every UPDATE.
 - The API's `XPublic` shapes are read from rows by attribute. Where the columns it shows follow
   the table's own in schema order, they live in an `XBase` the table and `XPublic` both inherit
   (full-stack-fastapi-template's Base / table / Public); a base never reorders a table's columns.
-- Children of a survey go with it (`ON DELETE CASCADE`, enforced: the engine turns SQLite's
-  `foreign_keys` on); references to users, jobs and model versions become NULL instead.
-- JSON dict columns are `MutableDict`s, so `job.config["x"] = 1` is saved like an assignment
-  (top-level keys only; replace nested values whole).
-- Enums are stored as their string values in a VARCHAR (no native enum, no CHECK), so a new
-  member never needs a table rebuild; unknown strings are refused when written.
+- Children of a survey go with it (`ON DELETE CASCADE`); references to users, jobs and model
+  versions become NULL instead.
 - `Frame.pose` is the 4x4 sensor-to-world matrix in row-major order (16 floats, float64 exact
   through JSON); `Survey.origin_*` is the float64 local origin subtracted before float32 work.
 """
 
 import enum
-from datetime import UTC, datetime
+from datetime import datetime
 from typing import Any, Optional
 
 import sqlalchemy as sa
-from sqlalchemy.ext.mutable import MutableDict
-from sqlalchemy.orm import declared_attr
 from sqlmodel import Field, Relationship, SQLModel
 
-
-def utcnow() -> datetime:
-    """The current time, timezone-aware UTC."""
-    return datetime.now(UTC)
-
-
-class UTCDateTime(sa.types.TypeDecorator[datetime]):
-    """A datetime stored as UTC and always read back timezone-aware (SQLite keeps no offset)."""
-
-    impl = sa.DateTime
-    cache_ok = True
-
-    def __init__(self) -> None:
-        super().__init__(timezone=True)
-
-    def process_bind_param(self, value: datetime | None, dialect: sa.Dialect) -> datetime | None:
-        if value is None:
-            return None
-        value = value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
-        return value.replace(tzinfo=None) if dialect.name == "sqlite" else value
-
-    def process_result_value(self, value: datetime | None, dialect: sa.Dialect) -> datetime | None:
-        if value is None:
-            return None
-        return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
-
-
-def _enum_type(enum_cls: type[enum.StrEnum]) -> sa.Enum:
-    return sa.Enum(
-        enum_cls,
-        native_enum=False,
-        create_constraint=False,
-        length=32,
-        values_callable=lambda members: [m.value for m in members],
-        validate_strings=True,
-    )
-
-
-JSONDict = MutableDict.as_mutable(sa.JSON(none_as_null=True))
-JSONList = sa.JSON(none_as_null=True)
-
+from app.store.columns import (
+    Created,
+    JSONDict,
+    JSONList,
+    Record,
+    Timestamped,
+    UTCDateTime,
+    Versioned,
+    enum_type,
+    survey_fk,
+    user_fk,
+    utcnow,
+)
 
 # --- enums -------------------------------------------------------------------------------
 
@@ -136,44 +95,6 @@ class Pipeline(enum.StrEnum):
     clutter = "clutter"
 
 
-# --- shared columns ----------------------------------------------------------------------
-
-
-class Record(SQLModel):
-    id: int | None = Field(default=None, primary_key=True)
-
-
-class Created(Record):
-    created_at: datetime = Field(default_factory=utcnow, sa_type=UTCDateTime, nullable=False)
-
-
-class Timestamped(Created):
-    updated_at: datetime = Field(
-        default_factory=utcnow,
-        sa_type=UTCDateTime,
-        nullable=False,
-        sa_column_kwargs={"onupdate": utcnow},
-    )
-
-
-class Versioned(Timestamped):
-    """Optimistic concurrency: `version` is the mapper's version_id_col (see module docstring)."""
-
-    version: int = Field(default=1, nullable=False)
-
-    @declared_attr  # type: ignore[misc]
-    def __mapper_args__(cls) -> dict[str, Any]:  # noqa: N805
-        return {"version_id_col": cls.__table__.c.version}
-
-
-def _user_fk(index: bool = False) -> Any:
-    return Field(default=None, foreign_key="user.id", ondelete="SET NULL", index=index)
-
-
-def _survey_fk() -> Any:
-    return Field(foreign_key="survey.id", ondelete="CASCADE", index=True)
-
-
 # --- tables ------------------------------------------------------------------------------
 
 
@@ -182,7 +103,7 @@ class User(Versioned, table=True):
 
     username: str = Field(max_length=64, unique=True, index=True)
     hashed_password: str
-    role: Role = Field(default=Role.annotator, sa_type=_enum_type(Role), nullable=False)
+    role: Role = Field(default=Role.annotator, sa_type=enum_type(Role), nullable=False)
     is_active: bool = Field(default=True)
 
 
@@ -237,7 +158,7 @@ class Survey(SurveyBase, table=True):
     origin_x: float = Field(default=0.0, sa_type=sa.Double)
     origin_y: float = Field(default=0.0, sa_type=sa.Double)
     origin_z: float = Field(default=0.0, sa_type=sa.Double)
-    created_by: int | None = _user_fk()
+    created_by: int | None = user_fk()
 
     @property
     def origin(self) -> tuple[float, float, float]:
@@ -249,7 +170,7 @@ class Frame(Created, table=True):
     __tablename__ = "frame"
     __table_args__ = (sa.UniqueConstraint("survey_id", "frame_id", name="uq_frame_survey_frame"),)
 
-    survey_id: int = _survey_fk()
+    survey_id: int = survey_fk()
     frame_index: int = Field(default=0, ge=0)  # position in the survey's frame order
     frame_id: str = Field(max_length=64)  # e.g. "000042"; "map" for an accumulated map
     timestamp: float | None = Field(default=None, sa_type=sa.Double)  # seconds
@@ -270,13 +191,13 @@ class Job(Timestamped, table=True):
     kind: str = Field(max_length=64, index=True)  # "run:phantom", "train:phantom", "import", ...
     config: dict[str, Any] = Field(default_factory=dict, sa_type=JSONDict, nullable=False)
     status: JobStatus = Field(
-        default=JobStatus.queued, sa_type=_enum_type(JobStatus), nullable=False
+        default=JobStatus.queued, sa_type=enum_type(JobStatus), nullable=False
     )
     progress: float = Field(default=0.0, ge=0.0, le=1.0)
     message: str = Field(default="")
     log_path: str | None = None
     result_path: str | None = None
-    created_by: int | None = _user_fk()
+    created_by: int | None = user_fk()
     started_at: datetime | None = Field(default=None, sa_type=UTCDateTime)
     finished_at: datetime | None = Field(default=None, sa_type=UTCDateTime)
     worker_pid: int | None = None
@@ -289,7 +210,7 @@ class ModelVersionBase(Created):
     """A model version's columns the API shows (`ModelVersionPublic`); the table adds
     `Versioned`'s after `created_at` (column order is the schema's)."""
 
-    pipeline: Pipeline = Field(sa_type=_enum_type(Pipeline), nullable=False, index=True)
+    pipeline: Pipeline = Field(sa_type=enum_type(Pipeline), nullable=False, index=True)
     name: str = Field(max_length=128)
     checkpoint_path: str
     metrics: dict[str, Any] = Field(default_factory=dict, sa_type=JSONDict, nullable=False)
@@ -328,12 +249,12 @@ class PillarLabel(Versioned, table=True):
         sa.Index("ix_pillar_label_source_updated", "source", "updated_at"),
     )
 
-    survey_id: int = _survey_fk()
+    survey_id: int = survey_fk()
     cell_id: int = Field(sa_type=sa.BigInteger, nullable=False)
     label: int = Field(ge=0, le=3)  # app.core.labels.PillarClass
-    source: LabelSource = Field(sa_type=_enum_type(LabelSource), nullable=False)
+    source: LabelSource = Field(sa_type=enum_type(LabelSource), nullable=False)
     confidence: float | None = Field(default=None, ge=0.0, le=1.0)
-    user_id: int | None = _user_fk()
+    user_id: int | None = user_fk()
     model_version_id: int | None = Field(
         default=None, foreign_key="model_version.id", ondelete="SET NULL"
     )
@@ -345,9 +266,9 @@ class PillarEditBatch(Created, table=True):
     __tablename__ = "pillar_edit_batch"
     __table_args__ = (sa.Index("ix_pillar_edit_batch_user", "user_id", "survey_id", "state"),)
 
-    survey_id: int = _survey_fk()
-    user_id: int | None = _user_fk()
-    state: EditState = Field(default=EditState.done, sa_type=_enum_type(EditState), nullable=False)
+    survey_id: int = survey_fk()
+    user_id: int | None = user_fk()
+    state: EditState = Field(default=EditState.done, sa_type=enum_type(EditState), nullable=False)
     size: int = Field(default=0, ge=0)
 
 
@@ -381,7 +302,7 @@ class PillarTombstone(SQLModel, table=True):
     survey_id: int = Field(foreign_key="survey.id", ondelete="CASCADE", primary_key=True)
     cell_id: int = Field(sa_type=sa.BigInteger, primary_key=True)
     version: int = Field(ge=1)
-    user_id: int | None = _user_fk()  # who erased it
+    user_id: int | None = user_fk()  # who erased it
     updated_at: datetime = Field(default_factory=utcnow, sa_type=UTCDateTime, nullable=False)
 
 
@@ -406,7 +327,7 @@ class ClutterInstance(Created, table=True):
         ),
     )
 
-    survey_id: int = _survey_fk()
+    survey_id: int = survey_fk()
     frame_id: str = Field(max_length=64)  # Frame.frame_id within the survey
     instance_index: int = Field(ge=0)
     class_name: str = Field(max_length=32, index=True)
@@ -435,9 +356,9 @@ class ClutterDecision(Versioned, table=True):
         foreign_key="clutter_instance.id", ondelete="CASCADE", unique=True, index=True
     )
     decision: Decision = Field(
-        default=Decision.pending, sa_type=_enum_type(Decision), nullable=False, index=True
+        default=Decision.pending, sa_type=enum_type(Decision), nullable=False, index=True
     )
-    user_id: int | None = _user_fk()
+    user_id: int | None = user_fk()
     decided_at: datetime | None = Field(default=None, sa_type=UTCDateTime)
 
     instance: ClutterInstance = Relationship(back_populates="decision")
@@ -447,7 +368,7 @@ class GuardrailSliceBase(Record):
     """A slice's columns the API shows (`GuardrailSlicePublic`); the table adds `Versioned`'s
     after `id` (column order is the schema's)."""
 
-    survey_id: int = _survey_fk()
+    survey_id: int = survey_fk()
     slice_index: int
     component_id: int
     station_m: float = Field(sa_type=sa.Double)  # distance along the trajectory
@@ -455,7 +376,7 @@ class GuardrailSliceBase(Record):
     probability: float | None = Field(default=None, ge=0.0, le=1.0)
     corrected_label: int | None = Field(default=None, ge=0, le=1)  # after adjacency correction
     label: int = Field(ge=0, le=1)  # current label (human when labelled_by is set)
-    labelled_by: int | None = _user_fk()
+    labelled_by: int | None = user_fk()
 
 
 class GuardrailSlice(GuardrailSliceBase, Versioned, table=True):
@@ -487,17 +408,17 @@ class GuardrailModel(Versioned, table=True):
         sa.UniqueConstraint("survey_id", "guardrail_index", name="uq_guardrail_model_index"),
     )
 
-    survey_id: int = _survey_fk()
+    survey_id: int = survey_fk()
     guardrail_index: int = Field(ge=0)
-    kind: GuardrailKind = Field(sa_type=_enum_type(GuardrailKind), nullable=False)
+    kind: GuardrailKind = Field(sa_type=enum_type(GuardrailKind), nullable=False)
     mesh_path: str
     params: dict[str, Any] = Field(default_factory=dict, sa_type=JSONDict, nullable=False)
     unit_count: int = Field(default=0, ge=0)
     icp_residual: float | None = None
     status: ModelStatus = Field(
-        default=ModelStatus.pending, sa_type=_enum_type(ModelStatus), nullable=False, index=True
+        default=ModelStatus.pending, sa_type=enum_type(ModelStatus), nullable=False, index=True
     )
-    decided_by: int | None = _user_fk()
+    decided_by: int | None = user_fk()
     decided_at: datetime | None = Field(default=None, sa_type=UTCDateTime)
 
 
@@ -508,7 +429,7 @@ class AuditEvent(Record, table=True):
     __table_args__ = (sa.Index("ix_audit_event_entity", "entity", "entity_id"),)
 
     at: datetime = Field(default_factory=utcnow, sa_type=UTCDateTime, nullable=False, index=True)
-    user_id: int | None = _user_fk(index=True)
+    user_id: int | None = user_fk(index=True)
     action: str = Field(max_length=64, index=True)  # e.g. "pillar.label", "clutter.approve"
     entity: str = Field(max_length=64)  # table name, e.g. "pillar_label"
     entity_id: str | None = Field(default=None, max_length=64)

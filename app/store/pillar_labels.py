@@ -27,7 +27,7 @@ from __future__ import annotations
 import json
 from collections.abc import Sequence
 from dataclasses import dataclass
-from datetime import UTC, datetime
+from datetime import datetime
 
 import numpy as np
 from sqlalchemy import text
@@ -37,6 +37,7 @@ from app.core.errors import ConfigError, ConflictError
 from app.core.labels import PillarClass
 from app.geometry.pillars import PillarGrid
 from app.store.audit import audit
+from app.store.columns import sql_time
 from app.store.db import commit, write_transaction
 from app.store.models import EditState, LabelSource, PillarEditBatch, utcnow
 from app.store.versions import NOT_CHECKED, check_versions, refuse, stale
@@ -116,11 +117,6 @@ _CURRENT_HUMAN = text(
     f"UNION ALL SELECT cell_id, NULL, version, user_id, updated_at FROM pillar_tombstone "
     f"WHERE {_IN_IDS}"
 )
-
-
-def _sql_time(moment: datetime) -> str:
-    """A UTC time as SQLAlchemy stores DATETIME on SQLite (what `UTCDateTime` reads back)."""
-    return moment.astimezone(UTC).replace(tzinfo=None).strftime("%Y-%m-%d %H:%M:%S.%f")
 
 
 @dataclass(frozen=True)
@@ -211,7 +207,7 @@ def _apply(
     versions = versions_before + 1
     conn = session.connection()
     keep = labels != NO_LABEL
-    params = {"survey_id": survey_id, "user_id": user_id, "now": _sql_time(now)}
+    params = {"survey_id": survey_id, "user_id": user_id, "now": sql_time(now)}
     if keep.any():
         rows = np.stack([cell_ids[keep], labels[keep], versions[keep]], axis=1)
         conn.execute(_UPSERT, {**params, "rows": json.dumps(rows.tolist())})
@@ -631,5 +627,5 @@ def human_labels_since(session: Session, since: datetime | None) -> int:
     params: dict = {}
     if since is not None:
         query += " AND updated_at > :since"
-        params["since"] = _sql_time(since)
+        params["since"] = sql_time(since)
     return int(session.connection().execute(text(query), params).scalar_one())
