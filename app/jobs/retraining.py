@@ -20,7 +20,7 @@ from app.jobs.queue import enqueue
 from app.jobs.training_tasks import PhantomRetrainConfig
 from app.store.jobs import newest_job_of_kind, pending_job_of_kind
 from app.store.models import Job
-from app.store.pillar_labels import human_labels_since
+from app.store.pillar_reads import human_labels_since
 from app.store.training_labels import human_pillar_labels
 
 TRAIN_PHANTOM = "train:phantom"

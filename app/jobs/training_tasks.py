@@ -46,7 +46,8 @@ from app.pipelines.phantom.training.train import TrainConfig
 from app.store.guardrail_review import latest_run, match_slices
 from app.store.model_versions import ensure_shipped_version, promoted_version, register_version
 from app.store.models import Pipeline
-from app.store.pillar_labels import STORE_GRID, human_labels_since
+from app.store.pillar_labels import STORE_GRID
+from app.store.pillar_reads import human_labels_since
 from app.store.surveys import get_survey
 from app.store.training_labels import human_pillar_labels, reviewed_slices
 

@@ -13,18 +13,14 @@ from sqlmodel import Session, select
 import app.store.pillar_labels as pillar_labels
 from app.core.errors import ConfigError, ConflictError, StaleWriteError
 from app.store.models import AuditEvent, LabelSource, PillarLabel, Survey, User
-from app.store.pillar_labels import (
-    NO_LABEL,
-    STORE_GRID,
+from app.store.pillar_labels import NO_LABEL, STORE_GRID, redo, undo, write_labels
+from app.store.pillar_reads import (
     box_cell_ranges,
     human_labels_since,
     label_counts,
     labels_in_box,
-    redo,
     tile_json,
     uncertain_areas,
-    undo,
-    write_labels,
 )
 
 

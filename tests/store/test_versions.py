@@ -35,18 +35,13 @@ from app.store.models import (
     User,
     utcnow,
 )
-from app.store.pillar_labels import (
-    NO_LABEL,
-    STORE_GRID,
-    human_columns,
+from app.store.pillar_labels import NO_LABEL, STORE_GRID, human_columns, redo, undo, write_labels
+from app.store.pillar_reads import (
     human_labels_since,
     label_counts,
     labels_in_box,
-    redo,
     tile_json,
     uncertain_areas,
-    undo,
-    write_labels,
 )
 from app.store.versions import NOT_CHECKED, check_versions, fresh_ids
 

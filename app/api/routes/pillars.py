@@ -17,17 +17,8 @@ from app.api.errors import errors
 from app.api.types import CellId, Coordinate, Id, Version
 from app.core.labels import PillarClass
 from app.store.models import LabelSource
-from app.store.pillar_labels import (
-    NO_LABEL,
-    STORE_GRID,
-    LabelWrite,
-    label_counts,
-    redo,
-    tile_json,
-    uncertain_areas,
-    undo,
-    write_labels,
-)
+from app.store.pillar_labels import NO_LABEL, STORE_GRID, LabelWrite, redo, undo, write_labels
+from app.store.pillar_reads import label_counts, tile_json, uncertain_areas
 from app.store.surveys import get_survey
 
 router = APIRouter(

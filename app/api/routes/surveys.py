@@ -27,7 +27,7 @@ from app.core.errors import InputError
 from app.io.import_root import resolve_import_path
 from app.review.surveys import import_source
 from app.store.models import SurveyBase
-from app.store.pillar_labels import label_counts
+from app.store.pillar_reads import label_counts
 from app.store.surveys import (
     delete_survey,
     frames_summary,

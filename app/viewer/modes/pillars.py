@@ -21,7 +21,8 @@ import numpy as np
 
 from app.core.errors import StaleWriteError
 from app.core.labels import PillarClass
-from app.store.pillar_labels import NO_LABEL, uncertain_areas
+from app.store.pillar_labels import NO_LABEL
+from app.store.pillar_reads import uncertain_areas
 from app.viewer.modes.base import Mode
 from app.viewer.picking import in_screen_rect, pillars_in_disc, ray_ground_hit
 from app.viewer.pillar_colors import CLASS_NAMES, DISPLAY_CLASSES, DISPLAY_NAMES, swatch_html
