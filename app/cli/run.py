@@ -1,0 +1,154 @@
+"""`mmsclean run clutter | phantom | guardrail`: a pipeline on a survey, into a run folder."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from app.cli.common import FormatOption, config_from_options, console, stage_progress
+
+run_app = typer.Typer(help="Run a pipeline on a survey (labels, cleaned map, report).")
+
+SurveyFolder = Annotated[Path, typer.Argument(help="survey folder (frames with poses and images)")]
+OutFolder = Annotated[Path, typer.Option("--out", "-o", help="output folder")]
+
+# what each `run` command prints: (summary, scores against the reference labels), as templates
+REPORT_LINES = {
+    "clutter": (
+        "{out}: {frames} frames, {points:,} points, {removed_points:,} removed ({mode} mode), "
+        "map {map_points:,} points ({total:.1f} s)",
+        "full map, moving objects: SA {full[dynamic][scores][SA]:.2f} "
+        "DA {full[dynamic][scores][DA]:.2f} AA {full[dynamic][scores][AA]:.2f}; camera view, "
+        "movable objects: overall accuracy {in_view[clutter][error_matrix][overall_accuracy]:.2f}, "
+        "clutter omission {in_view[clutter][error_matrix][clutter_omission]:.2f}, "
+        "map commission {in_view[clutter][error_matrix][map_commission]:.3f}",
+    ),
+    "phantom": (
+        "{out}: {points:,} points, {phantom_points:,} phantom points removed, {pillars:,} pillars "
+        "({total:.1f} s)",
+        "pillar level: overall F {pillar[macro][f1]:.1f}, "
+        "phantom F {pillar[classes][phantom][f1]:.1f}",
+    ),
+    "guardrail": (
+        "{out}: {points:,} points, {slices:,} slices, {guardrail_slices:,} guardrail slices, "
+        "{guardrails} guardrails ({total:.1f} s)",
+        "slices vs {reference}: precision {slice[precision]:.1f}, recall {slice[recall]:.1f}, "
+        "F {slice[f1]:.1f}",
+    ),
+}
+
+
+@run_app.command("clutter")
+def run_clutter(
+    source: SurveyFolder,
+    fmt: FormatOption,
+    out: OutFolder,
+    mode: Annotated[
+        str, typer.Option(help="clutter: every movable object (the paper); dynamic: moved ones")
+    ] = "clutter",
+    padding: Annotated[int, typer.Option(help="mask buffer in pixels (the paper: 30)")] = 30,
+    expansion: Annotated[
+        str, typer.Option(help="cluster: 3D expansion (mmsclean); pad: padded masks (the paper)")
+    ] = "cluster",
+    camera: Annotated[bool, typer.Option(help="use the camera masks")] = True,
+    free_space: Annotated[bool, typer.Option(help="use DUFOMap free-space evidence")] = True,
+    tracking: Annotated[bool, typer.Option(help="link objects across frames")] = True,
+    voxel_dedup: Annotated[
+        float | None, typer.Option(help="metres: keep one point per voxel in the cleaned map")
+    ] = None,
+    dufomap_resolution: Annotated[
+        float, typer.Option(help="metres: voxel edge of the free-space map (0.02-5)")
+    ] = 0.1,
+    threads: Annotated[int, typer.Option(help="worker threads, 0 = all cores")] = 0,
+    overlays: Annotated[int, typer.Option(help="write mask overlays of the first N frames")] = 0,
+) -> None:
+    """Clutter removal (Lee et al.): camera masks, 3D expansion, free space, tracking."""
+    from app.io import open_survey
+    from app.pipelines.clutter.config import ClutterConfig
+    from app.pipelines.clutter.run import run_clutter_to_folder
+
+    config = config_from_options(
+        ClutterConfig,
+        {"mask_padding_px": "padding"},
+        mode=mode,
+        mask_padding_px=padding,
+        expansion=expansion,
+        use_camera=camera,
+        use_free_space=free_space,
+        use_tracking=tracking,
+        voxel_dedup=voxel_dedup,
+        dufomap_resolution=dufomap_resolution,
+        threads=threads,
+    )
+    survey = open_survey(source, fmt)
+    with stage_progress("clutter") as progress:
+        report = run_clutter_to_folder(survey, out, config, overlays=overlays, progress=progress)
+    print_report("clutter", report, out=out, mode=mode)
+
+
+@run_app.command("phantom")
+def run_phantom(
+    source: Annotated[Path, typer.Argument(help="survey folder or point-cloud file")],
+    fmt: FormatOption,
+    out: OutFolder,
+    model: Annotated[Path | None, typer.Option(help="checkpoint (default: shipped)")] = None,
+    windows: Annotated[
+        bool, typer.Option("--windows", help="per-window reference path instead of dense")
+    ] = False,
+    refine: Annotated[bool, typer.Option(help="Algorithm 1 neighbourhood vote")] = True,
+    baselines: Annotated[
+        bool, typer.Option(help="also score the paper's two baselines (needs reference labels)")
+    ] = False,
+) -> None:
+    """Phantom removal (Nagy & Benedek): pillar 3D CNN on the accumulated map."""
+    from app.io import open_survey
+    from app.pipelines.phantom.run import run_phantom_to_folder
+
+    survey = open_survey(source, fmt)
+    with stage_progress("phantom") as progress:
+        report = run_phantom_to_folder(
+            survey,
+            out,
+            model_path=model,
+            dense=not windows,
+            refine=refine,
+            baselines=baselines,
+            progress=progress,
+        )
+    print_report("phantom", report, out=out)
+
+
+@run_app.command("guardrail")
+def run_guardrail(
+    source: SurveyFolder,
+    fmt: FormatOption,
+    out: OutFolder,
+    model: Annotated[
+        Path | None, typer.Option(help="classifier checkpoint (default: shipped)")
+    ] = None,
+    head: Annotated[
+        str, typer.Option(help="classifier inputs: image+geometry, image (the paper), geometry")
+    ] = "image+geometry",
+    reconstruct: Annotated[bool, typer.Option(help="model the guardrails as meshes")] = True,
+) -> None:
+    """Guardrails (Matsumoto et al.): slices, camera-crop classifier, poles, unit shapes, meshes."""
+    from app.io import open_survey
+    from app.pipelines.guardrail.config import GuardrailConfig
+    from app.pipelines.guardrail.run import run_guardrail_to_folder
+
+    config = config_from_options(GuardrailConfig, head=head, reconstruct=reconstruct)
+    survey = open_survey(source, fmt)
+    with stage_progress("guardrail") as progress:
+        report = run_guardrail_to_folder(survey, out, config, model, progress=progress)
+    print_report("guardrail", report, out=out)
+
+
+def print_report(pipeline: str, report: dict, **values: object) -> None:
+    """A run's one-line summary (its counts, seconds and `values`), then its scores when the
+    survey had reference labels to score against."""
+    summary, scores = REPORT_LINES[pipeline]
+    console.print(summary.format(**report["counts"], total=report["timings"]["total"], **values))
+    if "metrics" in report:
+        console.print(scores.format(**report["metrics"]))

@@ -1,0 +1,137 @@
+"""The web app from the command line: `mmsclean serve`, `mmsclean user add` and `mmsclean export`
+(from its store, as the dashboard's downloads do). The API is reached only through its app
+factory, `app.api.main`."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from app.cli.common import console
+
+user_app = typer.Typer(help="Manage the web app's users.")
+
+
+@user_app.command("add")
+def user_add(
+    name: Annotated[str, typer.Argument(help="login name")],
+    role: Annotated[str, typer.Option(help="annotator, reviewer or admin")] = "annotator",
+) -> None:
+    """Create a user; the password is read from stdin (first line), never from the command."""
+    from sqlmodel import Session
+
+    from app.core.errors import ConfigError
+    from app.store.db import get_engine
+    from app.store.models import Role
+    from app.store.users import create_user
+
+    if role not in Role.__members__:
+        raise ConfigError("--role", f"must be one of {', '.join(Role.__members__)}, got {role!r}")
+    if sys.stdin.isatty():
+        import getpass
+
+        password = getpass.getpass(f"password for {name}: ")
+    else:
+        password = sys.stdin.readline().rstrip("\r\n")
+    with Session(get_engine()) as session:
+        user = create_user(session, name, password, Role(role))
+    console.print(f"created user {user.username} ({user.role.value}), id {user.id}")
+
+
+EXPORTS = ("cleaned-laz", "removed-laz", "guardrails", "pillars-csv", "pillars-npz", "qa-report")
+
+
+def export(
+    survey: Annotated[str, typer.Argument(help="survey id or name in the web app's store")],
+    what: Annotated[str, typer.Argument(help=", ".join(EXPORTS))],
+    out: Annotated[Path, typer.Option("--out", "-o", help="file to write")],
+    mesh_format: Annotated[str, typer.Option("--mesh-format", help="guardrails: glb or obj")] = (
+        "glb"
+    ),
+    include_model: Annotated[
+        bool, typer.Option(help="pillars: add the model's pre-labels to the human labels")
+    ] = False,
+    overwrite: Annotated[bool, typer.Option(help="replace OUT if it exists")] = False,
+) -> None:
+    """Export from the web app's store (as the dashboard's downloads do): the cleaned or removed
+    map of the newest clutter run, approved guardrail meshes, pillar labels, the QA report."""
+    import os
+    import shutil
+
+    from sqlmodel import Session
+
+    from app.core.errors import ConfigError
+    from app.core.settings import get_settings
+    from app.reports.exports import (
+        clutter_map,
+        csv_pieces,
+        exported,
+        pillar_table,
+        write_guardrails_zip,
+        write_pillars_npz,
+    )
+    from app.reports.qa_report import build_qa_report
+    from app.store.db import get_engine
+    from app.store.surveys import find_survey
+
+    if what not in EXPORTS:
+        raise ConfigError("WHAT", f"must be one of {', '.join(EXPORTS)} (got {what!r})")
+    if mesh_format not in ("glb", "obj"):
+        raise ConfigError("--mesh-format", f"must be glb or obj (got {mesh_format!r})")
+    if out.exists() and not overwrite:
+        raise ConfigError("--out", f"{out} exists; pass --overwrite to replace it")
+    if not out.parent.is_dir():
+        raise ConfigError("--out", f"{out.parent} is not a folder")
+    settings = get_settings()
+    partial = out.with_name(f".{out.name}.partial")
+    name, details = what.replace("-", "_"), {}
+    try:
+        with Session(get_engine()) as session:
+            record = find_survey(session, survey)
+            if what in ("cleaned-laz", "removed-laz"):
+                source, job_id = clutter_map(session, settings, record, what.split("-")[0])
+                shutil.copyfile(source, partial)
+                details = {"job_id": job_id, "file": str(source)}
+            elif what == "guardrails":
+                count = write_guardrails_zip(session, record, mesh_format, partial)
+                name, details = "guardrails_zip", {"format": mesh_format, "models": count}
+            elif what == "qa-report":
+                page = build_qa_report(session, settings, record, "mmsclean export")
+                partial.write_text(page, encoding="utf-8")
+                details = {"bytes": len(page)}
+            else:
+                table = pillar_table(session, record.id, include_model)
+                if what == "pillars-csv":
+                    with open(partial, "w", encoding="utf-8", newline="") as f:
+                        f.writelines(csv_pieces(table))
+                else:
+                    write_pillars_npz(table, partial)
+                details = {"rows": len(table["cell_id"]), "include_model": include_model}
+            label = f"survey {record.id} ({record.name})"
+            exported(session, None, record, name, via="command line", out=str(out), **details)
+            os.replace(partial, out)
+    finally:
+        partial.unlink(missing_ok=True)
+    console.print(f"{out}: {what} of {label}")
+
+
+def serve(
+    host: Annotated[str | None, typer.Option(help="bind address (default 127.0.0.1)")] = None,
+    port: Annotated[int | None, typer.Option(help="port (default 8000)")] = None,
+) -> None:
+    """Start the web app (API, dashboard, viewer); /health answers once it is ready."""
+    import uvicorn
+
+    from app.api.main import create_app
+    from app.core.settings import get_settings
+
+    settings = get_settings()
+    uvicorn.run(
+        create_app(),
+        host=host or settings.host,
+        port=settings.port if port is None else port,
+        log_level="info",
+    )
