@@ -58,6 +58,13 @@ def _unlink(path: Path) -> None:
     path.unlink(missing_ok=True)
 
 
+def _sent_once(path: Path, media_type: str, filename: str) -> FileResponse:
+    """A `temp_file` sent as the attachment `filename`, deleted once it is sent."""
+    return FileResponse(
+        path, media_type=media_type, filename=filename, background=BackgroundTask(_unlink, path)
+    )
+
+
 # --- clutter maps -------------------------------------------------------------------------
 
 
@@ -112,12 +119,7 @@ def guardrails_zip(
     archive = temp_file(settings, ".zip")
     count = write_guardrails_zip(session, survey, format, archive)
     exported(session, user.id, survey, "guardrails_zip", format=format, models=count)
-    return FileResponse(
-        archive,
-        media_type="application/zip",
-        filename=f"{slug(survey.name)}-guardrails-{format}.zip",
-        background=BackgroundTask(_unlink, archive),
-    )
+    return _sent_once(archive, "application/zip", f"{slug(survey.name)}-guardrails-{format}.zip")
 
 
 # --- pillar labels ------------------------------------------------------------------------
@@ -161,12 +163,7 @@ def pillars_npz(
     exported(
         session, user.id, survey, "pillars_npz", rows=len(t["cell_id"]), include_model=include_model
     )
-    return FileResponse(
-        path,
-        media_type="application/octet-stream",
-        filename=f"{slug(survey.name)}-pillars.npz",
-        background=BackgroundTask(_unlink, path),
-    )
+    return _sent_once(path, "application/octet-stream", f"{slug(survey.name)}-pillars.npz")
 
 
 # --- QA report ----------------------------------------------------------------------------
