@@ -22,13 +22,13 @@ from app.simulate.survey import SimulationConfig, simulate
 from app.store.clutter_review import DecisionWrite, decide, frame_counts, get_instance
 from app.store.models import Decision, Job, JobStatus
 from app.store.surveys import register_opened_survey
-from app.viewer.modes.clutter import (
+from app.viewer.modes.clutter import ClutterMode
+from app.viewer.modes.clutter_states import (
     APPROVED,
     REJECTED,
     REMOVED_PENDING,
     SELECTED_RGB,
     STATE_RGB,
-    ClutterMode,
     point_states,
 )
 from app.viewer.modes.common import pick_on_ray

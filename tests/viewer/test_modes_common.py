@@ -27,7 +27,7 @@ from app.store.models import Decision, Role
 from app.store.surveys import register_opened_survey
 from app.store.users import create_user
 from app.viewer.modes import MODES
-from app.viewer.modes.clutter import (
+from app.viewer.modes.clutter_states import (
     APPROVED,
     KEPT,
     KEPT_PENDING,

@@ -19,10 +19,8 @@ from __future__ import annotations
 
 import json
 from collections.abc import Sequence
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import cv2
 import numpy as np
 
 from app.core.errors import ConflictError, StaleWriteError
@@ -36,6 +34,16 @@ from app.store.models import Decision, Role
 from app.store.models import Survey as SurveyRecord
 from app.viewer.label_feed import CLUTTER_DECISIONS, CLUTTER_RUN
 from app.viewer.modes.base import Mode
+from app.viewer.modes.clutter_images import blank_image, mask_thumbnail, masked_photo, overlay
+from app.viewer.modes.clutter_states import (
+    LEGEND,
+    SELECTED_RGB,
+    STATE_RGB,
+    frame_instances,
+    point_states,
+    run_folder,
+    state_colors,
+)
 from app.viewer.modes.common import checked_user, evenly, legend_html, may, pick_on_ray
 
 if TYPE_CHECKING:
@@ -43,93 +51,8 @@ if TYPE_CHECKING:
 
     from app.viewer.session import ViewerSession
 
-IMAGE_WIDTH = 640  # px: the camera image as the GUI shows it (downscaled, sent as JPEG)
-CROP_PAD_PX = 16  # the run pads each mask image by this around its instance's bbox
 FRAME_VIEW = (-12.0, 9.0)  # camera behind the sensor (m along its heading) and above it
-
-# point states in the 3D view and on the image
-KEPT, KEPT_PENDING, REMOVED_PENDING, APPROVED, REJECTED = range(5)
-STATE_RGB = np.array(
-    [
-        (150, 150, 150),  # kept: not part of any instance
-        (150, 150, 150),  # kept: an instance's point the pipeline keeps (pending)
-        (255, 150, 0),  # removed: pending, the pipeline's flag
-        (230, 30, 30),  # removed: approved
-        (40, 200, 80),  # kept: rejected
-    ],
-    dtype=np.uint8,
-)
-SELECTED_RGB = np.array((255, 0, 255), dtype=np.uint8)  # apart from every state colour
-LEGEND = (
-    ("removed (pending: pipeline)", REMOVED_PENDING),
-    ("removed (approved)", APPROVED),
-    ("kept (rejected)", REJECTED),
-    ("kept", KEPT),
-)
 ACTIONS = {"Approve": Decision.approved, "Reject": Decision.rejected, "Reset": Decision.pending}
-
-
-# --- the review logic ----------------------------------------------------------------------
-
-
-def point_states(
-    owner: np.ndarray, flags: np.ndarray, index: np.ndarray, decision: Sequence[Decision]
-) -> np.ndarray:
-    """(N,) state of each point of a frame (KEPT ... REJECTED) with the decisions applied:
-    approved -> removed, rejected -> kept, pending -> the pipeline's flag (as recompute does)."""
-    verdict = np.array(
-        [{Decision.approved: 1, Decision.rejected: 0}.get(Decision(d), -1) for d in decision],
-        dtype=np.int8,
-    )
-    size = max(int(owner.max(initial=-1)), int(np.max(index, initial=-1))) + 1
-    table = np.full(size, -1, dtype=np.int8)
-    table[np.asarray(index, dtype=np.int64)] = verdict
-    flags = np.asarray(flags, dtype=bool)
-    state = np.where(flags, REMOVED_PENDING, KEPT).astype(np.int8)
-    owned = owner >= 0
-    choice = table[owner[owned]]
-    cases = [choice == 1, choice == 0, flags[owned]]
-    state[owned] = np.select(cases, [APPROVED, REJECTED, REMOVED_PENDING], KEPT_PENDING)
-    return state
-
-
-def state_colors(state: np.ndarray, z: np.ndarray, selected: np.ndarray | None) -> np.ndarray:
-    """(n, 3) uint8: state colours, kept points shaded by height, the selected instance magenta
-    (its state is in the list)."""
-    rgb = STATE_RGB[state].astype(np.float32)
-    kept = (state == KEPT) | (state == KEPT_PENDING)
-    if kept.any() and len(z):
-        lo, hi = np.percentile(z, [2, 98])
-        shade = np.clip((z[kept] - lo) / max(hi - lo, 1e-3), 0.0, 1.0)
-        rgb[kept] *= (0.55 + 0.6 * shade)[:, None]
-    if selected is not None and selected.any():
-        rgb[selected] = SELECTED_RGB
-    return np.clip(rgb, 0, 255).astype(np.uint8)
-
-
-def run_folder(session: ViewerSession, survey_id: int) -> Path | None:
-    """The folder of the clutter run whose instances the store holds (None: no run yet)."""
-    with session.db() as db:
-        decisions = clutter_review.review_decisions(db, survey_id)
-        folder = clutter_review.run_folder_of([d[3] for d in decisions])
-        if folder is None:
-            job = clutter_review.latest_run(db, survey_id)
-            if job is not None and "instances" in (job.result or {}).get("files", {}):
-                folder = Path(job.result["files"]["instances"]).parent
-    return folder
-
-
-def frame_instances(session: ViewerSession, survey_id: int, frame_id: str) -> list[InstanceState]:
-    """Every instance of one frame with its decision and version (all pages)."""
-    out: list[InstanceState] = []
-    with session.db() as db:
-        while True:
-            total, page = clutter_review.list_instances(
-                db, survey_id, frame_id=frame_id, offset=len(out), limit=clutter_review.MAX_PAGE
-            )
-            out += page
-            if not page or len(out) >= total:
-                return out
 
 
 class ClutterMode(Mode):
@@ -199,9 +122,7 @@ class ClutterMode(Mode):
         with session.mode_folder:
             self.heading = gui.add_markdown("")
             nav = gui.add_button_group("Frame", ("Previous", "Next", "Next pending"))
-            self.image = gui.add_image(
-                np.zeros((8, IMAGE_WIDTH, 3), np.uint8), label="Camera", format="jpeg"
-            )
+            self.image = gui.add_image(blank_image(), label="Camera", format="jpeg")
             legend = [(n, STATE_RGB[s]) for n, s in LEGEND] + [("selected", SELECTED_RGB)]
             gui.add_html(legend_html(legend))
             self.all_pending = gui.add_button_group(
@@ -266,7 +187,11 @@ class ClutterMode(Mode):
         self.shown = np.sort(np.concatenate([owned, rest]))
         self.pixels = self._project(frame)
         self._reload_states()
-        self.photo = None if self.pixels is None else self._masked_photo()
+        self.photo = (
+            None
+            if self.pixels is None
+            else masked_photo(frame.image(self.camera.name), self.states)
+        )
         if self.cloud is not None:
             self.cloud.remove()
         self.cloud = self.session.client.scene.add_point_cloud(
@@ -336,59 +261,26 @@ class ClutterMode(Mode):
 
     def _draw_panel(self) -> None:
         """Heading, camera image, instance list and selection for the current state."""
-        count = self.frames[self.frame_index]
-        self.heading.content = (
-            f"**Frame {self.frame_index + 1} / {len(self.frames)}** `{count.frame_id}`: "
-            f"{count.instances} instances, {count.pending} pending"
-        )
+        self._draw_heading()
         self.image.image = self._overlay()
         self.image.visible = self.pixels is not None
         self._draw_list()
         self._draw_selected()
 
-    def _masked_photo(self) -> tuple[np.ndarray, float] | None:
-        """(the frame's camera image downscaled, with each instance's mask image pasted where
-        it differs from the photo, i.e. the tinted mask; the scale), once per frame: decisions
-        change only the dots drawn over it."""
-        frame = self.by_id[self.frames[self.frame_index].frame_id]
-        photo = frame.image(self.camera.name)
-        canvas = photo.copy()
-        height, width = photo.shape[:2]
-        for s in self.states:  # one paste per instance, not per point
-            if s.bbox is None or not s.mask_path or not Path(s.mask_path).is_file():
-                continue
-            crop = cv2.imread(s.mask_path, cv2.IMREAD_COLOR)
-            if crop is None:
-                continue
-            crop = cv2.cvtColor(crop, cv2.COLOR_BGR2RGB)
-            u0, v0 = max(s.bbox[0] - CROP_PAD_PX, 0), max(s.bbox[1] - CROP_PAD_PX, 0)
-            h = min(crop.shape[0], height - v0)
-            w = min(crop.shape[1], width - u0)
-            region = canvas[v0 : v0 + h, u0 : u0 + w]
-            tinted = (crop[:h, :w] != photo[v0 : v0 + h, u0 : u0 + w]).any(axis=2)
-            region[tinted] = crop[:h, :w][tinted]
-        scale = IMAGE_WIDTH / width
-        size = (IMAGE_WIDTH, max(int(round(height * scale)), 1))
-        return cv2.resize(canvas, size, interpolation=cv2.INTER_AREA), scale
+    def _draw_heading(self) -> None:
+        count = self.frames[self.frame_index]
+        self.heading.content = (
+            f"**Frame {self.frame_index + 1} / {len(self.frames)}** `{count.frame_id}`: "
+            f"{count.instances} instances, {count.pending} pending"
+        )
 
     def _overlay(self) -> np.ndarray:
         """The masked camera image with the instances' points dotted by state and the selected
         instance boxed."""
         if self.pixels is None or self.photo is None:
-            return np.zeros((8, IMAGE_WIDTH, 3), np.uint8)
-        base, scale = self.photo
-        small = base.copy()
-        row, col = self.pixels
-        dots = np.flatnonzero((self.owner >= 0) & (row >= 0))
-        r = np.minimum((row[dots] * scale).astype(np.int64), small.shape[0] - 1)
-        c = np.minimum((col[dots] * scale).astype(np.int64), small.shape[1] - 1)
-        small[r, c] = STATE_RGB[self.state[dots]]
-        if self.selected is not None:
-            s = self.by_index.get(self.selected)
-            if s is not None and s.bbox is not None:
-                u0, v0, u1, v1 = (int(round(v * scale)) for v in s.bbox)
-                cv2.rectangle(small, (u0 - 2, v0 - 2), (u1 + 2, v1 + 2), SELECTED_RGB.tolist(), 1)
-        return small
+            return blank_image()
+        selected = None if self.selected is None else self.by_index.get(self.selected)
+        return overlay(self.photo, self.pixels, self.owner, self.state, selected)
 
     def _row_label(self, s: InstanceState) -> str:
         mark = "▶ " if s.instance_index == self.selected else ""
@@ -446,17 +338,10 @@ class ClutterMode(Mode):
             f"**#{s.instance_index} {s.class_name}**: {s.point_count:,} points, {moving}{track}; "
             f"**{s.decision.value}**{decided} (version {s.version})"
         )
-        image = None
-        if s.mask_path and Path(s.mask_path).is_file():
-            image = cv2.imread(s.mask_path, cv2.IMREAD_COLOR)
+        image = mask_thumbnail(s.mask_path)
         if image is None:
             self.selected_image.visible = False
             return
-        image = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
-        if image.shape[1] > IMAGE_WIDTH // 2:
-            scale = (IMAGE_WIDTH // 2) / image.shape[1]
-            size = (IMAGE_WIDTH // 2, max(int(round(image.shape[0] * scale)), 1))
-            image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
         self.selected_image.image = image
         self.selected_image.visible = True
 
@@ -465,11 +350,7 @@ class ClutterMode(Mode):
         self._reload_states()
         if self.cloud is not None:
             self.cloud.colors = self._colors()
-        count = self.frames[self.frame_index]
-        self.heading.content = (
-            f"**Frame {self.frame_index + 1} / {len(self.frames)}** `{count.frame_id}`: "
-            f"{count.instances} instances, {count.pending} pending"
-        )
+        self._draw_heading()
         self.image.image = self._overlay()
         self._relabel_rows()
         self._draw_selected()
