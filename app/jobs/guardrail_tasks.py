@@ -39,12 +39,12 @@ from app.pipelines.guardrail.run import write_guardrail_folder
 from app.pipelines.guardrail.segmentation import save_slice_features
 from app.pipelines.outputs import write_report
 from app.review.guardrails import current_run, load_stage, stage_rows
-from app.store.guardrail_review import (
+from app.store.guardrail_review import slice_table
+from app.store.guardrail_runs import (
     ModelRecord,
     SliceRows,
     replace_guardrail_models,
     replace_guardrail_run,
-    slice_table,
 )
 from app.store.model_versions import ensure_shipped_version, promoted_version
 from app.store.models import GuardrailKind, Pipeline

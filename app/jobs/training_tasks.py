@@ -43,7 +43,7 @@ from app.pipelines.phantom.training.finetune import (
     score,
 )
 from app.pipelines.phantom.training.train import TrainConfig
-from app.store.guardrail_review import latest_run, match_slices
+from app.store.guardrail_runs import latest_run, match_slices
 from app.store.model_versions import ensure_shipped_version, promoted_version, register_version
 from app.store.models import Pipeline
 from app.store.pillar_labels import STORE_GRID

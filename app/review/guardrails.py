@@ -13,13 +13,8 @@ from sqlmodel import Session
 from app.core.errors import ConfigError, ConflictError, NotFoundError
 from app.pipelines.guardrail.correction import correct_labels
 from app.pipelines.guardrail.pipeline import ReconstructionInput
-from app.store.guardrail_review import (
-    GuardrailRun,
-    latest_run,
-    match_slices,
-    slice_table,
-    trajectory_position,
-)
+from app.store.guardrail_review import slice_table, trajectory_position
+from app.store.guardrail_runs import GuardrailRun, latest_run, match_slices
 from app.store.models import GuardrailSlice
 from app.store.surveys import get_survey
 

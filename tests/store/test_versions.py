@@ -12,15 +12,13 @@ from sqlmodel import Session, select
 from app.core.errors import NotFoundError, StaleWriteError
 from app.store.clutter_review import DecisionWrite, decide, list_instances, replace_instances
 from app.store.guardrail_review import (
-    ModelRecord,
     SliceLabelEdit,
-    SliceRows,
     decide_model,
     list_models,
     list_slices,
     put_slice_labels,
-    replace_guardrail_run,
 )
+from app.store.guardrail_runs import ModelRecord, SliceRows, replace_guardrail_run
 from app.store.models import (
     ClutterInstance,
     Decision,

@@ -20,13 +20,8 @@ from app.jobs.registry import task_for
 from app.review.guardrails import preview_correction
 from app.simulate.survey import SimulationConfig, simulate
 from app.store.audit import audit
-from app.store.guardrail_review import (
-    SliceLabelEdit,
-    get_slice,
-    latest_run,
-    next_uncertain,
-    put_slice_labels,
-)
+from app.store.guardrail_review import SliceLabelEdit, get_slice, next_uncertain, put_slice_labels
+from app.store.guardrail_runs import latest_run
 from app.store.models import AuditEvent, User
 from app.store.surveys import register_opened_survey
 from app.viewer.modes.common import pick_on_ray

@@ -28,12 +28,12 @@ from app.store.guardrail_review import (
     SliceLabelEdit,
     decide_model,
     get_model,
-    latest_run,
     list_models,
     list_slices,
     next_uncertain,
     put_slice_labels,
 )
+from app.store.guardrail_runs import latest_run
 from app.store.models import ModelStatus
 from app.store.surveys import get_survey
 

@@ -23,12 +23,11 @@ from app.review.guardrails import load_stage, preview_correction
 from app.store.guardrail_review import (
     MAX_LABELS_PER_WRITE,
     SliceLabelEdit,
-    latest_run,
-    match_slices,
     next_uncertain,
     put_slice_labels,
     review_slice_rows,
 )
+from app.store.guardrail_runs import latest_run, match_slices
 from app.store.models import GuardrailSlice, Role
 from app.viewer.label_feed import GUARDRAIL_RUN, SLICE_LABEL
 from app.viewer.modes.base import Mode

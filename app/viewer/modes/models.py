@@ -21,7 +21,8 @@ import trimesh
 
 from app.core.errors import StaleWriteError
 from app.review.guardrails import load_stage
-from app.store.guardrail_review import decide_model, latest_run, list_models, match_slices
+from app.store.guardrail_review import decide_model, list_models
+from app.store.guardrail_runs import latest_run, match_slices
 from app.store.models import GuardrailModel, ModelStatus, Role
 from app.viewer.label_feed import GUARDRAIL_RUN, MODEL_DECISIONS
 from app.viewer.modes.base import Mode
