@@ -24,9 +24,10 @@ import numpy as np
 
 from app.io import open_survey
 from app.metrics.classification import binary_scores
+from app.pipelines.guardrail.config import GuardrailConfig
 from app.pipelines.guardrail.correction import correct_labels
 from app.pipelines.guardrail.evaluation.reference import point_reference, slice_truth
-from app.pipelines.guardrail.pipeline import GuardrailConfig, GuardrailPipeline
+from app.pipelines.guardrail.pipeline import GuardrailPipeline
 from app.pipelines.guardrail.run import reference_points, slice_metrics
 from app.pipelines.guardrail.training.dataset import HELD_OUT_SEEDS, preset_of, simulated_survey
 from bench.common import append_results, markdown_table

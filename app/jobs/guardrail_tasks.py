@@ -27,9 +27,9 @@ from app.jobs.memory import MemoryEstimate, per_point_estimate
 from app.jobs.registry import JobContext, task
 from app.jobs.task_config import job_model, refuse_model_path, validated
 from app.pipelines.guardrail.classifier import load_heads
+from app.pipelines.guardrail.config import GuardrailConfig
 from app.pipelines.guardrail.pipeline import (
     DEFAULT_MODEL,
-    GuardrailConfig,
     GuardrailInstance,
     GuardrailPipeline,
     ReconstructionInput,

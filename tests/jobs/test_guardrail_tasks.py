@@ -169,6 +169,10 @@ def test_bad_config_names_the_field(jobs: Jobs, tmp_path: Path) -> None:
         "config.colour": {"colour": "red"},
         "config.model_path": {"model_path": str(outside)},
         "config.model_id": {"model_id": 12345},
+        "config.reconstruction.poles.section_step": {
+            "reconstruction": {"poles": {"section_step": 0}}
+        },
+        "config.reconstruction.pipes.bogus": {"reconstruction": {"pipes": {"bogus": 1}}},
     }
     for field, config in cases.items():
         with pytest.raises(ConfigError) as err:

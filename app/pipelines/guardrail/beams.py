@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from app.pipelines.guardrail.config import BandConfig, BeamConfig
 from app.pipelines.guardrail.polylines import taubin_smooth
 
 
@@ -52,47 +53,42 @@ def looks_like_beam(
     points: np.ndarray,
     pole_x: tuple[float, float],
     pole_radius: float,
-    slice_width: float = 0.02,  # m, vertical slices across x
-    cell: float = 0.02,  # m, height cells
-    min_share: float = 0.5,  # a height cell belongs to the band when this share of slices hold it
-    max_gap_cells: int = 2,  # empty cells bridged inside the band (self-shadowed folds)
-    min_band: float = 0.2,  # m, band height that makes a beam (W-beam ~0.31, pipe <~0.08)
-    pole_margin: float = 0.05,
+    config: BandConfig | None = None,
 ) -> tuple[bool, float]:
     """Whether the stacked unit is a beam (a continuous surface band), and the band height:
     the tallest run of height cells that most (`min_share`) of the occupied vertical slices
     hold points in. A rail fills a few cells in every slice, a slanted or vertical pipe tall
     runs in a few slices only, a beam plate its whole height in nearly every slice."""
-    p = _without_poles(points, pole_x, pole_radius, pole_margin)
+    cfg = config or BandConfig()
+    slice_width, cell = cfg.slice_width, cfg.cell
+    p = _without_poles(points, pole_x, pole_radius, cfg.pole_margin)
     if len(p) < 10:
         return False, 0.0
     sx = np.floor((p[:, 0] - p[:, 0].min()) / slice_width).astype(np.int64)
     cy = np.floor((p[:, 1] - p[:, 1].min()) / cell).astype(np.int64)
     pairs = np.unique(np.column_stack([sx, cy]), axis=0)
     share = np.bincount(pairs[:, 1]) / len(np.unique(sx))
-    rows = np.flatnonzero(share >= min_share)
+    rows = np.flatnonzero(share >= cfg.min_share)
     if not len(rows):
         return False, 0.0
-    brk = np.flatnonzero(np.diff(rows) > max_gap_cells + 1)
+    brk = np.flatnonzero(np.diff(rows) > cfg.max_gap_cells + 1)
     starts = np.r_[rows[0], rows[brk + 1]]
     ends = np.r_[rows[brk], rows[-1]]
     band = float((ends - starts + 1).max() * cell)
-    return band >= min_band, band
+    return band >= cfg.min_band, band
 
 
 def beam_section(
     points: np.ndarray,
     pole_x: tuple[float, float],
     pole_radius: float,
-    strip: float = 0.01,  # m, the paper's 10 mm horizontal strips
-    min_strip_points: int = 3,
-    max_gap: float = 0.05,  # m, empty height bridged inside the section
-    taubin_iterations: int = 10,
-    pole_margin: float = 0.05,  # m beyond the pole (or spacer) removed with it
+    config: BeamConfig | None = None,
 ) -> BeamModel | None:
     """The beam's section polyline from the stacked unit (points (N, 3) in the unit frame),
     or None when no band of points is left."""
-    p = _without_poles(points, pole_x, pole_radius, pole_margin)
+    cfg = config or BeamConfig()
+    strip, min_strip_points = cfg.strip, cfg.min_strip_points
+    p = _without_poles(points, pole_x, pole_radius, cfg.pole_margin)
     if len(p) < 3 * min_strip_points:
         return None
     k = np.floor((p[:, 1] - p[:, 1].min()) / strip).astype(np.int64)
@@ -109,11 +105,11 @@ def beam_section(
         return None
     C = np.array(centres)
     # the main band: the longest run of strips without a gap above max_gap
-    brk = np.flatnonzero(np.diff(C[:, 0]) * strip > max_gap)
+    brk = np.flatnonzero(np.diff(C[:, 0]) * strip > cfg.max_gap)
     starts = np.r_[0, brk + 1]
     ends = np.r_[brk, len(C) - 1]
     i = int(np.argmax(ends - starts))
     C = C[starts[i] : ends[i] + 1]
-    section = taubin_smooth(C[:, 1:3], iterations=taubin_iterations)
+    section = taubin_smooth(C[:, 1:3], iterations=cfg.taubin_iterations)
     xl, xr = sorted(pole_x)
     return BeamModel(section=section, x_range=(xl, xr))

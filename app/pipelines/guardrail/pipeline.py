@@ -6,39 +6,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, Field
 
-from app.core.bounds import Count, Metres, ObjectMetres, Resolution, Share
 from app.core.progress import Progress, Stopwatch, no_progress
 from app.io.survey import Survey
 from app.pipelines.guardrail.classifier import CropEncoder, load_heads, predict
+from app.pipelines.guardrail.config import GuardrailConfig, ReconstructionConfig
 from app.pipelines.guardrail.correction import correct_labels
 from app.pipelines.guardrail.segmentation import SliceStage, prepare_slices
 from app.pipelines.guardrail.slices import SliceSet
 
 DEFAULT_MODEL = Path(__file__).resolve().parents[3] / "models" / "guardrail" / "slice_classifier.pt"
-
-
-class GuardrailConfig(BaseModel):
-    spacing: Resolution = Field(0.5, description="metres: slice length along the trajectory")
-    head: Literal["image+geometry", "image", "geometry"] = Field(
-        "image+geometry", description="classifier inputs: image (the paper), geometry, or both"
-    )
-    threshold: Share = Field(0.5, gt=0, lt=1, description="guardrail probability to say yes")
-    max_gap: Count = Field(2, ge=0, description="slices: other slices filled inside a run")
-    max_isolated: Count = Field(1, ge=0, description="slices: guardrail runs this short go")
-    min_guardrail_length: Metres = Field(
-        3.0, gt=0, description="metres: shorter guardrail runs are not reconstructed"
-    )
-    join_gap: Metres = Field(2.0, ge=0, description="metres between runs of one guardrail")
-    join_lateral: ObjectMetres = Field(0.75, ge=0, description="metres of lateral offset, ditto")
-    ground_clearance: ObjectMetres = Field(
-        0.1, ge=0, description="metres: points lower above the ground are not modelled"
-    )
-    reconstruct: bool = True
 
 
 @dataclass
@@ -147,7 +126,9 @@ class GuardrailPipeline:
         return group_guardrails(stage.slices, stage.road.above_ground, labels, self.config)
 
     def reconstruct(self, stage: SliceStage, guardrail: GuardrailInstance) -> None:
-        reconstruct_instance(stage.points.xyz, stage.trajectory, guardrail)
+        reconstruct_instance(
+            stage.points.xyz, stage.trajectory, guardrail, self.config.reconstruction
+        )
 
 
 def group_guardrails(
@@ -176,12 +157,14 @@ def group_guardrails(
     return out
 
 
-def reconstruct_instance(xyz: np.ndarray, trajectory: np.ndarray, g: GuardrailInstance) -> None:
+def reconstruct_instance(
+    xyz: np.ndarray, trajectory: np.ndarray, g: GuardrailInstance, config: ReconstructionConfig
+) -> None:
     """Fill `g.model` from its points, or `g.error` with why it could not be reconstructed."""
     from app.pipelines.guardrail.reconstruction import reconstruct_guardrail
 
     try:
-        g.model = reconstruct_guardrail(xyz[g.points], trajectory)
+        g.model = reconstruct_guardrail(xyz[g.points], trajectory, config)
     except (ValueError, RuntimeError) as exc:  # too few poles, degenerate unit ...
         g.error = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
 
@@ -278,7 +261,7 @@ def rebuild_guardrails(
     guardrails = group_guardrails(saved.slices, saved.above_ground, labels, cfg)
     for i, g in enumerate(guardrails):
         report("reconstruction", i / max(len(guardrails), 1))
-        reconstruct_instance(saved.xyz, saved.trajectory, g)
+        reconstruct_instance(saved.xyz, saved.trajectory, g, cfg.reconstruction)
     report("done", 1.0)
     return guardrails
 

@@ -37,6 +37,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
+from app.pipelines.guardrail.config import PipeConfig
 from app.pipelines.guardrail.pipe_radius import pipe_offsets, pipe_radius
 from app.pipelines.guardrail.polylines import (
     drop_duplicates,
@@ -230,32 +231,15 @@ def reconstruct_pipes(
     pole_x: tuple[float, float],
     pole_radius: float,
     plane_z: float | None = None,
-    pole_margin: float = 0.03,  # m beyond the pole radius removed with the poles
-    strip_width: float = 0.03,  # m, the paper's 30 mm strips along x
-    edge_limit: float = 0.04,  # m, longest Delaunay edge inside one pipe's points
-    min_component_points: int = 2,
-    link_tol: float = 0.03,  # m, a centre joins a polyline this close to its predicted course
-    max_slope: float = 2.0,  # steepest first step of a new polyline (dy / dx)
-    max_skip: int = 4,  # empty strips a polyline may bridge (sparse scan lines)
-    min_nodes: int = 4,  # shorter polylines are noise
-    taubin_iterations: int = 10,
-    straight_tol: float = 0.02,  # m, a polyline this close to its fitted line is straight
-    snap_deg: float = 5.0,  # lines within this of horizontal become horizontal pipes
-    merge_gap: float = 0.3,  # m, gap between two pieces of one straight pipe
-    connect_dist: float = 0.15,  # m, ends extend this far to meet poles, pipes, each other
-    extend_straight: float = 0.35,  # m, ... straight lines this far
-    radius_share: float = 0.5,  # q of `radius_from_offsets`
-    dense_points: int = 2000,  # see `pipe_radius`
-    min_radius_points: int = 15,  # fewer points take the median radius of the other pipes
-    radius_range: tuple[float, float] = (0.005, 0.08),  # m
-    vertical_min_length: float = 0.3,  # m
+    config: PipeConfig | None = None,
 ) -> PipeModel:
     """Pipes of the stacked unit (points (N, 3) in the reference unit frame, poles at
     `pole_x`). Skeleton z is `plane_z` (the pole axes' plane: pipes end on the pole axes)
     or, when None, the median z of each pipe's points."""
+    cfg = config or PipeConfig()
     P = np.asarray(points, dtype=np.float64)
     xl, xr = sorted(pole_x)
-    cut = pole_radius + pole_margin
+    cut = pole_radius + cfg.pole_margin
     body = P[(P[:, 0] > xl + cut) & (P[:, 0] < xr - cut)]
     model = PipeModel(pole_x=(xl, xr), plane_z=float(plane_z) if plane_z is not None else 0.0)
     if len(body) < 10:
@@ -263,7 +247,7 @@ def reconstruct_pipes(
     z_of = (lambda z: float(plane_z)) if plane_z is not None else (lambda z: float(np.median(z)))
 
     # 1. vertical pipes
-    verts = vertical_pipes(body[:, :2], (xl + cut, xr - cut), min_length=vertical_min_length)
+    verts = vertical_pipes(body[:, :2], (xl + cut, xr - cut), min_length=cfg.vertical_min_length)
     rest = np.ones(len(body), dtype=bool)
     vert_lines = []
     for xc, y0, y1, half in verts:
@@ -275,14 +259,14 @@ def reconstruct_pipes(
     # 2. strips, Delaunay components, centres
     nodes = []
     if len(other):
-        sid = np.floor((other[:, 0] - (xl + cut)) / strip_width).astype(np.int64)
+        sid = np.floor((other[:, 0] - (xl + cut)) / cfg.strip_width).astype(np.int64)
         order = np.argsort(sid, kind="stable")
         bounds = np.flatnonzero(np.r_[True, np.diff(sid[order]) != 0, True])
         for a, b in zip(bounds[:-1], bounds[1:], strict=True):
             idx = order[a:b]
-            lab = strip_components(other[idx, :2], edge_limit)
+            lab = strip_components(other[idx, :2], cfg.edge_limit)
             cnt = np.bincount(lab)
-            for c in np.flatnonzero(cnt >= min_component_points):
+            for c in np.flatnonzero(cnt >= cfg.min_component_points):
                 q = other[idx[lab == c]]
                 nodes.append([sid[idx[0]], q[:, 0].mean(), np.median(q[:, 1]),
                               np.median(q[:, 2]), len(q)])  # fmt: skip
@@ -290,20 +274,23 @@ def reconstruct_pipes(
     if nodes:
         N = np.array(nodes, dtype=np.float64)
         N = N[np.lexsort((N[:, 2], N[:, 0]))]
-        for ch in _trace(N, link_tol, max_slope, max_skip):
-            if len(ch) < min_nodes:
+        for ch in _trace(N, cfg.link_tol, cfg.max_slope, cfg.max_skip):
+            if len(ch) < cfg.min_nodes:
                 continue
             Q = N[ch][:, 1:4]
             w = N[ch][:, 4]
-            Q = taubin_smooth(Q, iterations=taubin_iterations)
-            line, kind = straighten(Q, w, straight_tol, snap_deg)
+            Q = taubin_smooth(Q, iterations=cfg.taubin_iterations)
+            line, kind = straighten(Q, w, cfg.straight_tol, cfg.snap_deg)
             polys.append((line, kind, float(w.sum())))
-    polys = drop_duplicates(merge_collinear(polys, straight_tol, merge_gap, snap_deg), link_tol)
+    polys = drop_duplicates(
+        merge_collinear(polys, cfg.straight_tol, cfg.merge_gap, cfg.snap_deg), cfg.link_tol
+    )
 
     # 3. extend and connect
     y_span = (float(P[:, 1].min()), float(P[:, 1].max()))
-    lines = extend_ends([p for p, _, _ in polys], [k != "curved" for _, k, _ in polys],
-                         vert_lines, (xl, xr), y_span, connect_dist, extend_straight)  # fmt: skip
+    straight = [k != "curved" for _, k, _ in polys]
+    lines = extend_ends([p for p, _, _ in polys], straight, vert_lines, (xl, xr), y_span,
+                        cfg.connect_dist, cfg.extend_straight)  # fmt: skip
     for V in vert_lines:  # vertical pipes end on the rails they meet
         for end in (0, 1):
             best, y_best = np.inf, None
@@ -313,7 +300,7 @@ def reconstruct_pipes(
                     o = np.argsort(xs)
                     y = float(np.interp(V[0, 0], xs[o], L[o, 1]))
                     gap = abs(y - V[end, 1])
-                    if gap <= connect_dist and gap < best:
+                    if gap <= cfg.connect_dist and gap < best:
                         best, y_best = gap, y
             if y_best is not None:
                 V[end, 1] = y_best
@@ -325,7 +312,9 @@ def reconstruct_pipes(
     counts = np.array([len(o) for o in offs], dtype=int)
     radii = np.array(
         [
-            pipe_radius(o, k, radius_share, dense_points) if len(o) >= min_radius_points else np.nan
+            pipe_radius(o, k, cfg.radius_share, cfg.dense_points)
+            if len(o) >= cfg.min_radius_points
+            else np.nan
             for o, k in zip(offs, kinds, strict=True)
         ]
     )
@@ -333,7 +322,7 @@ def reconstruct_pipes(
     # thicker than the rails they hang from)
     fallback = float(np.nanmin(radii)) if np.isfinite(radii).any() else 0.02
     for S, r, n, kind in zip(skels, radii, counts, kinds, strict=True):
-        r = fallback if not np.isfinite(r) else float(np.clip(r, *radius_range))
+        r = fallback if not np.isfinite(r) else float(np.clip(r, *cfg.radius_range))
         S = S.copy()
         if plane_z is not None:
             S[:, 2] = plane_z

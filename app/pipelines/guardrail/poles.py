@@ -24,6 +24,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from app.pipelines.guardrail.circles import Circle, fit_circle_geometric, fit_circle_ransac
+from app.pipelines.guardrail.config import PoleConfig
 from app.pipelines.guardrail.rail_curve import RailCurve, rail_curve
 
 
@@ -225,45 +226,29 @@ def detect_poles(
     points: np.ndarray,
     trajectory: np.ndarray | None = None,
     curve: RailCurve | None = None,
-    section_step: float = 0.05,  # m, horizontal section planes (Fukano & Masuda: 5-10 cm)
-    cluster_gap: float = 0.3,  # m, gap along the rail that separates section clusters (wider
-    # than a profile scanner's line spacing at road speed, so rails stay one cluster)
-    max_pole_width: float = 0.3,  # m, a section cluster wider than this is a rail or beam
-    core_halfwidth: float = 0.1,  # m, a pole's points lie this close to its station
-    column_tol: float = 0.08,  # m, plan distance of vertically aligned clusters
-    min_pole_height: float = 0.15,  # m, vertical extent of a pole's compact column
-    min_sections: int = 3,  # sections a pole's column occupies
-    ground_tol: float = 0.08,  # m, a pole reaches this close to the local ground
-    below_rails: float = 0.08,  # m, ... and this far below the lowest rail / beam around it
-    ground_window: float = 1.0,  # m, along-rail half window of the local ground
-    radius_range: tuple[float, float] = (0.02, 0.12),  # m, plausible pole radii
-    radius_prior: float = 0.04,  # m, pole radius when no pole's arc fixes it
-    inlier_tol: float = 0.01,  # m, RANSAC circle inlier distance
-    min_arc: float = np.radians(100.0),  # arc a circle fit needs to fix a radius
-    ransac_iterations: int = 128,
-    infer_missing: bool = True,  # add poles in gaps of whole unit lengths
-    seed: int = 0,
+    config: PoleConfig | None = None,
 ) -> list[Pole]:
     """Poles of one guardrail from its points (N, 3) world, sorted along the rail (the
     direction of travel when the trajectory is given)."""
+    cfg = config or PoleConfig()
     pts = np.asarray(points, dtype=np.float64)
     if len(pts) < 10:
         return []
     curve = curve if curve is not None else rail_curve(pts, trajectory)
     s, d = curve.project(pts[:, :2])
     z = pts[:, 2]
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(cfg.seed)
     # sections of a rail must join across scan lines, whatever the scanner's line spacing
-    gap = max(cluster_gap, 1.5 * scan_spacing(s))
-    cols = _columns(s, d, z, section_step, gap, max(max_pole_width, gap), column_tol,
-                    ground_window, core_halfwidth)  # fmt: skip
+    gap = max(cfg.cluster_gap, 1.5 * scan_spacing(s))
+    cols = _columns(s, d, z, cfg.section_step, gap, max(cfg.max_pole_width, gap), cfg.column_tol,
+                    cfg.ground_window, cfg.core_halfwidth)  # fmt: skip
     cand = [
         c
         for c in cols
-        if c.sections >= min_sections
-        and c.z_max - c.z_min >= min_pole_height
-        and c.z_min - c.ground <= ground_tol
-        and c.z_min <= c.under - below_rails
+        if c.sections >= cfg.min_sections
+        and c.z_max - c.z_min >= cfg.min_pole_height
+        and c.z_min - c.ground <= cfg.ground_tol
+        and c.z_min <= c.under - cfg.below_rails
     ]
     if not cand:
         return []
@@ -274,15 +259,15 @@ def detect_poles(
                 pts[c.members, :2],
                 z[c.members],
                 rng,
-                section_step,
-                radius_range,
-                inlier_tol,
-                min_arc,
-                ransac_iterations,
+                cfg.section_step,
+                cfg.radius_range,
+                cfg.inlier_tol,
+                cfg.min_arc,
+                cfg.ransac_iterations,
             )  # fmt: skip
         )
     fitted = [c.radius for c in circles if c is not None]
-    shared = float(np.median(fitted)) if fitted else radius_prior
+    shared = float(np.median(fitted)) if fitted else cfg.radius_prior
     plan = cKDTree(pts[:, :2])
     poles = []
     for c, circ in zip(cand, circles, strict=True):
@@ -302,7 +287,7 @@ def detect_poles(
         poles.append(pole)
     poles.sort(key=lambda p: p.station)
     poles = _drop_off_spacing(poles)
-    if infer_missing and len(poles) >= 2:
+    if cfg.infer_missing and len(poles) >= 2:
         poles = _infer_missing(poles, curve, s, trajectory)
     return poles
 

@@ -12,6 +12,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import minimum_spanning_tree, shortest_path
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
+from app.pipelines.guardrail.config import CurveConfig
+
 
 @dataclass
 class RailCurve:
@@ -96,15 +98,13 @@ def _principal_coordinate(xy: np.ndarray) -> np.ndarray:
 
 
 def rail_curve(
-    points: np.ndarray,
-    trajectory: np.ndarray | None = None,
-    cell: float = 0.5,  # m, plan cells the course is traced through
-    smooth: int = 5,  # cells in the moving average that smooths the course
-    extend: float = 2.0,  # m, straight extension at both ends
+    points: np.ndarray, trajectory: np.ndarray | None = None, config: CurveConfig | None = None
 ) -> RailCurve:
     """The course of the guardrail from its own points (cell centroids ordered along the
     longest path of their spanning tree, smoothed). Oriented like the trajectory when one is
     given (stations grow in the driving direction), else along the first principal axis."""
+    cfg = config or CurveConfig()
+    cell, smooth, extend = cfg.cell, cfg.smooth, cfg.extend
     xy = np.asarray(points, dtype=np.float64)[:, :2]
     keys = np.floor((xy - xy.min(0)) / cell).astype(np.int64)
     _, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)

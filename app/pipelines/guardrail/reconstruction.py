@@ -11,28 +11,29 @@ ground to their top.
 
 Kind "auto" takes the paper's cue: a beam fills a relatively large rectangle with points, so the
 stacked unit is a beam when its narrow vertical slices show a continuous band of points taller
-than `min_band` (0.2 m; a W-beam is 0.31 m, a pipe at most ~6 cm) in most slices
+than `band.min_band` (0.2 m; a W-beam is 0.31 m, a pipe at most ~6 cm) in most slices
 (`beams.looks_like_beam`), else pipes.
+
+Each stage's settings are one group of `config.ReconstructionConfig` (`poles`, `units`,
+`superimpose`, `pipes`, `beams`, `band`, ...), which the stage's function takes.
 """
 
 from __future__ import annotations
 
-import inspect
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Any
 
 import numpy as np
 
 from app.pipelines.guardrail import meshes
 from app.pipelines.guardrail.beams import BeamModel, beam_section, looks_like_beam
+from app.pipelines.guardrail.config import ReconstructionConfig
 from app.pipelines.guardrail.pipes import PipeModel, reconstruct_pipes
 from app.pipelines.guardrail.poles import Pole, detect_poles, place_poles, pole_spacing
 from app.pipelines.guardrail.rail_curve import RailCurve, rail_curve
 from app.pipelines.guardrail.superimpose import Stack, superimpose
 from app.pipelines.guardrail.units import Unit, split_units, unit_frame
-
-Kind = Literal["auto", "pipe", "beam"]
 
 # pole radius when no pole's own arc fixes it, once the kind is known (not from the paper:
 # Japanese pipe guardrail posts are 60-76 mm pipes, W-beam posts ~114-140 mm pipes or H posts)
@@ -56,17 +57,6 @@ class ReconstructedGuardrail:
     placements: list[np.ndarray] = field(default_factory=list)  # per pole pair: 4x4 affine
     stack: Stack | None = field(default=None, repr=False)
     curve: RailCurve | None = field(default=None, repr=False)
-
-
-def _route(params: dict, *funcs) -> list[dict]:
-    """Split keyword parameters among the stage functions that take them (a name may go to
-    several); an unknown name is an error naming the valid ones."""
-    names = [set(inspect.signature(f).parameters) for f in funcs]
-    unknown = set(params) - set().union(*names)
-    if unknown:
-        valid = ", ".join(sorted(set().union(*names)))
-        raise TypeError(f"unknown guardrail parameter(s) {sorted(unknown)}; valid: {valid}")
-    return [{k: v for k, v in params.items() if k in n} for n in names]
 
 
 def _affine_apply(A: np.ndarray, q: np.ndarray) -> np.ndarray:
@@ -159,35 +149,26 @@ def _posts_behind_beam(poles: list[Pole], points: np.ndarray, curve: RailCurve) 
 def reconstruct_guardrail(
     points: np.ndarray,
     trajectory: np.ndarray | None = None,
-    kind: Kind = "auto",
-    tube_segments: int = 12,
-    pole_segments: int = 16,
-    **params,
+    config: ReconstructionConfig | None = None,
+    **settings: Any,
 ) -> ReconstructedGuardrail:
     """Reconstruct one guardrail from its points (N, 3) world float64 (the points of that
     guardrail only) and, when known, the survey trajectory (M, 3) sensor positions (it tells
     which side of a pole the scanner saw, and orients the result along the drive).
 
-    `params` go to the stage functions that take them by name: `rail_curve`, `detect_poles`,
-    `split_units`, `superimpose`, `reconstruct_pipes`, `beam_section`, `looks_like_beam`."""
+    `config` holds every step's settings (defaults: `ReconstructionConfig()`); flat `settings`
+    (`kind="pipe"`, `max_units=4`) are applied over it (`ReconstructionConfig.updated`)."""
+    cfg = (config or ReconstructionConfig()).updated(**settings)
+    kind = cfg.kind
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if not np.isfinite(pts).all():
         raise ValueError("guardrail points contain NaN or infinite coordinates")
     traj = None if trajectory is None else np.asarray(trajectory, dtype=np.float64)[:, :3]
-    if kind not in ("auto", "pipe", "beam"):
-        raise ValueError(f"kind must be 'auto', 'pipe' or 'beam', not {kind!r}")
-    p_curve, p_poles, p_units, p_stack, p_pipes, p_beam, p_kind = _route(
-        params, rail_curve, detect_poles, split_units, superimpose, reconstruct_pipes,
-        beam_section, looks_like_beam,
-    )  # fmt: skip
-    for p in (p_pipes, p_beam, p_kind):  # data arguments are the caller's, not parameters
-        for k in ("points", "pole_x", "pole_radius", "plane_z"):
-            p.pop(k, None)
 
-    curve = rail_curve(pts, traj, **p_curve) if len(pts) >= 2 else None
-    poles = detect_poles(pts, traj, curve=curve, **p_poles) if curve is not None else []
-    units = split_units(pts, poles, curve, **p_units) if len(poles) >= 2 else []
-    stack = superimpose(units, **p_stack) if units else None
+    curve = rail_curve(pts, traj, cfg.curve) if len(pts) >= 2 else None
+    poles = detect_poles(pts, traj, curve, cfg.poles) if curve is not None else []
+    units = split_units(pts, poles, curve, cfg.units) if len(poles) >= 2 else []
+    stack = superimpose(units, cfg.superimpose) if units else None
     ref = next((u for u in units if stack is not None and u.index == stack.reference), None)
 
     result_kind = kind if kind != "auto" else "unknown"
@@ -196,7 +177,7 @@ def reconstruct_guardrail(
     if ref is not None and stack is not None:
         pole_x = (float(ref.pole_local[0, 0]), float(ref.pole_local[1, 0]))
         r_pole = float(np.median([p.radius for p in poles]))
-        is_beam, band = looks_like_beam(stack.points, pole_x, r_pole, **p_kind)
+        is_beam, band = looks_like_beam(stack.points, pole_x, r_pole, cfg.band)
         if kind == "auto":
             result_kind = "beam" if is_beam else "pipe"
         if result_kind == "beam" and curve is not None:
@@ -215,16 +196,17 @@ def reconstruct_guardrail(
                 if u.index in stack.transforms
             ]
             plane_z = float(np.median(np.concatenate(z_axes)))
-            pipes = reconstruct_pipes(stack.points, pole_x, r_pole, plane_z, **p_pipes)
+            pipes = reconstruct_pipes(stack.points, pole_x, r_pole, plane_z, cfg.pipes)
         else:
-            beam = beam_section(stack.points, pole_x, r_pole, **p_beam)
+            beam = beam_section(stack.points, pole_x, r_pole, cfg.beams)
 
     placements = _placements(poles, units, stack, ref) if len(poles) >= 2 else []
-    parts = [meshes.cylinder(p.base_point, p.top_point, p.radius, pole_segments) for p in poles]
+    segments = cfg.mesh.pole_segments
+    parts = [meshes.cylinder(p.base_point, p.top_point, p.radius, segments) for p in poles]
     world_pipes: list[dict] = []
     beam_world = None
     if pipes is not None:
-        m, world_pipes = _pipe_mesh(pipes, placements, tube_segments)
+        m, world_pipes = _pipe_mesh(pipes, placements, cfg.mesh.tube_segments)
         parts.append(m)
     if beam is not None and placements:
         path, across, up = _beam_path(beam, placements)

@@ -14,6 +14,7 @@ from app.io.asprs import GUARDRAIL_ASPRS
 from app.io.las import write_laz
 from app.io.survey import Survey
 from app.metrics.classification import binary_scores
+from app.pipelines.guardrail.config import GuardrailConfig
 from app.pipelines.guardrail.evaluation.reference import (
     DESCRIPTIONS,
     guardrail_truth,
@@ -21,12 +22,7 @@ from app.pipelines.guardrail.evaluation.reference import (
     reference_kind,
     slice_truth,
 )
-from app.pipelines.guardrail.pipeline import (
-    GuardrailConfig,
-    GuardrailPipeline,
-    GuardrailResult,
-    Progress,
-)
+from app.pipelines.guardrail.pipeline import GuardrailPipeline, GuardrailResult, Progress
 from app.pipelines.outputs import write_frame_labels, write_report
 
 

@@ -28,6 +28,7 @@ import open3d as o3d
 from scipy.ndimage import gaussian_filter
 from scipy.signal import correlate
 
+from app.pipelines.guardrail.config import SuperimposeConfig
 from app.pipelines.guardrail.units import Unit
 
 
@@ -96,33 +97,24 @@ def section_shift(
     return float((iy - ky) * bin_size), float((iz - kz) * bin_size)
 
 
-def superimpose(
-    units: list[Unit],
-    reference: int | None = None,
-    max_units: int | None = None,
-    icp_distance: float = 0.05,  # m, ICP correspondence distance (about a pipe diameter)
-    icp_iterations: int = 50,
-    max_shift: float = 0.1,  # m, larger ICP moves are sliding, not correcting
-    max_rotation_deg: float = 5.0,
-    min_fitness: float = 0.3,  # share of a unit's points that must find a partner
-    keep_rough_x: bool = True,  # drop ICP's move along the rail (see module doc)
-    max_height_shift: float = 0.5,  # m, vertical search of the rough alignment
-    max_depth_shift: float = 0.3,  # m, search along the plane normal
-) -> Stack:
+def superimpose(units: list[Unit], config: SuperimposeConfig | None = None) -> Stack:
     """Stack `units` (rough alignment: every unit in its own frame; then ICP onto the reference
     unit, by default the one with the most points). `max_units` keeps the reference and the
     units nearest to it along the rail (the paper's experiment on how many are needed)."""
+    cfg = config or SuperimposeConfig()
     if not units:
         return Stack(np.zeros((0, 3)), np.zeros(0, dtype=np.int64), -1)
     by_index = {u.index: u for u in units}
-    ref = reference if reference is not None else max(units, key=lambda u: len(u.local)).index
+    ref = cfg.reference
+    if ref is None:
+        ref = max(units, key=lambda u: len(u.local)).index
     if ref not in by_index:
         raise ValueError(f"reference unit {ref} is not among the units")
     chosen = sorted(by_index, key=lambda i: (abs(i - ref), i))
-    if max_units is not None:
-        chosen = chosen[: max(1, max_units)]
+    if cfg.max_units is not None:
+        chosen = chosen[: max(1, cfg.max_units)]
     target = _cloud(by_index[ref].local)
-    criteria = o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=icp_iterations)
+    criteria = o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=cfg.icp_iterations)
     method = o3d.pipelines.registration.TransformationEstimationPointToPoint()
     stack = Stack(np.zeros((0, 3)), np.zeros(0, dtype=np.int64), ref)
     parts, owners = [], []
@@ -134,27 +126,29 @@ def superimpose(
         else:
             src = _cloud(u.local)
             T0 = np.eye(4)
-            if max_height_shift > 0.0 or max_depth_shift > 0.0:
+            if cfg.max_height_shift > 0.0 or cfg.max_depth_shift > 0.0:
                 T0[1, 3], T0[2, 3] = section_shift(
-                    u.local, by_index[ref].local, max_height_shift, max_depth_shift
+                    u.local, by_index[ref].local, cfg.max_height_shift, cfg.max_depth_shift
                 )
             res = o3d.pipelines.registration.registration_icp(
-                src, target, icp_distance, T0, method, criteria
+                src, target, cfg.icp_distance, T0, method, criteria
             )
             Tr = np.array(res.transformation)
-            if keep_rough_x:
+            if cfg.keep_rough_x:
                 Tr[0, 3] = 0.0
             ok = (
-                np.linalg.norm(Tr[:3, 3] - T0[:3, 3]) <= max_shift
-                and _rotation_deg(Tr) <= max_rotation_deg
-                and res.fitness >= min_fitness
+                np.linalg.norm(Tr[:3, 3] - T0[:3, 3]) <= cfg.max_shift
+                and _rotation_deg(Tr) <= cfg.max_rotation_deg
+                and res.fitness >= cfg.min_fitness
             )
             if ok:
                 T = Tr
                 stack.rmse[i], stack.fitness[i] = float(res.inlier_rmse), float(res.fitness)
             else:
                 T = T0
-                ev = o3d.pipelines.registration.evaluate_registration(src, target, icp_distance, T0)
+                ev = o3d.pipelines.registration.evaluate_registration(
+                    src, target, cfg.icp_distance, T0
+                )
                 stack.rmse[i], stack.fitness[i] = float(ev.inlier_rmse), float(ev.fitness)
             stack.accepted[i] = bool(ok)
         stack.transforms[i] = T

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from app.pipelines.guardrail.config import UnitConfig
 from app.pipelines.guardrail.poles import Pole
 from app.pipelines.guardrail.rail_curve import RailCurve
 
@@ -108,11 +109,11 @@ def split_units(
     points: np.ndarray,
     poles: list[Pole],
     curve: RailCurve,
-    pole_margin: float = 0.05,  # m beyond each pole's radius: a unit includes both its poles
-    min_points: int = 30,  # fewer points do not make a unit worth stacking
+    config: UnitConfig | None = None,
 ) -> list[Unit]:
     """Unit shapes between consecutive poles (sorted along `curve`): each unit's points are
     those whose station lies between its two poles, the poles included."""
+    cfg = config or UnitConfig()
     pts = np.asarray(points, dtype=np.float64)
     s, _ = curve.project(pts[:, :2])
     # one rectangle height for all units (the guardrail's pole height), so a pole whose top
@@ -125,10 +126,11 @@ def split_units(
     for j in range(len(poles) - 1):
         a, b = poles[j], poles[j + 1]
         lo, hi = np.searchsorted(
-            s_sorted, [a.station - a.radius - pole_margin, b.station + b.radius + pole_margin]
+            s_sorted,
+            [a.station - a.radius - cfg.pole_margin, b.station + b.radius + cfg.pole_margin],
         )
         idx = np.sort(order[lo:hi])
-        if len(idx) < min_points:
+        if len(idx) < cfg.min_points:
             continue
         frame, length, _ = unit_frame(a, b, pts[idx], height=height)
         units.append(

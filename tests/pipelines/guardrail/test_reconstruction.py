@@ -17,6 +17,7 @@ import trimesh
 
 from app.pipelines.guardrail.beams import looks_like_beam
 from app.pipelines.guardrail.circles import fit_circle_ransac
+from app.pipelines.guardrail.config import SuperimposeConfig
 from app.pipelines.guardrail.evaluation.reconstruction_metrics import (
     evaluate_guardrail,
     pipes_recovered_vs_units,
@@ -312,7 +313,7 @@ def test_superimpose_registers_shifted_units():
         units.append(
             Unit(i, (i, i + 1), np.arange(len(base)), frame, local, 2.0, 1.0, np.zeros((2, 3)))
         )
-    stack = superimpose(units, reference=0)
+    stack = superimpose(units, SuperimposeConfig(reference=0))
     assert stack.units_stacked == 3
     for i, (dy, dz) in enumerate([(0.0, 0.0), (0.02, -0.01), (-0.15, 0.03)]):
         T = stack.transforms[i]

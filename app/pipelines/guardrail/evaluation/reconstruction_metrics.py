@@ -22,6 +22,8 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from app.pipelines.guardrail.config import ReconstructionConfig
+
 
 def _model(rg: Any) -> dict:
     return rg if isinstance(rg, dict) else rg.model
@@ -198,15 +200,15 @@ def pipes_recovered_vs_units(
     trajectory: np.ndarray | None,
     truth: dict,
     counts: tuple[int, ...] = (1, 2, 4, 8, 16),
-    **params,
+    config: ReconstructionConfig | None = None,
 ) -> dict[int, float]:
     """Share of the true pipes recovered when only `k` units are stacked, per k (the
-    reconstruction runs once per k with `max_units=k`)."""
+    reconstruction, with `config`'s other settings, runs once per k with `max_units=k`)."""
     from app.pipelines.guardrail.reconstruction import reconstruct_guardrail
 
     out = {}
     for k in counts:
-        rg = reconstruct_guardrail(points, trajectory, kind="pipe", max_units=k, **params)
+        rg = reconstruct_guardrail(points, trajectory, config, kind="pipe", max_units=k)
         out[int(k)] = pipe_errors(rg, truth, points)["recovered_share"]
         if rg.units_stacked < k:
             break
