@@ -7,8 +7,10 @@
             Table II with both baselines
   validation  whole validation maps (seeds 111-113), the figures models and settings are
             chosen by
-  kitti     SemanticKITTI 04 / 05 / 08 (10 posed frames accumulated), leave-one-sequence-out:
-            trains on the two others (--kitti-with-sim adds the simulator maps), tests on the third
+  kitti     SemanticKITTI 04 / 05 / 08 (10 posed frames accumulated), leave-one-sequence-out,
+            rotating scanner: per held-out sequence (--kitti-held) and training data
+            (--kitti-sources: sim = simulated HDL-64E drives, real = the two other sequences,
+            sim+real); --passes adds time as evidence (distinct scanner passes per voxel)
   train     training time on 40k pillars (10k per class) to the paper's validation F; writes the
             checkpoint (--model; default the shipped file of the network trained: --context 16, the
             default, or --context 0 for the paper network); --sim-seeds chooses the maps
@@ -123,8 +125,16 @@ def main() -> int:
     parser.add_argument("--kitti-per-class", type=int, default=4000, help="kitti: pillars/class")
     parser.add_argument("--kitti-epochs", type=int, default=6, help="kitti: epochs per model")
     parser.add_argument(
-        "--kitti-with-sim", action="store_true", help="kitti: add the simulator training maps"
+        "--kitti-sources",
+        default="real",
+        help="kitti: training data per held-out sequence, comma separated runs of "
+        "sim (simulated HDL-64E drives), real (the other sequences), sim+real",
     )
+    parser.add_argument("--kitti-held", default="04,05,08", help="kitti: sequences to hold out")
+    parser.add_argument(
+        "--passes", action="store_true", help="kitti: time as evidence (scanner passes channel)"
+    )
+    parser.add_argument("--kitti-sim-seeds", type=int, default=12, help="kitti: HDL-64E drives")
     args = parser.parse_args()
     parts = {"speed": part_speed, "memory": part_memory}
     if args.part not in parts:

@@ -31,6 +31,7 @@ class AccumulatedMap:
     intensity: np.ndarray | None = None  # (N,) float32, when asked for and every frame has it
     world_xy: np.ndarray | None = None  # (N, 2) float64 world xy, beside re-centred xyz
     index: np.ndarray | None = None  # (N,) uint32 point of its frame; None: all, in file order
+    passes: np.ndarray | None = None  # (N,) int64 scanner pass of each point (`scanner_passes`)
 
     def split(self, values: np.ndarray) -> dict[str, np.ndarray]:
         """Per-point values back into per-frame arrays (file order)."""
@@ -62,6 +63,7 @@ class AccumulatedMap:
             intensity=None if self.intensity is None else self.intensity[which],
             world_xy=None if self.world_xy is None else self.world_xy[which],
             index=self.source_index[which],
+            passes=None if self.passes is None else self.passes[which],
         )
 
 
@@ -70,16 +72,21 @@ def accumulate(
     with_reference: bool = False,
     with_intensity: bool = False,
     origin: np.ndarray | None = None,
+    with_passes: bool = False,
 ) -> AccumulatedMap:
     """Every frame's points posed into the map frame. `with_reference` keeps the survey's
     reference labels (when every frame has them), `with_intensity` the intensities as float32
-    (when every frame has them), `origin` re-centres the points on it as float32."""
+    (when every frame has them), `origin` re-centres the points on it as float32,
+    `with_passes` numbers the scanner pass of every point (`scanner_passes`; None when a map
+    has no point times)."""
     if origin is not None:
         origin = np.asarray(origin, dtype=np.float64)
-    clouds, refs, intensities, world_xy = [], [], [], []
+    clouds, refs, intensities, world_xy, times = [], [], [], [], []
     for frame in survey.frames:
         cloud = frame.world_points()
         xyz = cloud.xyz
+        if with_passes and survey.is_map:
+            times.append(cloud.time)
         if origin is not None:
             world_xy.append(xyz[:, :2].copy())  # a copy: the float64 frame is not kept alive
             xyz = (xyz - origin).astype(np.float32)
@@ -108,4 +115,28 @@ def accumulate(
         reference=reference,
         intensity=np.concatenate(intensities) if with_values else None,
         world_xy=np.concatenate(world_xy) if origin is not None else None,
+        passes=scanner_passes(survey, [len(c) for c in clouds], times) if with_passes else None,
     )
+
+
+PASS_SECONDS = 0.1  # a map's point times are binned into passes this long (one revolution)
+
+
+def scanner_passes(
+    survey: Survey, frame_sizes: list[int], map_times: list[np.ndarray | None]
+) -> np.ndarray | None:
+    """Which pass of the scanner measured each point: time as evidence (a static surface is
+    measured again on every pass that sees it, a moving object at one place only once or twice).
+
+    A survey of frames: the frame index (one revolution of a rotating scanner, one 0.1 s stretch
+    of profiles). A map: its point times binned into `PASS_SECONDS`; None without point times
+    (all zero counts as none: LAS writers fill missing GPS time with zeros).
+    """
+    if not survey.is_map:
+        return np.repeat(np.arange(len(frame_sizes), dtype=np.int64), frame_sizes)
+    if not map_times or any(t is None for t in map_times):
+        return None
+    t = np.concatenate(map_times)
+    if not len(t) or not np.all(np.isfinite(t)) or np.ptp(t) == 0:
+        return None
+    return np.floor((t - t.min()) / PASS_SECONDS).astype(np.int64)

@@ -16,17 +16,22 @@ from app.pipelines.phantom.pillars import PillarMap, window_origin
 FractionDone = Callable[[float], None]  # inside one stage: the stage reports it as Progress
 
 
-def window_tensor(pm: PillarMap, pillars: np.ndarray) -> torch.Tensor:
-    """(N, 1, 30, 24, 24) inputs of the given pillars (their windows plus one context voxel)."""
+def window_tensor(pm: PillarMap, pillars: np.ndarray, passes: bool = False) -> torch.Tensor:
+    """(N, C, 30, 24, 24) inputs of the given pillars (their windows plus one context voxel):
+    C = 1 point counts, or 2 with `passes` (counts and distinct scanner passes)."""
     side = pm.config.window_voxels + 2
     origins = window_origin(pillars, pm.config)
     lo = origins.min(axis=0)
     span = origins.max(axis=0) - lo + side
-    block = pm.dense_block(int(lo[0]), int(lo[1]), int(span[0]), int(span[1]))
+    block = pm.dense_block(int(lo[0]), int(lo[1]), int(span[0]), int(span[1]), passes)
+    if not passes:
+        block = block[None]
     ox, oy = (origins - lo).T
     r = np.arange(side)
-    windows = block[:, ox[:, None, None] + r[None, :, None], oy[:, None, None] + r[None, None, :]]
-    return torch.from_numpy(np.ascontiguousarray(windows.transpose(1, 0, 2, 3)))[:, None]
+    windows = block[
+        :, :, ox[:, None, None] + r[None, :, None], oy[:, None, None] + r[None, None, :]
+    ]  # (C, Z, N, side, side)
+    return torch.from_numpy(np.ascontiguousarray(windows.transpose(2, 0, 1, 3, 4)))
 
 
 def band_tensor(pm: PillarMap, pillars: np.ndarray) -> torch.Tensor:
@@ -46,7 +51,7 @@ def network_inputs(
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """What the network reads for each pillar: its window and, with a context branch, bands."""
     bands = band_tensor(pm, pillars) if net.context else None
-    return window_tensor(pm, pillars), bands
+    return window_tensor(pm, pillars, net.passes), bands
 
 
 def _selected(pm: PillarMap, which: np.ndarray | None) -> np.ndarray:
@@ -99,14 +104,15 @@ def classify_dense(
         members = order[bounds[k] : bounds[k + 1]]
         first = np.array([tx * tile - half, ty * tile - half])  # first window pillar P0
         v0 = first * per - 1
-        block = pm.dense_block(int(v0[0]), int(v0[1]), side, side)
+        block = pm.dense_block(int(v0[0]), int(v0[1]), side, side, net.passes)
+        block = block if net.passes else block[None]
         bands = None
         if net.context:  # surroundings of the tile's pillars tx * tile.., ty * tile..
             c0 = np.array([tx, ty]) * tile - CONTEXT_SPAN // 2
             bands = pm.band_block(int(c0[0]), int(c0[1]), tile + CONTEXT_SPAN - 1,
                                   tile + CONTEXT_SPAN - 1, CONTEXT_BANDS)  # fmt: skip
             bands = torch.from_numpy(bands)[None]
-        logits = dense_logits(net, torch.from_numpy(block)[None, None], bands)
+        logits = dense_logits(net, torch.from_numpy(block)[None], bands)
         local = pillars[members] - first - half
         probs = torch.softmax(logits[:, local[:, 0], local[:, 1]], dim=0)
         out[members] = probs.T.numpy()

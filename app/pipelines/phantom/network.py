@@ -10,7 +10,9 @@ anyway. This is what makes the dense (fully-convolutional) evaluation of `dense_
 *exactly* equal to the per-window network: with zeros at every window border, overlapping
 windows could not share their convolutions.
 
-Tensor layout: (batch, 1, z, x, y).
+Tensor layout: (batch, C, z, x, y): C = 1 point counts, or C = 2 with `passes` (beyond the paper:
+time as evidence, pillars.py), the distinct scanner passes per voxel beside the counts; both read
+as log1p.
 
 Beyond the paper, optional (`context` > 0 channels): a 2.2 m window cannot tell the middle of a
 parked car from the middle of a car smeared along the road, or a parked car from an oncoming one
@@ -67,12 +69,14 @@ class PillarCNN(nn.Module):
         window: int = 22,
         classes: int = 4,
         context: int = 0,
+        passes: bool = False,
     ):
         super().__init__()
         c1, c2, c3 = channels
         self.channels, self.hidden, self.height, self.window = channels, hidden, height, window
         self.context = context  # channels of the context branch, 0 = the paper's network
-        self.conv1 = nn.Conv3d(1, c1, 3, padding=(1, 0, 0))
+        self.passes = passes  # reads distinct scanner passes per voxel beside the counts
+        self.conv1 = nn.Conv3d(2 if passes else 1, c1, 3, padding=(1, 0, 0))
         self.pool1 = nn.MaxPool3d(2)
         self.conv2 = nn.Conv3d(c1, c2, 3)
         self.pool2 = nn.MaxPool3d(2)
@@ -99,7 +103,7 @@ class PillarCNN(nn.Module):
         return F.relu(self.conv3(self.drop1(x)))
 
     def forward(self, x: torch.Tensor, bands: torch.Tensor | None = None) -> torch.Tensor:
-        """Logits (N, 4) of windows (N, 1, 30, 24, 24) and, with a context branch, their
+        """Logits (N, 4) of windows (N, C, 30, 24, 24) and, with a context branch, their
         surroundings (N, 6, 31, 31)."""
         x = self.drop2(self.features(x)).flatten(1)
         if self.context_net is not None:
@@ -115,6 +119,7 @@ class PillarCNN(nn.Module):
             "height": self.height,
             "window": self.window,
             "context": self.context,
+            "passes": self.passes,
         }
 
 
@@ -124,7 +129,7 @@ def dense_logits(
 ) -> torch.Tensor:
     """The network evaluated at every pillar of a block at once (shared convolutions).
 
-    `block` (1, 1, 30, 2T + 22, 2T + 22) voxels starting one context voxel before pillar P0's
+    `block` (1, C, 30, 2T + 22, 2T + 22) voxels starting one context voxel before pillar P0's
     window; returns logits (4, T, T) whose [:, u, v] is the per-window output of the window whose
     first pillar is P0 + (u, v), i.e. of the pillar P0 + (u, v) + 5. The second max-pool loses
     its stride (windows one pillar apart are not aligned with it), so later layers dilate by 2.

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from app.core.errors import InputError
 from app.core.labels import PillarClass
 from app.core.progress import Progress
 from app.geometry.ground import estimate_ground
@@ -70,11 +71,17 @@ class PhantomPipeline:
             clock = now
 
         report("accumulate", 0.0)
-        amap = accumulate(survey, with_reference=True)
+        amap = accumulate(survey, with_reference=True, with_passes=self.net.passes)
+        if self.net.passes and amap.passes is None:
+            raise InputError(
+                survey.source,
+                f"has no point times; the phantom model {self.model_path.name} reads scanner "
+                "passes (time as evidence): run it with a model without time",
+            )
         lap("accumulate")
         ground = estimate_ground(amap.xyz, cfg.ground_cell, cfg.ground_opening)
         lap("ground")
-        pm = build_pillar_map(amap.xyz, ground, cfg)
+        pm = build_pillar_map(amap.xyz, ground, cfg, amap.passes)
         lap("pillars")
         which = pm.candidates()  # the rest is plain ground (PillarMap.candidates)
         probs = np.zeros((len(pm.pillars), 4), dtype=np.float32)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 import torch
@@ -45,6 +46,7 @@ class LabelledMap:
     semantic: np.ndarray  # (N,) int SemanticKITTI id, static meaning
     moving: np.ndarray  # (N,) bool
     source: str
+    passes: np.ndarray | None = None  # (N,) int64 scanner pass (the frame) of each point
 
     def __len__(self) -> int:
         return len(self.xyz)
@@ -52,8 +54,8 @@ class LabelledMap:
 
 def labelled_map_from_survey(survey: Survey) -> LabelledMap:
     """Every frame's world points and reference labels, accumulated (sim, semantickitti)."""
-    xyz, semantic, moving = [], [], []
-    for frame in survey.frames:
+    xyz, semantic, moving, passes = [], [], [], []
+    for index, frame in enumerate(survey.frames):
         reference = frame.reference_labels()
         if "semantic" not in reference:
             raise ValueError(
@@ -69,6 +71,7 @@ def labelled_map_from_survey(survey: Survey) -> LabelledMap:
         xyz.append(points)
         semantic.append(static)
         moving.append(mov)
+        passes.append(np.full(len(points), index, dtype=np.int64))
     if not xyz:
         raise ValueError(f"survey {survey.name} has no frames")
     return LabelledMap(
@@ -76,19 +79,41 @@ def labelled_map_from_survey(survey: Survey) -> LabelledMap:
         semantic=np.concatenate(semantic),
         moving=np.concatenate(moving),
         source=survey.name,
+        passes=None if survey.is_map else np.concatenate(passes),
     )
+
+
+def frame_windows(lmap: LabelledMap, frames: int) -> list[LabelledMap]:
+    """The map cut into consecutive windows of `frames` scanner passes (frames), each one map:
+    a long simulated rotating-scanner drive gives maps like the 10-frame real ones."""
+    if lmap.passes is None:
+        raise ValueError(f"{lmap.source}: a map without frames cannot be cut into frame windows")
+    window = lmap.passes // frames
+    order = np.argsort(window, kind="stable")  # frame order already, for a drive
+    parts = np.split(order, np.flatnonzero(np.diff(window[order])) + 1)
+    return [
+        LabelledMap(
+            xyz=lmap.xyz[part],
+            semantic=lmap.semantic[part],
+            moving=lmap.moving[part],
+            source=f"{lmap.source}:frames{int(window[part[0]]) * frames}",
+            passes=lmap.passes[part],
+        )
+        for part in parts
+        if len(part)
+    ]
 
 
 @dataclass
 class Samples:
     """Labelled pillars with their input windows.
 
-    `x` (S, 1, 30, 24, 24) uint8 point counts clipped at 255 (module docstring), `y` (S,) int64
-    class index into CLASS_NAMES, `source` (S,) the map each sample came from, `xy` (S, 2) the
-    pillar centre in the map's own (unrotated) frame, so rotated copies of a pillar share it
-    (spatially blocked k-fold splits, train.py), `group` (S,) int64 an id of the underlying sample
-    (copies drawn by `balanced` share it), `sources` one JSON-ready dict per map (points, pillars
-    per class, samples taken).
+    `x` (S, C, 30, 24, 24) uint8 point counts (and passes, C = 2) clipped at 255 (module
+    docstring), `y` (S,) int64 class index into CLASS_NAMES, `source` (S,) the map each sample
+    came from, `xy` (S, 2) the pillar centre in the map's own (unrotated) frame, so rotated
+    copies of a pillar share it (spatially blocked k-fold splits, train.py), `group` (S,) int64
+    an id of the underlying sample (copies drawn by `balanced` share it), `sources` one
+    JSON-ready dict per map (points, pillars per class, samples taken).
     """
 
     x: np.ndarray
@@ -135,7 +160,7 @@ class Samples:
         )
 
     def batch(self, index: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
-        """(float32 windows (B, 1, 30, 24, 24), int64 labels (B,)) of the given samples."""
+        """(float32 windows (B, C, 30, 24, 24), int64 labels (B,)) of the given samples."""
         index = np.asarray(index, dtype=np.int64)
         x = torch.from_numpy(self.x[index]).to(torch.float32)
         return x, torch.from_numpy(self.y[index])
@@ -179,26 +204,32 @@ def rotate_about_z(xyz: np.ndarray, angle: float, centre: np.ndarray | None = No
 
 
 def labelled_pillars(
-    lmap: LabelledMap, config: PhantomConfig, angle: float = 0.0
+    lmap: LabelledMap, config: PhantomConfig, angle: float = 0.0, passes: bool = False
 ) -> tuple[PillarMap, np.ndarray]:
-    """The pillar map of the (rotated) cloud and each occupied pillar's reference class."""
+    """The pillar map of the (rotated) cloud and each occupied pillar's reference class; with
+    `passes`, the map also counts distinct scanner passes per voxel."""
+    if passes and lmap.passes is None:
+        raise ValueError(f"{lmap.source}: no scanner passes (point times) for a passes network")
     xyz = rotate_about_z(lmap.xyz, angle) if angle else lmap.xyz
     ground = estimate_ground(xyz, config.ground_cell, config.ground_opening)
-    pm = build_pillar_map(xyz, ground, config)
+    pm = build_pillar_map(xyz, ground, config, lmap.passes if passes else None)
     return pm, reference_pillar_labels(pm, lmap.semantic, lmap.moving)
 
 
 def window_counts(
     pm: PillarMap, pillars: np.ndarray, batch: int = 512, cut: Callable = window_tensor
 ) -> np.ndarray:
-    """(S, 1, 30, 24, 24) uint8 windows of the given pillars (`window_tensor`, clipped at 255),
-    cut tile by tile (TILE_PILLARS) so each dense block covers only a small area; with
-    `cut=band_tensor` the (S, 6, 31, 31) band counts of the context branch instead."""
+    """(S, C, 30, 24, 24) uint8 windows of the given pillars (`window_tensor`, clipped at 255;
+    C = 2 when the pillar map has scanner passes), cut tile by tile (TILE_PILLARS) so each
+    dense block covers only a small area; with `cut=band_tensor` the (S, 6, 31, 31) band counts
+    of the context branch instead."""
     pillars = np.asarray(pillars, dtype=np.int64).reshape(-1, 2)
     out = None
+    if cut is window_tensor and pm.passes is not None:
+        cut = partial(window_tensor, passes=True)
     if not len(pillars):
         side = pm.config.window_voxels + 2
-        shape = (1, pm.config.voxels_high, side, side)
+        shape = (pm.channels, pm.config.voxels_high, side, side)
         if cut is band_tensor:
             shape = (CONTEXT_BANDS, CONTEXT_SPAN, CONTEXT_SPAN)
         return np.empty((0, *shape), dtype=np.uint8)
@@ -230,6 +261,7 @@ def pillar_samples(
     max_per_class: int | dict[int, int] | None = None,
     batch: int = 512,
     context: bool = False,
+    passes: bool = False,
 ) -> Samples:
     """Every labelled pillar of the map that the pipeline would give to the CNN
     (`PillarMap.candidates`: the rest is ground without asking it) as a sample, a random subset of
@@ -239,13 +271,14 @@ def pillar_samples(
     cap: than the largest other class).
 
     With `rotate` the cloud is first turned about z through its centroid by a uniform random angle.
-    With `context` the samples also carry the context branch's band counts (network.py).
+    With `context` the samples also carry the context branch's band counts (network.py); with
+    `passes` the windows carry the distinct scanner passes per voxel as a second channel.
     `sources[0]` records the map's point count and pillars per class (before capping).
     """
     config = config or PhantomConfig()
     rng = rng if rng is not None else np.random.default_rng()
     angle = float(rng.uniform(0.0, 2.0 * np.pi)) if rotate else 0.0
-    pm, labels = labelled_pillars(lmap, config, angle)
+    pm, labels = labelled_pillars(lmap, config, angle, passes)
     judged = np.zeros(len(labels), dtype=bool)
     judged[pm.candidates()] = True
     chosen = []

@@ -45,6 +45,7 @@ from app.core.bounds import Count, Epochs, Metres, Rate, Seconds, Seed, Threads
 from app.core.progress import Progress
 from app.core.settings import get_settings
 from app.io import open_survey
+from app.io.survey import Survey
 from app.metrics.classification import confusion_matrix, scores_from_confusion
 from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.evaluation import reference
@@ -53,9 +54,11 @@ from app.pipelines.phantom.network import CLASS_NAMES, PillarCNN
 from app.pipelines.phantom.priors import class_priors
 from app.pipelines.phantom.training.dataset import (
     N_CLASSES,
+    LabelledMap,
     Samples,
     balanced,
     concatenate,
+    frame_windows,
     labelled_map_from_survey,
     pillar_samples,
 )
@@ -97,6 +100,15 @@ class TrainConfig(BaseModel):
     )
     time_limit: Seconds | None = Field(
         None, description="seconds per fold: no epoch starts that would end past it"
+    )
+    passes: bool = Field(
+        False, description="time as evidence: distinct scanner passes per voxel as a 2nd channel"
+    )
+    scanner: Literal["profile", "hdl64"] = Field(
+        "profile", description="the simulator's scanner for the simulated training surveys"
+    )
+    frames_per_map: int = Field(
+        0, ge=0, le=100_000, description="frames per training map (0: whole surveys)"
     )
 
     def learning_rate(self, epoch: int) -> float:
@@ -178,7 +190,12 @@ def _train_fold(
     With `initial_state` it starts from those weights (fine-tuning) instead of at random."""
     torch.manual_seed(config.seed + fold)
     rng = np.random.default_rng([config.seed, fold])
-    net = PillarCNN(channels=tuple(config.channels), hidden=config.hidden, context=config.context)
+    net = PillarCNN(
+        channels=tuple(config.channels),
+        hidden=config.hidden,
+        context=config.context,
+        passes=config.passes,
+    )
     if initial_state is not None:
         net.load_state_dict(initial_state)
     optimiser = torch.optim.SGD(
@@ -318,6 +335,11 @@ def model_card(
                 if config.context
                 else ""
             )
+            + (
+                "; second channel: distinct scanner passes (frames) per voxel, log1p"
+                if config.passes
+                else ""
+            )
         ),
         "training_sources": samples.sources,
         "samples_per_class": samples.class_counts(),
@@ -351,8 +373,8 @@ def model_card(
     }
 
 
-def _sim_folder(cache_dir: Path, scene: str, length: float, seed: int) -> Path:
-    return cache_dir / f"sim-{scene}-{length:g}m-profile-seed{seed}"
+def _sim_folder(cache_dir: Path, scene: str, length: float, seed: int, scanner: str) -> Path:
+    return cache_dir / f"sim-{scene}-{length:g}m-{scanner}-seed{seed}"
 
 
 def _merge_infos(infos: list[dict], fmt: str, path: Path) -> dict:
@@ -371,6 +393,21 @@ def _merge_infos(infos: list[dict], fmt: str, path: Path) -> dict:
     }
 
 
+def _map_count(survey: Survey, config: TrainConfig) -> int:
+    """How many labelled maps `_maps_of` makes of the survey (counted without reading points)."""
+    if config.frames_per_map and not survey.is_map:
+        return math.ceil(len(survey.frames) / config.frames_per_map)
+    return 1
+
+
+def _maps_of(path: Path, fmt: str, config: TrainConfig) -> list[LabelledMap]:
+    """The labelled maps of one training survey: the whole survey, or its frame windows."""
+    lmap = labelled_map_from_survey(open_survey(path, fmt))
+    if config.frames_per_map and lmap.passes is not None:
+        return frame_windows(lmap, config.frames_per_map)
+    return [lmap]
+
+
 def build_training_set(
     sim_seeds: list[int],
     semantickitti: list[Path],
@@ -383,7 +420,7 @@ def build_training_set(
 ) -> Samples:
     """Class-balanced samples from simulated surveys and SemanticKITTI sequences.
 
-    Simulations (profile scanner, no camera; presets urban / highway / mixed cycled over the
+    Simulations (`config.scanner`, no camera; presets urban / highway / mixed cycled over the
     seeds) are written once into `cache_dir` (default `<data dir>/cache/phantom-train`) and reused,
     they are deterministic. Each map gives at most ceil(2 * per_class / maps) samples per class, so
     that no map dominates; a class with fewer pillars than that is taken again from further random
@@ -398,41 +435,41 @@ def build_training_set(
     sources: list[tuple[Path, str]] = []
     for i, seed in enumerate(sim_seeds):
         scene = SIM_PRESETS[i % len(SIM_PRESETS)]
-        folder = _sim_folder(cache_dir, scene, sim_length, seed)
+        folder = _sim_folder(cache_dir, scene, sim_length, seed, config.scanner)
         if not (folder / "ground_truth" / "simulation.json").is_file():
             cache_dir.mkdir(parents=True, exist_ok=True)
             if progress is not None:
                 progress(f"simulate {folder.name}", i / max(len(sim_seeds), 1))
             sim = SimulationConfig(
-                scene=scene, length=sim_length, seed=seed, scanner="profile", camera=False
+                scene=scene, length=sim_length, seed=seed, scanner=config.scanner, camera=False
             )
             simulate(sim, folder, overwrite=True)
         sources.append((folder, "sim"))
     sources += [(Path(p), "semantickitti") for p in semantickitti]
     if not sources:
         raise ValueError("no training data: give simulation seeds or SemanticKITTI sequences")
-    cap = max(1, math.ceil(2 * config.per_class / len(sources)))
+    maps = sum(_map_count(open_survey(path, fmt), config) for path, fmt in sources)
+    cap = max(1, math.ceil(2 * config.per_class / maps))
     parts: list[Samples] = []
     infos: list[dict] = []
     for k, (path, fmt) in enumerate(sources):
         if progress is not None:
             progress(f"samples {path.name}", k / len(sources))
-        lmap = labelled_map_from_survey(open_survey(path, fmt))
-        taken = np.zeros(N_CLASSES, dtype=np.int64)
-        map_infos = []
-        for _ in range(config.rotations):
-            want = {c: int(max(cap - taken[c], 0)) for c in range(N_CLASSES)}
-            if not any(want.values()):
-                break
-            part = pillar_samples(
-                lmap, phantom_config, rng, rotate=True, max_per_class=want,
-                context=config.context > 0,
-            )  # fmt: skip
-            taken += np.bincount(part.y, minlength=N_CLASSES)
-            map_infos += part.sources
-            parts.append(part)
-        infos.append(_merge_infos(map_infos, fmt, path))
-        del lmap
+        for lmap in _maps_of(path, fmt, config):
+            taken = np.zeros(N_CLASSES, dtype=np.int64)
+            map_infos = []
+            for _ in range(config.rotations):
+                want = {c: int(max(cap - taken[c], 0)) for c in range(N_CLASSES)}
+                if not any(want.values()):
+                    break
+                part = pillar_samples(
+                    lmap, phantom_config, rng, rotate=True, max_per_class=want,
+                    context=config.context > 0, passes=config.passes,
+                )  # fmt: skip
+                taken += np.bincount(part.y, minlength=N_CLASSES)
+                map_infos += part.sources
+                parts.append(part)
+            infos.append(_merge_infos(map_infos, fmt, path))
     pool = concatenate(parts)
     del parts
     out = balanced(pool, config.per_class, rng)
@@ -472,7 +509,7 @@ def train_phantom_model(
             "seeds": list(sim_seeds),
             "presets": [SIM_PRESETS[i % len(SIM_PRESETS)] for i in range(len(sim_seeds))],
             "length_m": sim_length,
-            "scanner": "profile",
+            "scanner": config.scanner,
         },
         "threads": torch.get_num_threads(),
     }
