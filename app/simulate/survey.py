@@ -13,7 +13,7 @@ import json
 import shutil
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Literal
 
@@ -50,6 +50,11 @@ class SimulationConfig(BaseModel):
     pose_noise_deg: float = Field(0.0, ge=0.0, description="GNSS/INS heading noise (sigma)")
     write_map: bool | None = Field(None, description="write map.laz; default: profile only")
     compressed: bool = Field(False, description="scans as LAZ instead of KITTI .bin")
+    vary_scanner: bool = Field(
+        False,
+        description="hdl64: draw the rotating scanner from the seed (32 / 64 beams, azimuth "
+        "step, mounting height, range noise, dropouts) instead of KITTI's HDL-64E",
+    )
 
 
 @dataclass
@@ -67,8 +72,26 @@ class SimulationSummary:
         return self.points / self.seconds if self.seconds > 0 else 0.0
 
 
-def scanner_config(name: str) -> HDL64Config | ProfileConfig:
-    return HDL64Config() if name == "hdl64" else ProfileConfig()
+def scanner_config(
+    name: str, variant: np.random.Generator | None = None
+) -> HDL64Config | ProfileConfig:
+    """The named scanner; for hdl64 with a `variant` generator, a rotating scanner drawn from
+    the range real ones span, so models trained on it do not learn one sensor's pattern."""
+    if name != "hdl64":
+        return ProfileConfig()
+    if variant is None:
+        return HDL64Config()
+    beams = int(variant.choice([32, 64]))
+    top, bottom = (10.67, -30.67) if beams == 32 else (2.0, -24.8)  # HDL-32E / HDL-64E fields
+    return HDL64Config(
+        beams=beams,
+        elevation_max_deg=top,
+        elevation_min_deg=bottom,
+        azimuth_step_deg=round(float(variant.uniform(0.09, 0.35)), 3),
+        mount_height=round(float(variant.uniform(1.6, 2.2)), 2),
+        range_noise_m=round(float(variant.uniform(0.01, 0.04)), 3),
+        dropout=round(float(variant.uniform(0.02, 0.15)), 3),
+    )
 
 
 def frame_pattern(config: HDL64Config | ProfileConfig, t_start: float):
@@ -118,8 +141,9 @@ def count_vehicles(scene: Scene) -> tuple[int, int]:
 
 
 def _seeds(config: SimulationConfig) -> list[np.random.SeedSequence]:
-    """Independent streams for the scene, the scanner and the GNSS/INS noise."""
-    return np.random.SeedSequence(config.seed).spawn(3)
+    """Independent streams for the scene, the scanner, the GNSS/INS noise and the scanner's
+    variant (`vary_scanner`); the first three are those of the seed before variants existed."""
+    return np.random.SeedSequence(config.seed).spawn(4)
 
 
 def rebuild_scene(config: SimulationConfig) -> Scene:
@@ -140,12 +164,13 @@ def simulate(
     if out.exists() and not overwrite:
         raise InputError(out, "already exists (pass --overwrite to replace it)")
     started = time.perf_counter()
-    _, scan_seed, noise_seed = _seeds(config)
+    _, scan_seed, noise_seed, variant_seed = _seeds(config)
     scene = rebuild_scene(config)
     scan_rng = np.random.default_rng(scan_seed)
     caster = RayCaster(scene)
     table = BodyTable(scene)
-    scanner = scanner_config(config.scanner)
+    variant = np.random.default_rng(variant_seed) if config.vary_scanner else None
+    scanner = scanner_config(config.scanner, variant)
     T_vs = scanner.T_vehicle_sensor
     T_cam_sensor = invert(T_VEHICLE_CAMERA) @ T_vs
     camera = CameraConfig()
@@ -228,6 +253,7 @@ def simulate(
                 "generator": f"mmsclean {__version__}",
                 "config": config.model_dump(),
                 "scanner": config.scanner,
+                "scanner_params": asdict(scanner),
                 "frame_rate_hz": FRAME_RATE,
                 "frames": n_frames,
                 "points": int(len(world)),

@@ -374,7 +374,8 @@ def model_card(
 
 
 def _sim_folder(cache_dir: Path, scene: str, length: float, seed: int, scanner: str) -> Path:
-    return cache_dir / f"sim-{scene}-{length:g}m-{scanner}-seed{seed}"
+    variant = "-varied" if scanner == "hdl64" else ""
+    return cache_dir / f"sim-{scene}-{length:g}m-{scanner}{variant}-seed{seed}"
 
 
 def _merge_infos(infos: list[dict], fmt: str, path: Path) -> dict:
@@ -441,7 +442,12 @@ def build_training_set(
             if progress is not None:
                 progress(f"simulate {folder.name}", i / max(len(sim_seeds), 1))
             sim = SimulationConfig(
-                scene=scene, length=sim_length, seed=seed, scanner=config.scanner, camera=False
+                scene=scene,
+                length=sim_length,
+                seed=seed,
+                scanner=config.scanner,
+                camera=False,
+                vary_scanner=config.scanner == "hdl64",  # rotating scanners differ: draw one
             )
             simulate(sim, folder, overwrite=True)
         sources.append((folder, "sim"))
