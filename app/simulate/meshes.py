@@ -7,8 +7,8 @@ functions return a `Mesh` with `part` 0; callers set parts (guardrails) themselv
 
 Tubes and swept profiles are mitred at polyline joints: the cross-section at a joint is the
 intersection of both neighbouring straight sweeps with the bisector plane, so every vertex lies
-exactly on the sweep of the segment before and after it (`guardrails.surface_distance` relies
-on that). Tube frames are transported without twist (rotation-minimising).
+exactly on the sweep of the segment before and after it (`guardrail_distance.surface_distance`
+relies on that). Tube frames are transported without twist (rotation-minimising).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from app.simulate.scene import Mesh
 _Z = np.array([0.0, 0.0, 1.0])
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
+def unit_rows(v: np.ndarray) -> np.ndarray:
     """Rows of `v` scaled to unit length (zero rows stay zero)."""
     n = np.linalg.norm(v, axis=-1, keepdims=True)
     return v / np.where(n > 0.0, n, 1.0)
@@ -64,14 +64,14 @@ def _transport_normals(d: np.ndarray) -> np.ndarray:
     Sequential by nature; a loop over the polyline's segments, not over surface vertices."""
     n = np.empty_like(d)
     helper = _Z if abs(d[0] @ _Z) < 0.9 else np.array([1.0, 0.0, 0.0])
-    n[0] = _unit(np.cross(d[0], helper))
+    n[0] = unit_rows(np.cross(d[0], helper))
     for j in range(1, len(d)):
         a, b, x = d[j - 1], d[j], n[j - 1]
         v, c = np.cross(a, b), float(a @ b)
         if c > -1.0 + 1e-9:
             x = x * c + np.cross(v, x) + v * (v @ x) / (1.0 + c)
         x = x - (x @ b) * b  # keep it exactly perpendicular to the new direction
-        n[j] = _unit(x)
+        n[j] = unit_rows(x)
     return n
 
 
@@ -82,7 +82,7 @@ def _mitre(P: np.ndarray, d: np.ndarray, q: np.ndarray) -> np.ndarray:
     t = np.empty((K, 3))
     t[0], t[-1] = d[0], d[-1]
     if K > 2:
-        t[1:-1] = _unit(d[:-1] + d[1:])
+        t[1:-1] = unit_rows(d[:-1] + d[1:])
     dj = d[np.r_[0, np.arange(K - 1)]]
     qt = np.einsum("ksc,kc->ks", q, t)
     q = q - (qt / np.einsum("kc,kc->k", dj, t)[:, None])[..., None] * dj[:, None, :]
@@ -98,7 +98,7 @@ def tube(polyline: np.ndarray, radius: float, segments: int = 12, caps: bool = T
     P = _dedupe(polyline)
     if len(P) < 2:
         raise ValueError("tube needs a polyline of at least two distinct points")
-    d = _unit(np.diff(P, axis=0))
+    d = unit_rows(np.diff(P, axis=0))
     n = _transport_normals(d)
     b = np.cross(d, n)
     j = np.r_[0, np.arange(len(P) - 1)]
@@ -146,8 +146,8 @@ def sweep_profile(
     P = _dedupe(path)
     if len(P) < 2 or len(prof) < 2:
         raise ValueError("sweep_profile needs at least two profile and two path points")
-    d = _unit(np.diff(P, axis=0))
-    left = _unit(np.cross(np.asarray(up, dtype=np.float64), d))
+    d = unit_rows(np.diff(P, axis=0))
+    left = unit_rows(np.cross(np.asarray(up, dtype=np.float64), d))
     upv = np.cross(d, left)
     j = np.r_[0, np.arange(len(P) - 1)]
 
@@ -159,7 +159,7 @@ def sweep_profile(
     T = grid_faces(K, S, wrap=False)  # wound so its normal is the profile tangent turned clockwise
     if thickness <= 0.0:
         return Mesh(place(prof), np.concatenate([T, T[:, ::-1]]))
-    tangent = _unit(np.gradient(prof, axis=0))
+    tangent = unit_rows(np.gradient(prof, axis=0))
     n2 = np.stack([tangent[:, 1], -tangent[:, 0]], -1)
     h = 0.5 * thickness
     V = np.concatenate([place(prof + h * n2), place(prof - h * n2)])
@@ -289,7 +289,7 @@ def ellipsoid(
     for _ in range(subdivisions):
         e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
         uniq, inv = np.unique(e, axis=0, return_inverse=True)
-        mids = _unit(V[uniq[:, 0]] + V[uniq[:, 1]])
+        mids = unit_rows(V[uniq[:, 0]] + V[uniq[:, 1]])
         m01, m12, m20 = (inv.reshape(3, -1) + len(V))[:]
         a, b, c = F[:, 0], F[:, 1], F[:, 2]
         F = np.concatenate(

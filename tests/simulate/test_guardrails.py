@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from app.core.labels import Part
+from app.simulate.guardrail_distance import surface_distance
 from app.simulate.guardrails import (
     PIPE_DESIGNS,
     W_BEAM_CORRUGATION,
@@ -15,7 +16,6 @@ from app.simulate.guardrails import (
     beam_guardrail,
     pipe_guardrail,
     pole_stations,
-    surface_distance,
     w_beam_section,
 )
 

@@ -12,7 +12,7 @@ from app.core.labels import GROUND_CLASSES, HIGH_CLASSES, PillarClass
 from app.geometry.projection import project
 from app.io import open_survey
 from app.simulate.ground_truth import PILLAR_CELL, PILLAR_HEIGHT
-from app.simulate.guardrails import surface_distance
+from app.simulate.guardrail_distance import surface_distance
 from app.simulate.survey import SimulationConfig, rebuild_scene, simulate
 
 SMALL = SimulationConfig(scene="urban", length=14.0, seed=7, scanner="hdl64")
