@@ -108,6 +108,7 @@ def test_info_real_semantickitti(real_data: Path) -> None:
     summary = json.loads(result.stdout)
     assert summary["frames"] == 10 and 1.15e6 < summary["points"] < 1.3e6
     assert summary["reference_labels"] and summary["cameras"][0].startswith("image_2")
+    assert summary["sensor_kind"] == "rotating"
 
 
 @pytest.mark.real_data

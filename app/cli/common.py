@@ -1,5 +1,5 @@
-"""What every command group shares: the consoles, the `--format` option, configs built from
-options (a bad value named by its option), seed lists and the stage progress bar."""
+"""What every command group shares: the consoles, the `--format` and `--sensor` options, configs
+built from options (a bad value named by its option), seed lists and the stage progress bar."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from rich.console import Console
 
 from app.core.errors import ConfigError
 from app.core.progress import Progress
+from app.core.sensors import SensorKind, parse_sensor_kind
 
 if TYPE_CHECKING:  # pydantic is imported by the commands that build a config
     from pydantic import BaseModel
@@ -23,7 +24,26 @@ FormatOption = Annotated[
     str, typer.Option("--format", "-f", help="kitti-raw, semantickitti, las, ply, pcd, sim")
 ]
 
+SensorOption = Annotated[
+    str | None,
+    typer.Option(
+        "--sensor",
+        help="rotating or profile: the scanner kind, where the survey does not tell it "
+        "(mmsclean info shows what it tells)",
+    ),
+]
+
 Config = TypeVar("Config", bound="BaseModel")
+
+
+def sensor_kind(value: str | None) -> SensorKind | None:
+    """The `--sensor` option as a SensorKind (None when not given); ConfigError otherwise."""
+    if value is None:
+        return None
+    try:
+        return parse_sensor_kind(value, allow_unknown=False)
+    except ValueError as exc:
+        raise ConfigError("--sensor", str(exc)) from None
 
 
 def config_from_options(

@@ -7,7 +7,15 @@ from typing import Annotated
 
 import typer
 
-from app.cli.common import FormatOption, config_from_options, console, stage_progress
+from app.cli.common import (
+    FormatOption,
+    SensorOption,
+    config_from_options,
+    console,
+    err_console,
+    sensor_kind,
+    stage_progress,
+)
 
 run_app = typer.Typer(help="Run a pipeline on a survey (labels, cleaned map, report).")
 
@@ -101,6 +109,7 @@ def run_phantom(
     baselines: Annotated[
         bool, typer.Option(help="also score the paper's two baselines (needs reference labels)")
     ] = False,
+    sensor: SensorOption = None,
 ) -> None:
     """Phantom removal (Nagy & Benedek): pillar 3D CNN on the accumulated map."""
     from app.io import open_survey
@@ -116,6 +125,7 @@ def run_phantom(
             refine=refine,
             baselines=baselines,
             progress=progress,
+            sensor=sensor_kind(sensor),
         )
     print_report("phantom", report, out=out)
 
@@ -149,6 +159,9 @@ def print_report(pipeline: str, report: dict, **values: object) -> None:
     """A run's one-line summary (its counts, seconds and `values`), then its scores when the
     survey had reference labels to score against."""
     summary, scores = REPORT_LINES[pipeline]
+    warning = report.get("model", {}).get("warning")
+    if warning:
+        err_console.print(f"[yellow]warning:[/yellow] {warning}", soft_wrap=True)
     console.print(summary.format(**report["counts"], total=report["timings"]["total"], **values))
     if "metrics" in report:
         console.print(scores.format(**report["metrics"]))

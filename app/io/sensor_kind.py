@@ -52,6 +52,8 @@ def detect_from_times(xyz: np.ndarray, time: np.ndarray | None) -> SensorDetecti
     finite = np.isfinite(time)
     if not finite.all():
         xyz, time = xyz[finite], time[finite]
+    if not len(time) or np.ptp(time) == 0:
+        return SensorDetection(SensorKind.UNKNOWN, "every point has the same time (none recorded)")
     periods = revisit_periods(xyz, time)
     if len(periods) < MIN_REVISITS:
         return SensorDetection(

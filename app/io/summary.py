@@ -7,6 +7,7 @@ from dataclasses import asdict, dataclass, replace
 import numpy as np
 
 from app.geometry.trajectory import total_length
+from app.io.sensor_kind import detect_sensor_kind
 from app.io.survey import Survey
 
 
@@ -23,6 +24,8 @@ class SurveySummary:
     poses: str  # "GNSS/INS", "estimated (LiDAR odometry)", "identity (map)", "given"
     cameras: list[str]
     reference_labels: list[str]
+    sensor_kind: str = "unknown"  # rotating / profile / unknown (app.io.sensor_kind)
+    sensor_reason: str = ""  # how it was told
     bounds_min: list[float] | None = None  # world xyz, only after a full check
     bounds_max: list[float] | None = None
 
@@ -43,6 +46,7 @@ def summarize(survey: Survey) -> SurveySummary:
         poses = "given (GNSS/INS or dataset poses)"
     trajectory = survey.poses()
     length = float(total_length(trajectory[:, :3, 3])) if len(trajectory) >= 2 else None
+    sensor = detect_sensor_kind(survey)
     cameras = [
         f"{c.name} ({c.calibration + ', ' if c.calibration else ''}{c.width}x{c.height}, "
         f"images for {sum(c.name in f.image_paths for f in frames)}/{len(frames)} frames)"
@@ -60,6 +64,8 @@ def summarize(survey: Survey) -> SurveySummary:
         poses=poses,
         cameras=cameras,
         reference_labels=list(survey.reference_label_kinds),
+        sensor_kind=sensor.kind.value,
+        sensor_reason=sensor.reason,
     )
 
 
@@ -104,6 +110,7 @@ def summary_rows(s: SurveySummary) -> list[tuple[str, str]]:
             "unknown" if s.trajectory_length_m is None else f"{s.trajectory_length_m:.2f} m",
         ),
         ("poses", s.poses),
+        ("sensor", f"{s.sensor_kind} ({s.sensor_reason})" if s.sensor_reason else s.sensor_kind),
         ("cameras", ", ".join(s.cameras) if s.cameras else "none"),
         ("reference labels", ", ".join(s.reference_labels) if s.reference_labels else "none"),
     ]

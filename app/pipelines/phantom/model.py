@@ -9,12 +9,19 @@ from pathlib import Path
 import torch
 
 from app.core.errors import DependencyMissingError, InputError
+from app.core.sensors import SensorKind
 from app.pipelines.checkpoints import load_checkpoint
 from app.pipelines.phantom.network import PillarCNN
 
 MODELS = Path(__file__).resolve().parents[3] / "models" / "phantom"
 DEFAULT_MODEL = MODELS / "phantom_cnn_context.pt"  # paper network + context branch (network.py)
 PAPER_MODEL = MODELS / "phantom_cnn.pt"  # the paper's network alone
+ROTATING_MODEL = MODELS / "phantom_rotating.pt"  # rotating scanners (HDL-64E-like), with time
+# the shipped model a run picks for each sensor kind (app.pipelines.sensor_models)
+SHIPPED: dict[SensorKind, Path] = {
+    SensorKind.PROFILE: DEFAULT_MODEL,
+    SensorKind.ROTATING: ROTATING_MODEL,
+}
 
 
 def save_model(path: Path, net: PillarCNN, card: dict) -> Path:
@@ -44,3 +51,11 @@ def load_model(path: Path | None = None) -> tuple[PillarCNN, dict]:
         raise InputError(path, f"is not a phantom model checkpoint ({exc})") from None
     net.eval()
     return net, payload.get("card", {})
+
+
+def read_card(path: Path) -> dict:
+    """A checkpoint's model card: the JSON beside it, else the one inside the checkpoint."""
+    sidecar = Path(path).with_suffix(".card.json")
+    if sidecar.is_file():
+        return json.loads(sidecar.read_text())
+    return load_model(path)[1]

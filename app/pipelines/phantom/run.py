@@ -7,11 +7,14 @@ from pathlib import Path
 
 from app.core.labels import PillarClass
 from app.core.progress import Progress
+from app.core.sensors import SensorKind
 from app.io.survey import Survey
 from app.pipelines.outputs import write_frame_labels, write_report
 from app.pipelines.phantom.config import PhantomConfig
+from app.pipelines.phantom.model import SHIPPED, read_card
 from app.pipelines.phantom.outputs import write_confusion_plots, write_maps
 from app.pipelines.phantom.pipeline import PhantomPipeline
+from app.pipelines.sensor_models import ModelChoice, choose_model
 
 
 def run_phantom_to_folder(
@@ -23,10 +26,16 @@ def run_phantom_to_folder(
     refine: bool = True,
     baselines: bool = False,
     progress: Progress | None = None,
+    sensor: SensorKind | None = None,
+    model: ModelChoice | None = None,
 ) -> dict:
+    """`model` as a job chose it; else `model_path` forced by hand; else the shipped model of
+    the survey's sensor kind (`sensor` declared, else detected): `sensor_models`."""
     started = time.perf_counter()
     config = (config or PhantomConfig()).model_copy(update={"refine": refine})
-    pipeline = PhantomPipeline(config, model_path, dense)
+    if model is None:
+        model = choose_model("phantom", SHIPPED, survey, read_card, model_path, sensor)
+    pipeline = PhantomPipeline(config, model.path, dense)
     result = pipeline.run(survey, progress)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -40,6 +49,7 @@ def run_phantom_to_folder(
             "path": str(pipeline.model_path),
             "created": pipeline.card.get("created"),
             "validation_f1": pipeline.card.get("validation", {}).get("macro", {}).get("f1"),
+            **model.report(),
         },
         "path": "dense" if dense else "per-window",
         "counts": {

@@ -1,0 +1,49 @@
+"""Which model may run on which survey (app.pipelines.sensor_models)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from app.core.sensors import SensorKind
+from app.pipelines.phantom.model import DEFAULT_MODEL, PAPER_MODEL
+from app.pipelines.sensor_models import (
+    ModelChoice,
+    NoModelForSensorError,
+    card_sensor_kind,
+    choose_shipped,
+)
+
+
+@pytest.mark.parametrize("checkpoint", [DEFAULT_MODEL, PAPER_MODEL])
+def test_the_shipped_phantom_models_are_for_profile_scanners(checkpoint: Path) -> None:
+    card = json.loads(checkpoint.with_suffix(".card.json").read_text())
+    assert card_sensor_kind(card) == SensorKind.PROFILE
+
+
+def test_a_card_tells_its_kind_by_its_training_data() -> None:
+    assert card_sensor_kind({"sensor_kind": "rotating"}) == SensorKind.ROTATING
+    real_only = {"simulation": {"seeds": []}, "training_sources": [{"format": "semantickitti"}]}
+    assert card_sensor_kind(real_only) == SensorKind.ROTATING
+    assert card_sensor_kind({"simulation": {"seeds": [1], "scanner": "hdl64"}}) == "rotating"
+    assert card_sensor_kind({}) == SensorKind.UNKNOWN
+
+
+def test_no_model_for_the_kind_is_one_line(tmp_path: Path) -> None:
+    shipped = {SensorKind.PROFILE: DEFAULT_MODEL, SensorKind.ROTATING: tmp_path / "missing.pt"}
+    with pytest.raises(NoModelForSensorError, match="no phantom model for rotating scanners"):
+        choose_shipped("phantom", shipped, "s", SensorKind.ROTATING)
+    with pytest.raises(NoModelForSensorError, match="sensor kind is unknown"):
+        choose_shipped("phantom", shipped, "s", SensorKind.UNKNOWN)
+    picked = choose_shipped("phantom", shipped, "s", SensorKind.PROFILE)
+    assert picked.path == DEFAULT_MODEL and not picked.off_domain
+
+
+def test_off_domain_is_reported() -> None:
+    choice = ModelChoice(DEFAULT_MODEL, SensorKind.PROFILE, SensorKind.ROTATING, forced=True)
+    report = choice.report()
+    assert report["off_domain"] and "off-domain" in report["warning"]
+    same = ModelChoice(DEFAULT_MODEL, SensorKind.PROFILE, SensorKind.PROFILE, forced=True)
+    assert "warning" not in same.report()
