@@ -94,6 +94,18 @@ export async function api(path, { method = "GET", json, headers = {} } = {}) {
   return type.includes("json") ? response.json() : response.text();
 }
 
+let vocabularyRead = null;
+
+/** The label vocabulary (`GET /vocabulary`: the pillar classes in label order), read once per
+ * page; after a failed read the next caller asks again. */
+export function vocabulary() {
+  vocabularyRead ??= api("/vocabulary").catch((err) => {
+    vocabularyRead = null;
+    throw err;
+  });
+  return vocabularyRead;
+}
+
 /** POST FILE as the raw body to PATH, reporting upload progress (fetch has no upload progress
  * events, XMLHttpRequest does). Resolves with the JSON answer. */
 export function uploadRaw(path, file, onProgress) {

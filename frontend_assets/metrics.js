@@ -3,12 +3,12 @@
 // clutter (Lee et al.): the error matrix, omission / commission and SA / DA / AA;
 // guardrail (Matsumoto et al.): slice and point precision / recall / F.
 
+import { vocabulary } from "./api.js";
 import { h, note, num, pct, table } from "./dom.js";
 import { bars, figure, heatmap } from "./plots.js";
 
 const PRF = ["precision", "recall", "f1"];
 const PRF_LABELS = { precision: "precision", recall: "recall", f1: "F" };
-export const PILLAR_NAMES = ["ground", "high object", "short object", "phantom"];
 
 export function pipelineOf(kind) {
   if (kind === "run:phantom" || kind === "train:phantom") return "phantom";
@@ -27,12 +27,28 @@ function prfRow(name, s) {
   return [name, pct(s?.precision), pct(s?.recall), pct(s?.f1), num(s?.support)];
 }
 
-/** Per-class precision / recall / F table of a multi-class `Scores` dict, with the macro row. */
-export function scoresTable(scores) {
+/** `render(pillarNames)` (the pillar classes in label order, from the API's vocabulary) in a
+ * block filled once they are read; the API's error instead if they cannot be: the dashboard
+ * keeps no copy of the vocabulary and does not guess the names. */
+function withPillarNames(render) {
+  const block = h("div", { class: "pillar-named" });
+  vocabulary().then(
+    (v) => block.replaceChildren(...render(v.pillar_classes).filter(Boolean)),
+    (err) =>
+      block.replaceChildren(
+        h("p", { class: "error" }, `The pillar class names could not be read: ${err.message}`),
+      ),
+  );
+  return block;
+}
+
+/** Per-class precision / recall / F table of a multi-class `Scores` dict, with the macro row;
+ * without its own `names`, the pillar classes (`pillarNames`) in label order when those are its
+ * classes (the JSON keys may come sorted). */
+export function scoresTable(scores, pillarNames) {
   const known = Object.keys(scores.classes || {});
-  // without `names`, the pillar classes in label order (the JSON keys may come sorted)
   const names =
-    scores.names || (PILLAR_NAMES.every((n) => known.includes(n)) ? PILLAR_NAMES : known);
+    scores.names || (pillarNames.every((n) => known.includes(n)) ? pillarNames : known);
   const rows = names.filter((n) => scores.classes?.[n]).map((n) => prfRow(n, scores.classes[n]));
   if (scores.macro) {
     const over = (scores.macro_classes || []).join(", ") || "classes with support";
@@ -44,9 +60,10 @@ export function scoresTable(scores) {
   });
 }
 
-/** Confusion heat map and per-class bars of a multi-class `Scores` dict. */
-export function scoresPlots(scores, title, defaultNames = PILLAR_NAMES) {
-  const names = scores.names || defaultNames;
+/** Confusion heat map and per-class bars of a multi-class `Scores` dict (its classes: its own
+ * `names`, else the pillar classes in label order). */
+export function scoresPlots(scores, title, pillarNames) {
+  const names = scores.names || pillarNames;
   const plots = [];
   if (Array.isArray(scores.confusion) && scores.confusion.length) {
     plots.push(
@@ -76,16 +93,19 @@ function phantom(metrics) {
     pillar_raw: "pillars (CNN only)",
     point: "points",
   };
-  for (const [key, title] of Object.entries(titles)) {
-    const scores = metrics[key];
-    if (!isObject(scores)) continue;
+  const present = Object.entries(titles).filter(([key]) => isObject(metrics[key]));
+  if (present.length) {
     parts.push(
-      h(
-        "div",
-        { class: "metric-block", "data-metric": `phantom-${key}` },
-        h("h3", {}, title),
-        scoresTable(scores),
-        key === "pillar_raw" ? null : scoresPlots(scores, title),
+      withPillarNames((names) =>
+        present.map(([key, title]) =>
+          h(
+            "div",
+            { class: "metric-block", "data-metric": `phantom-${key}` },
+            h("h3", {}, title),
+            scoresTable(metrics[key], names),
+            key === "pillar_raw" ? null : scoresPlots(metrics[key], title, names),
+          ),
+        ),
       ),
     );
   }
@@ -268,8 +288,12 @@ export function modelDetails(model) {
   const parts = [];
   if (!isObject(v)) return note("This version has no validation metrics.");
   if (isObject(v.classes)) {
-    parts.push(scoresTable(v));
-    parts.push(scoresPlots(v, "held-out validation"));
+    parts.push(
+      withPillarNames((names) => [
+        scoresTable(v, names),
+        scoresPlots(v, "held-out validation", names),
+      ]),
+    );
   } else if (isObject(v.scores)) {
     const groups = Object.entries(v.scores).map(([head, sc]) => ({ label: head, values: sc }));
     parts.push(
@@ -308,7 +332,7 @@ export function modelDetails(model) {
   }
   if (isObject(model.metrics?.baseline) && isObject(model.metrics.baseline.classes)) {
     parts.push(h("h4", {}, "the version it was fine-tuned from, on the same held-out labels"));
-    parts.push(scoresTable(model.metrics.baseline));
+    parts.push(withPillarNames((names) => [scoresTable(model.metrics.baseline, names)]));
   }
   return h("div", { class: "model-details" }, parts);
 }

@@ -26,6 +26,7 @@ from app.api.routes import (
     surveys,
     users,
     viewer,
+    vocabulary,
 )
 from app.api.sample import load_sample_on_first_start
 from app.core.logging import install_redaction
@@ -77,6 +78,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_error_handlers(app)
     for module in (health, auth, users, surveys, jobs, pillars, clutter, guardrails, models):
         app.include_router(module.router)
+    app.include_router(vocabulary.router)
     app.include_router(exports.router)
     app.include_router(viewer.router)
     app.include_router(dashboard.router)
