@@ -101,7 +101,10 @@ def run_phantom(
     source: Annotated[Path, typer.Argument(help="survey folder or point-cloud file")],
     fmt: FormatOption,
     out: OutFolder,
-    model: Annotated[Path | None, typer.Option(help="checkpoint (default: shipped)")] = None,
+    model: Annotated[
+        Path | None,
+        typer.Option(help="checkpoint (default: the shipped one for the survey's sensor kind)"),
+    ] = None,
     windows: Annotated[
         bool, typer.Option("--windows", help="per-window reference path instead of dense")
     ] = False,
@@ -136,12 +139,14 @@ def run_guardrail(
     fmt: FormatOption,
     out: OutFolder,
     model: Annotated[
-        Path | None, typer.Option(help="classifier checkpoint (default: shipped)")
+        Path | None,
+        typer.Option(help="classifier checkpoint (default: shipped, for the sensor kind)"),
     ] = None,
     head: Annotated[
         str, typer.Option(help="classifier inputs: image+geometry, image (the paper), geometry")
     ] = "image+geometry",
     reconstruct: Annotated[bool, typer.Option(help="model the guardrails as meshes")] = True,
+    sensor: SensorOption = None,
 ) -> None:
     """Guardrails (Matsumoto et al.): slices, camera-crop classifier, poles, unit shapes, meshes."""
     from app.io import open_survey
@@ -151,7 +156,9 @@ def run_guardrail(
     config = config_from_options(GuardrailConfig, head=head, reconstruct=reconstruct)
     survey = open_survey(source, fmt)
     with stage_progress("guardrail") as progress:
-        report = run_guardrail_to_folder(survey, out, config, model, progress=progress)
+        report = run_guardrail_to_folder(
+            survey, out, config, model, progress=progress, sensor=sensor_kind(sensor)
+        )
     print_report("guardrail", report, out=out)
 
 

@@ -20,16 +20,17 @@ from pydantic import BaseModel, ConfigDict, Field
 from sqlmodel import Session
 
 from app.core.bounds import RecordId
-from app.core.errors import ConfigError, ConflictError
+from app.core.errors import ConfigError
 from app.core.settings import Settings
 from app.io import open_survey
 from app.jobs.memory import MemoryEstimate, per_point_estimate
+from app.jobs.model_choice import model_for_job
 from app.jobs.registry import JobContext, task
-from app.jobs.task_config import job_model, refuse_model_path, validated
-from app.pipelines.guardrail.classifier import load_heads
+from app.jobs.task_config import refuse_model_path, validated
+from app.pipelines.guardrail.classifier import read_classifier_card
 from app.pipelines.guardrail.config import GuardrailConfig
 from app.pipelines.guardrail.pipeline import (
-    DEFAULT_MODEL,
+    SHIPPED,
     GuardrailInstance,
     GuardrailPipeline,
     ReconstructionInput,
@@ -38,6 +39,7 @@ from app.pipelines.guardrail.pipeline import (
 from app.pipelines.guardrail.run import write_guardrail_folder
 from app.pipelines.guardrail.segmentation import save_slice_features
 from app.pipelines.outputs import write_report
+from app.pipelines.sensor_models import ModelChoice
 from app.review.guardrails import current_run, load_stage, stage_rows
 from app.store.guardrail_review import slice_table
 from app.store.guardrail_runs import (
@@ -46,8 +48,7 @@ from app.store.guardrail_runs import (
     replace_guardrail_models,
     replace_guardrail_run,
 )
-from app.store.model_versions import ensure_shipped_version, promoted_version
-from app.store.models import GuardrailKind, Pipeline
+from app.store.models import GuardrailKind, ModelVersion, Pipeline, Survey
 from app.store.surveys import get_survey
 
 STAGE_FILE = "guardrail_slices.npz"
@@ -59,7 +60,7 @@ GUARDRAIL_BYTES_PER_POINT = 200.0  # points, road / component / slice labels, cr
 # --- configuration ------------------------------------------------------------------------
 
 
-class ModelChoice(BaseModel):
+class ModelIdOption(BaseModel):
     model_config = ConfigDict(protected_namespaces=())
 
     model_id: RecordId | None = Field(
@@ -73,30 +74,17 @@ def guardrail_options(
     """`run:guardrail`'s config: GuardrailConfig fields plus an optional `model_id`."""
     values = dict(config or {})
     refuse_model_path(values)
-    choice = validated(ModelChoice, {"model_id": values.pop("model_id", None)})
+    option = validated(ModelIdOption, {"model_id": values.pop("model_id", None)})
     cfg = validated(GuardrailConfig, values, known=(*GuardrailConfig.model_fields, "model_id"))
-    return cfg, choice.model_id
+    return cfg, option.model_id
 
 
-def job_classifier(session: Session, model_id: int | None) -> Path:
-    """The checkpoint of classifier version `model_id`, else the promoted one."""
-    if model_id is None:
-        return promoted_classifier(session)
-    version = job_model(session, Pipeline.guardrail, model_id)
-    path = Path(version.checkpoint_path)
-    if not path.is_file():
-        raise ConflictError(f"{path}: the checkpoint of model version {model_id} is missing")
-    return path
-
-
-def promoted_classifier(session: Session) -> Path:
-    """The promoted guardrail classifier (retrained from reviewed slices), else the shipped one."""
-    version = promoted_version(session, Pipeline.guardrail)
-    if version is not None and Path(version.checkpoint_path).is_file():
-        return Path(version.checkpoint_path)
-    _, card = load_heads(DEFAULT_MODEL)
-    return Path(
-        ensure_shipped_version(session, Pipeline.guardrail, DEFAULT_MODEL, card).checkpoint_path
+def classifier_for_job(
+    session: Session, survey: Survey, model_id: int | None
+) -> tuple[ModelVersion, ModelChoice]:
+    """The classifier version to run on SURVEY and why (`model_choice.model_for_job`)."""
+    return model_for_job(
+        session, Pipeline.guardrail, survey, model_id, SHIPPED, read_classifier_card
     )
 
 
@@ -185,15 +173,17 @@ def run_guardrail(context: JobContext, config: dict[str, Any]) -> dict[str, Any]
     with Session(context.engine) as session:
         record = get_survey(session, survey_id)
         source, fmt = record.source_path, record.format
-        model_path = job_classifier(session, model_id)
+        _, choice = classifier_for_job(session, record, model_id)
+    if choice.off_domain:
+        context.log.warning("%s", choice.report()["warning"])
     started = time.perf_counter()
     survey = open_survey(source, fmt)
     context.progress(0.0, "loading the slice classifier")
-    pipeline = GuardrailPipeline(cfg, model_path)
+    pipeline = GuardrailPipeline(cfg, choice.path)
     result = pipeline.run(survey, lambda stage, f: context.progress(0.9 * f, stage))
     context.progress(0.9, "writing outputs")
     out = context.workdir
-    report = write_guardrail_folder(survey, pipeline, result, out, started)
+    report = write_guardrail_folder(survey, pipeline, result, out, started, choice)
     saved = ReconstructionInput.of(result.stage, pipeline.config)
     stage_path = saved.save(out / STAGE_FILE)
     save_slice_features(out / FEATURES_FILE, result.stage)

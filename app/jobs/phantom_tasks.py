@@ -8,7 +8,6 @@ replaced in the same transaction that writes the new, so a reader never sees hal
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 from typing import Any
@@ -18,22 +17,19 @@ from pydantic import BaseModel, ConfigDict, Field
 from sqlmodel import Session
 
 from app.core.bounds import RecordId
-from app.core.errors import ConfigError, ConflictError
+from app.core.errors import ConfigError
 from app.core.settings import Settings
 from app.io import open_survey
 from app.jobs.memory import MemoryEstimate, per_point_estimate
+from app.jobs.model_choice import model_for_job
 from app.jobs.registry import JobContext, task
-from app.jobs.task_config import job_model, validated
+from app.jobs.task_config import validated
 from app.pipelines.phantom.config import PhantomConfig
-from app.pipelines.phantom.model import DEFAULT_MODEL
+from app.pipelines.phantom.model import SHIPPED, read_card
 from app.pipelines.phantom.run import run_phantom_to_folder
+from app.pipelines.sensor_models import ModelChoice
 from app.store.model_labels import store_model_labels
-from app.store.model_versions import (
-    ensure_shipped_version,
-    promoted_version,
-    version_by_checkpoint,
-)
-from app.store.models import ModelVersion, Pipeline
+from app.store.models import ModelVersion, Pipeline, Survey
 from app.store.pillar_labels import STORE_GRID
 from app.store.surveys import get_survey
 
@@ -70,30 +66,11 @@ def estimate_memory(session: Session, survey: int | None, config: dict[str, Any]
     return per_point_estimate(session, survey, PHANTOM_BYTES_PER_POINT, " of the accumulated map")
 
 
-def _card(checkpoint: Path) -> dict[str, Any]:
-    sidecar = checkpoint.with_suffix(".card.json")
-    return json.loads(sidecar.read_text()) if sidecar.is_file() else {}
-
-
-def model_version_for(session: Session, model_id: int | None) -> ModelVersion:
-    """The version row of the checkpoint to run: the one `model_id` names, else the promoted
-    one, else the shipped default (rows for shipped checkpoints are created on first use)."""
-    if model_id is not None:
-        return job_model(session, Pipeline.phantom, model_id)
-    promoted = promoted_version(session, Pipeline.phantom)
-    if promoted is not None and Path(promoted.checkpoint_path).is_file():
-        return promoted
-    model_path = DEFAULT_MODEL.resolve()
-    known = version_by_checkpoint(session, Pipeline.phantom, model_path)
-    if known is not None:
-        return known
-    try:
-        return ensure_shipped_version(session, Pipeline.phantom, model_path, _card(model_path))
-    except ConflictError:  # another worker created the row a moment ago
-        known = version_by_checkpoint(session, Pipeline.phantom, model_path)
-        if known is None:
-            raise
-        return known
+def model_version_for(
+    session: Session, survey: Survey, model_id: int | None
+) -> tuple[ModelVersion, ModelChoice]:
+    """The version row of the checkpoint to run and why (`model_choice.model_for_job`)."""
+    return model_for_job(session, Pipeline.phantom, survey, model_id, SHIPPED, read_card)
 
 
 def stage_progress(context: JobContext):
@@ -136,20 +113,22 @@ def run_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
     with Session(context.engine, expire_on_commit=False) as session:
         record = get_survey(session, context.survey_id)
         source, fmt = record.source_path, record.format
-        version = model_version_for(session, options.model_id)
-    checkpoint = Path(version.checkpoint_path)
+        version, choice = model_version_for(session, record, options.model_id)
+    checkpoint = choice.path
     context.log.info("survey %s (%s, %s), model %s", context.survey_id, fmt, source, checkpoint)
     context.progress(0.0, "opening the survey")
     survey = open_survey(source, fmt)
     threads = max(1, (os.cpu_count() or 1) // context.settings.workers)  # share the cores
+    if choice.off_domain:
+        context.log.warning("%s", choice.report()["warning"])
     report = run_phantom_to_folder(
         survey,
         context.workdir,
         PhantomConfig(threads=threads),
-        checkpoint,
         dense=options.dense,
         refine=options.refine,
         progress=stage_progress(context),
+        model=choice,
     )
     context.progress(INGEST_AT, "storing model pre-labels")  # last chance to cancel
     cells, labels, confidence = model_label_rows(context.workdir / report["files"]["pillars"])
@@ -172,6 +151,7 @@ def run_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
         "report": files["report"],
         "counts": {**report["counts"], "model_labels": written},
         "model_version_id": version.id,
+        "model": report["model"],
         "timings": report["timings"],
     }
     if "metrics" in report:

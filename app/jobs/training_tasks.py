@@ -18,8 +18,9 @@ from app.core.errors import ConfigError
 from app.core.settings import Settings
 from app.io import open_survey
 from app.io.accumulate import accumulate
-from app.jobs.guardrail_tasks import FEATURES_FILE, promoted_classifier
+from app.jobs.guardrail_tasks import FEATURES_FILE
 from app.jobs.memory import MB, MemoryEstimate
+from app.jobs.model_choice import current_version, retraining_kind
 from app.jobs.phantom_training_data import (
     ClassCounts,
     held_out,
@@ -30,11 +31,19 @@ from app.jobs.registry import JobContext, task
 from app.jobs.task_config import validated
 from app.metrics.classification import binary_scores
 from app.metrics.splits import held_out_blocks
-from app.pipelines.guardrail.classifier import SliceHead, load_heads, predict, save_heads
+from app.pipelines.guardrail.classifier import (
+    SliceHead,
+    load_heads,
+    predict,
+    read_classifier_card,
+    save_heads,
+)
+from app.pipelines.guardrail.pipeline import SHIPPED as GUARDRAIL_SHIPPED
 from app.pipelines.guardrail.training.dataset import SliceSamples
 from app.pipelines.guardrail.training.train import fit_head
 from app.pipelines.phantom.config import PhantomConfig
-from app.pipelines.phantom.model import DEFAULT_MODEL, load_model, save_model
+from app.pipelines.phantom.model import SHIPPED as PHANTOM_SHIPPED
+from app.pipelines.phantom.model import load_model, read_card, save_model
 from app.pipelines.phantom.training.dataset import Samples, concatenate
 from app.pipelines.phantom.training.finetune import (
     LabelledPillars,
@@ -44,7 +53,7 @@ from app.pipelines.phantom.training.finetune import (
 )
 from app.pipelines.phantom.training.train import TrainConfig
 from app.store.guardrail_runs import latest_run, match_slices
-from app.store.model_versions import ensure_shipped_version, promoted_version, register_version
+from app.store.model_versions import register_version
 from app.store.models import Pipeline
 from app.store.pillar_labels import STORE_GRID
 from app.store.pillar_reads import human_labels_since
@@ -73,14 +82,9 @@ class PhantomRetrainConfig(BaseModel):
     trigger: Literal["on demand", "labels"] = Field(
         "on demand", description="who asked: a user, or the new-labels trigger"
     )
-
-
-def _base_model(session: Session) -> tuple[Path, int | None]:
-    version = promoted_version(session, Pipeline.phantom)
-    if version is None:
-        _, card = load_model(DEFAULT_MODEL)
-        version = ensure_shipped_version(session, Pipeline.phantom, DEFAULT_MODEL, card)
-    return Path(version.checkpoint_path), version.id
+    sensor_kind: Literal["rotating", "profile"] | None = Field(
+        None, description="the scanner kind to retrain for; default: the labelled surveys' one"
+    )
 
 
 def check_phantom_config(config: dict[str, Any], _settings: Settings) -> None:
@@ -123,13 +127,17 @@ def train_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]
     phantom = PhantomConfig()
     with Session(context.engine) as session:
         labels = human_pillar_labels(session, cfg.survey_ids)
+        kind, usable = retraining_kind(session, labels, cfg.sensor_kind)
+        labels = {sid: labels[sid] for sid in usable}
         refuse_if_blocked(label_counts(labels, cfg), cfg)  # before any map is opened
         total = sum(len(s.cells) for s in labels.values())
         surveys = {}
         for survey_id in labels:
             record = get_survey(session, survey_id)
             surveys[survey_id] = (record.name, record.source_path, record.format)
-        base_path, base_id = _base_model(session)
+        what = f"retraining on the labels of surveys {sorted(labels)}"
+        base = current_version(session, Pipeline.phantom, kind, PHANTOM_SHIPPED, read_card, what)
+        base_path, base_id = Path(base.checkpoint_path), base.id
     base_net, base_card = load_model(base_path)
     context.log.info(
         "fine-tuning %s on %d human labels of %d surveys", base_path, total, len(labels)
@@ -140,14 +148,16 @@ def train_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]
     for k, (survey_id, survey_labels) in enumerate(labels.items()):
         context.progress(0.3 * k / len(labels), f"samples of survey {survey_id}")
         name, source, fmt = surveys[survey_id]
-        xyz = accumulate(open_survey(source, fmt), with_reference=False).xyz
+        amap = accumulate(open_survey(source, fmt), with_passes=base_net.passes)
+        if base_net.passes and amap.passes is None:
+            raise ConfigError("labels", f"survey {name} has no point times; the model reads them")
         cells, classes = survey_labels.cells, survey_labels.classes
         pillars = np.stack(STORE_GRID.decode(cells), axis=1)
         held = held_out(survey_labels, cfg)
         context_branch = base_net.context > 0
         for part, mask, rotations in ((train_parts, ~held, cfg.rotations), (val_parts, held, 1)):
             if mask.any():
-                lmap = LabelledPillars(name, xyz, pillars[mask], classes[mask])
+                lmap = LabelledPillars(name, amap.xyz, pillars[mask], classes[mask], amap.passes)
                 part.append(labelled_samples(lmap, phantom, rotations, rng, context_branch))
     # a pillar with no points gives no sample: check again with what the maps gave
     sampled = ClassCounts(total, class_counts(train_parts), class_counts(val_parts), True)
@@ -182,6 +192,7 @@ def train_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]
     checkpoint = context.settings.data_dir / "models" / "phantom" / f"{name}.pt"
     card = {
         **result.card,
+        "sensor_kind": kind.value,
         "class_priors": base_card.get("class_priors"),
         "fine_tuned_from": str(base_path),
         "held_out_validation": new_scores.as_dict(),
@@ -197,6 +208,7 @@ def train_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]
     }
     trained_on = {
         "surveys": sorted(labels),
+        "sensor_kind": kind.value,
         "human_labels": total,
         "train_samples": train_samples.class_counts(),
         "validation_samples": val_samples.class_counts(),
@@ -205,7 +217,7 @@ def train_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]
     with Session(context.engine) as session:
         version = register_version(
             session, Pipeline.phantom, name, checkpoint, metrics, trained_on,
-            context.job_id, promote,
+            context.job_id, promote, kind,
         )  # fmt: skip
     context.progress(1.0, "promoted" if promote else "kept the current version (new one worse)")
     return {
@@ -231,6 +243,9 @@ class GuardrailRetrainConfig(BaseModel):
     seed: Seed = 0
     min_labels: Count = Field(20, ge=1, description="fewer reviewed slices: refuse to train")
     trigger: Literal["on demand", "labels"] = "on demand"
+    sensor_kind: Literal["rotating", "profile"] | None = Field(
+        None, description="the scanner kind to retrain for; default: the reviewed surveys' one"
+    )
 
 
 def check_guardrail_config(config: dict[str, Any], _settings: Settings) -> None:
@@ -283,14 +298,19 @@ def train_guardrail(context: JobContext, config: dict[str, Any]) -> dict[str, An
     cfg = validated(GuardrailRetrainConfig, config)
     with Session(context.engine) as session:
         reviewed = reviewed_slices(session, cfg.survey_ids)
+        kind, usable = retraining_kind(session, reviewed, cfg.sensor_kind)
+        reviewed = {sid: reviewed[sid] for sid in usable}
         total = sum(len(r) for r in reviewed.values())
         if total < cfg.min_labels:
             raise ConfigError(
                 "labels", f"{total} reviewed guardrail slices; retraining needs {cfg.min_labels}"
             )
         runs = {s: latest_run(session, s) for s in reviewed}
-        base_path = promoted_classifier(session)
-        base = promoted_version(session, Pipeline.guardrail)
+        base = current_version(
+            session, Pipeline.guardrail, kind, GUARDRAIL_SHIPPED, read_classifier_card,
+            f"retraining on the slices of surveys {sorted(reviewed)}",
+        )  # fmt: skip
+        base_path = Path(base.checkpoint_path)
     heads, base_card = load_heads(base_path)
     train_parts, val_parts = [], []
     for k, (survey_id, rows) in enumerate(reviewed.items()):
@@ -328,6 +348,7 @@ def train_guardrail(context: JobContext, config: dict[str, Any]) -> dict[str, An
     checkpoint = context.settings.data_dir / "models" / "guardrail" / f"{name}.pt"
     card = {
         **{k: v for k, v in base_card.items() if k != "created"},
+        "sensor_kind": kind.value,
         "fine_tuned_from": str(base_path),
         "fine_tuning": {
             "reviewed_slices": total,
@@ -342,14 +363,19 @@ def train_guardrail(context: JobContext, config: dict[str, Any]) -> dict[str, An
     metrics = {
         "validation": new_scores,
         "baseline": base_scores,
-        "base_version_id": None if base is None else base.id,
+        "base_version_id": base.id,
         "validation_slices": int(len(val_set.label)),
     }
-    trained_on = {"surveys": sorted(reviewed), "reviewed_slices": total, "config": cfg.model_dump()}
+    trained_on = {
+        "surveys": sorted(reviewed),
+        "sensor_kind": kind.value,
+        "reviewed_slices": total,
+        "config": cfg.model_dump(),
+    }
     with Session(context.engine) as session:
         version = register_version(
             session, Pipeline.guardrail, name, checkpoint, metrics, trained_on,
-            context.job_id, promote,
+            context.job_id, promote, kind,
         )  # fmt: skip
     context.progress(1.0, "promoted" if promote else "kept the current version (new one worse)")
     return {

@@ -92,21 +92,17 @@ def require_known_kind(survey_name: str, kind: SensorKind, reason: str = "") -> 
 
 
 def choose_shipped(
-    pipeline: str,
-    shipped: Mapping[SensorKind, Path],
-    survey_name: str,
-    survey_kind: SensorKind,
-    reason: str = "",
+    pipeline: str, shipped: Mapping[SensorKind, Path], what: str, kind: SensorKind
 ) -> ModelChoice:
-    """The shipped model for the survey's kind; one-line error when there is none."""
-    require_known_kind(survey_name, survey_kind, reason)
-    path = shipped.get(survey_kind)
+    """The shipped model for KIND (a known kind: `require_known_kind` first); one-line error
+    when there is none. `what` names what the model is for, e.g. "survey s05"."""
+    path = shipped.get(kind)
     if path is None or not Path(path).is_file():
         raise NoModelForSensorError(
-            f"no {pipeline} model for {survey_kind.value} scanners (survey {survey_name}): "
-            + how_to_get_one(pipeline, survey_kind)
+            f"no {pipeline} model for {kind.value} scanners ({what}): "
+            + how_to_get_one(pipeline, kind)
         )
-    return ModelChoice(Path(path), survey_kind, survey_kind, forced=False)
+    return ModelChoice(Path(path), kind, kind, forced=False)
 
 
 def forced_choice(path: Path, card: Mapping[str, Any], survey_kind: SensorKind) -> ModelChoice:
@@ -131,4 +127,5 @@ def choose_model(
         reason = "declared"
     if model_path is not None:
         return forced_choice(model_path, card_of(Path(model_path)), sensor)
-    return choose_shipped(pipeline, shipped, survey.name, sensor, reason)
+    require_known_kind(survey.name, sensor, reason)
+    return choose_shipped(pipeline, shipped, f"survey {survey.name}", sensor)

@@ -45,7 +45,7 @@ from app.store import models  # noqa: F401  (registers every table on SQLModel.m
 
 log = logging.getLogger(__name__)
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 
 
 def _to_v2(conn: Connection) -> None:
@@ -155,8 +155,26 @@ def _to_v4(conn: Connection) -> None:
     )
 
 
+def _to_v5(conn: Connection) -> None:
+    """Version 5: the sensor kind of surveys and models. Every model before was trained for
+    profile scanners; surveys of the KITTI readers are rotating (HDL-64E); the others are
+    told on their next run (empty note: not looked at yet)."""
+    add_column(conn, "survey", "sensor_kind VARCHAR(16) DEFAULT 'unknown' NOT NULL")
+    add_column(conn, "survey", "sensor_note VARCHAR(255) DEFAULT '' NOT NULL")
+    add_column(conn, "model_version", "sensor_kind VARCHAR(16) DEFAULT 'profile' NOT NULL")
+    conn.exec_driver_sql(
+        "UPDATE survey SET sensor_kind = 'rotating', sensor_note = format || ' reader: HDL-64E'"
+        " WHERE format IN ('semantickitti', 'kitti-raw')"
+    )
+
+
 # target version -> function upgrading a database from version - 1 to it (runs in a transaction)
-MIGRATIONS: dict[int, Callable[[Connection], None]] = {2: _to_v2, 3: _to_v3, 4: _to_v4}
+MIGRATIONS: dict[int, Callable[[Connection], None]] = {
+    2: _to_v2,
+    3: _to_v3,
+    4: _to_v4,
+    5: _to_v5,
+}
 
 _VERSION_TABLE = sa.Table(
     "schema_version",

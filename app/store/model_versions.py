@@ -1,5 +1,6 @@
 """Model versions: the shipped checkpoints and the ones retraining produced, with their
-validation metrics; one promoted version per pipeline is what the pipeline runs with."""
+validation metrics and the sensor kind they were trained for; one promoted version per pipeline
+and sensor kind is what the pipeline runs with on surveys of that kind."""
 
 from __future__ import annotations
 
@@ -9,6 +10,8 @@ from typing import Any
 from sqlmodel import Session, select
 
 from app.core.errors import NotFoundError
+from app.core.sensors import SensorKind
+from app.pipelines.sensor_models import card_sensor_kind
 from app.store.audit import audit
 from app.store.db import commit
 from app.store.models import ModelVersion, Pipeline, utcnow
@@ -29,8 +32,14 @@ def get_version(session: Session, version_id: int) -> ModelVersion:
     return version
 
 
-def promoted_version(session: Session, pipeline: Pipeline) -> ModelVersion | None:
-    query = select(ModelVersion).where(ModelVersion.pipeline == pipeline, ModelVersion.is_promoted)
+def promoted_version(
+    session: Session, pipeline: Pipeline, sensor_kind: SensorKind
+) -> ModelVersion | None:
+    query = select(ModelVersion).where(
+        ModelVersion.pipeline == pipeline,
+        ModelVersion.sensor_kind == sensor_kind.value,
+        ModelVersion.is_promoted,
+    )
     return session.exec(query.order_by(ModelVersion.id.desc())).first()
 
 
@@ -48,8 +57,9 @@ def ensure_shipped_version(
     session: Session, pipeline: Pipeline, checkpoint: Path, card: dict[str, Any]
 ) -> ModelVersion:
     """The row of a checkpoint shipped in models/ (created on first use, promoted when the
-    pipeline has no promoted version yet); commits."""
+    pipeline has no promoted version for its sensor kind yet); commits."""
     checkpoint = Path(checkpoint).resolve()
+    kind = card_sensor_kind(card)
     name = f"shipped:{checkpoint.name}"
     existing = session.exec(
         select(ModelVersion).where(ModelVersion.pipeline == pipeline, ModelVersion.name == name)
@@ -62,7 +72,10 @@ def ensure_shipped_version(
         checkpoint_path=str(checkpoint),
         metrics={"validation": card.get("validation", {})},
         trained_on={"shipped": True, "created": card.get("created")},
-        is_promoted=promoted_version(session, pipeline) is None,
+        # a model of unknown kind is never picked by kind: only by its id, by hand
+        is_promoted=kind is not SensorKind.UNKNOWN
+        and promoted_version(session, pipeline, kind) is None,
+        sensor_kind=kind.value,
     )
     session.add(version)
     commit(session)
@@ -79,8 +92,10 @@ def register_version(
     trained_on: dict[str, Any],
     job_id: int | None,
     promote: bool,
+    sensor_kind: SensorKind,
 ) -> ModelVersion:
-    """Record a newly trained checkpoint; with `promote` it replaces the promoted one."""
+    """Record a newly trained checkpoint for SENSOR_KIND; with `promote` it replaces the
+    promoted one of that kind."""
     version = ModelVersion(
         pipeline=pipeline,
         name=name,
@@ -88,6 +103,7 @@ def register_version(
         metrics=metrics,
         trained_on=trained_on,
         job_id=job_id,
+        sensor_kind=sensor_kind.value,
     )
     session.add(version)
     session.flush()
@@ -100,6 +116,7 @@ def register_version(
         "model_version",
         version.id,
         pipeline=pipeline.value,
+        sensor_kind=sensor_kind.value,
         promoted=promote,
         job_id=job_id,
     )
@@ -112,6 +129,7 @@ def _promote(session: Session, version: ModelVersion) -> None:
     for other in session.exec(
         select(ModelVersion).where(
             ModelVersion.pipeline == version.pipeline,
+            ModelVersion.sensor_kind == version.sensor_kind,
             ModelVersion.is_promoted,
             ModelVersion.id != version.id,
         )

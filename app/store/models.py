@@ -159,6 +159,13 @@ class Survey(SurveyBase, table=True):
     origin_y: float = Field(default=0.0, sa_type=sa.Double)
     origin_z: float = Field(default=0.0, sa_type=sa.Double)
     created_by: int | None = user_fk()
+    # rotating / profile / unknown (app.core.sensors): which models may run on it
+    sensor_kind: str = Field(
+        default="unknown", max_length=16, sa_column_kwargs={"server_default": "unknown"}
+    )
+    sensor_note: str = Field(  # how the kind was told: the reader, the point times, a person
+        default="", max_length=255, sa_column_kwargs={"server_default": ""}
+    )
 
     @property
     def origin(self) -> tuple[float, float, float]:
@@ -222,6 +229,11 @@ class ModelVersionBase(Created):
 class ModelVersion(ModelVersionBase, Versioned, table=True):
     __tablename__ = "model_version"
     __table_args__ = (sa.UniqueConstraint("pipeline", "name", name="uq_model_version_name"),)
+
+    # the scanner kind it was trained for; one promoted version per pipeline and kind
+    sensor_kind: str = Field(
+        default="profile", max_length=16, sa_column_kwargs={"server_default": "profile"}
+    )
 
 
 class PillarLabel(Versioned, table=True):

@@ -15,6 +15,8 @@ import numpy as np
 from sqlmodel import Session, col, func, select
 
 from app.core.errors import ConflictError, NotFoundError
+from app.core.sensors import SensorKind
+from app.io.sensor_kind import detect_sensor_kind
 from app.store.audit import audit, unused_id
 from app.store.db import commit
 from app.store.models import Frame, Job, JobStatus, Survey
@@ -85,6 +87,8 @@ def register_survey(
     origin: tuple[float, float, float],
     created_by: int | None = None,
     action: str = "survey.register",
+    sensor_kind: str = "unknown",
+    sensor_note: str = "",
     **audit_payload: Any,
 ) -> Survey:
     """Insert a survey, all its frames and the audit event `action` in one transaction."""
@@ -100,6 +104,8 @@ def register_survey(
         origin_y=origin[1],
         origin_z=origin[2],
         created_by=created_by,
+        sensor_kind=sensor_kind,
+        sensor_note=sensor_note[:255],
     )
     survey.id = unused_id(Survey, "survey")  # type: ignore[assignment]
     session.add(survey)
@@ -125,6 +131,7 @@ def register_survey(
         format=format,
         source_path=source_path,
         frames=len(frames),
+        sensor_kind=sensor_kind,
         **audit_payload,
     )
     commit(session)
@@ -141,9 +148,16 @@ def register_opened_survey(
     name: str | None = None,
     created_by: int | None = None,
     action: str = "survey.register",
+    sensor: SensorKind | None = None,
     **audit_payload: Any,
 ) -> Survey:
-    """Register a survey a reader opened, with its frames and local origin."""
+    """Register a survey a reader opened, with its frames, local origin and sensor kind (as
+    `sensor` declares it, else as its reader or its point times tell)."""
+    if sensor is not None and sensor is not SensorKind.UNKNOWN:
+        kind, note = sensor, "declared at import"
+    else:
+        detection = detect_sensor_kind(opened)
+        kind, note = detection.kind, detection.reason
     return register_survey(
         session,
         name=(name or opened.name or source_path.stem)[:255],
@@ -155,8 +169,24 @@ def register_opened_survey(
         origin=survey_origin(opened),
         created_by=created_by,
         action=action,
+        sensor_kind=kind.value,
+        sensor_note=note,
         **audit_payload,
     )
+
+
+def set_sensor_kind(
+    session: Session, survey_id: int, kind: SensorKind, user_id: int | None, note: str
+) -> Survey:
+    """A survey's sensor kind as a person or a first run told it; audited, commits."""
+    survey = get_survey(session, survey_id)
+    before = survey.sensor_kind
+    survey.sensor_kind, survey.sensor_note = kind.value, note[:255]
+    session.add(survey)
+    audit(session, user_id, "survey.sensor", "survey", survey_id, before=before, after=kind.value)
+    commit(session)
+    session.refresh(survey)
+    return survey
 
 
 def list_surveys(session: Session) -> list[Survey]:

@@ -34,7 +34,10 @@ from tests.jobs.conftest import job_context
 @pytest.fixture
 def survey_id(engine: Engine) -> int:
     with Session(engine) as session:
-        survey = Survey(name="street", format="sim", source_path="/nowhere")
+        survey = Survey(
+            name="street", format="sim", source_path="/nowhere", sensor_kind="profile",
+            sensor_note="simulator: profile scanner",
+        )  # fmt: skip
         session.add(survey)
         session.commit()
         return survey.id
@@ -93,7 +96,7 @@ def test_new_model_labels_replace_the_old_and_leave_human_ones(
     engine: Engine, survey_id: int
 ) -> None:
     with Session(engine) as session:
-        version = model_version_for(session, None)
+        version, _ = model_version_for(session, session.get(Survey, survey_id), None)
     with engine.begin() as conn:
         conn.execute(
             text(
@@ -130,20 +133,26 @@ def test_new_model_labels_replace_the_old_and_leave_human_ones(
     assert [e.payload["pillars"] for e in labelled] == [1000, 2]
 
 
-def test_the_model_version_row(engine: Engine, settings: Settings) -> None:
+def test_the_model_version_row(engine: Engine, settings: Settings, survey_id: int) -> None:
     with Session(engine) as session:
-        shipped = model_version_for(session, None)
+        survey = session.get(Survey, survey_id)
+
+        def chosen(model_id: int | None):
+            return model_version_for(session, survey, model_id)[0]
+
+        shipped = chosen(None)
         assert shipped.checkpoint_path == str(DEFAULT_MODEL.resolve())
         assert shipped.pipeline == Pipeline.phantom and shipped.is_promoted
-        assert model_version_for(session, None).id == shipped.id
+        assert shipped.sensor_kind == "profile"
+        assert chosen(None).id == shipped.id
         paper = ensure_shipped_version(session, Pipeline.phantom, PAPER_MODEL, {})
         assert paper.id != shipped.id and not paper.is_promoted
-        assert model_version_for(session, paper.id).id == paper.id  # by registry id
-        assert model_version_for(session, None).id == shipped.id  # the promoted one
+        assert chosen(paper.id).id == paper.id  # by registry id
+        assert chosen(None).id == shipped.id  # the promoted one
         guardrail = ensure_shipped_version(session, Pipeline.guardrail, PAPER_MODEL, {})
         for model_id, problem in ((guardrail.id, "is a guardrail model"), (999, "no model")):
             with pytest.raises(ConfigError, match=problem) as caught:
-                model_version_for(session, model_id)
+                chosen(model_id)
             assert caught.value.field == "config.model_id"
 
 

@@ -14,6 +14,7 @@ from app.pipelines.sensor_models import (
     NoModelForSensorError,
     card_sensor_kind,
     choose_shipped,
+    require_known_kind,
 )
 
 
@@ -34,10 +35,10 @@ def test_a_card_tells_its_kind_by_its_training_data() -> None:
 def test_no_model_for_the_kind_is_one_line(tmp_path: Path) -> None:
     shipped = {SensorKind.PROFILE: DEFAULT_MODEL, SensorKind.ROTATING: tmp_path / "missing.pt"}
     with pytest.raises(NoModelForSensorError, match="no phantom model for rotating scanners"):
-        choose_shipped("phantom", shipped, "s", SensorKind.ROTATING)
+        choose_shipped("phantom", shipped, "survey s", SensorKind.ROTATING)
     with pytest.raises(NoModelForSensorError, match="sensor kind is unknown"):
-        choose_shipped("phantom", shipped, "s", SensorKind.UNKNOWN)
-    picked = choose_shipped("phantom", shipped, "s", SensorKind.PROFILE)
+        require_known_kind("s", SensorKind.UNKNOWN)
+    picked = choose_shipped("phantom", shipped, "survey s", SensorKind.PROFILE)
     assert picked.path == DEFAULT_MODEL and not picked.off_domain
 
 

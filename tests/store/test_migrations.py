@@ -377,3 +377,49 @@ def test_version_3_database_gets_tombstones_edit_versions_and_issued_ids(
         assert sorted(tombstones.all()) == [(2, 2), (3, 2)]
         assert conn.exec_driver_sql("PRAGMA foreign_key_check").all() == []
     engine.dispose()
+
+
+def test_version_4_database_gets_sensor_kinds(
+    db_path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The real version 5 migration: surveys and models get their sensor kind, with the shape a
+    new database gets; KITTI surveys are rotating, the models before were all profile models."""
+    monkeypatch.setattr(migrations, "SCHEMA_VERSION", 4)
+    monkeypatch.setattr(migrations, "MIGRATIONS", {v: MIGRATIONS[v] for v in (2, 3, 4)})
+    old = make_engine(f"sqlite:///{db_path}")
+    with old.begin() as conn:
+        SQLModel.metadata.create_all(conn)
+        for table, column in (
+            ("survey", "sensor_kind"),
+            ("survey", "sensor_note"),
+            ("model_version", "sensor_kind"),
+        ):
+            conn.exec_driver_sql(f"ALTER TABLE {table} DROP COLUMN {column}")
+        conn.exec_driver_sql("PRAGMA user_version = 4")
+        for i, fmt in enumerate(("semantickitti", "las", "sim"), start=1):
+            conn.exec_driver_sql(
+                "INSERT INTO survey (id, created_at, updated_at, version, name, format,"
+                " source_path, frame_count, point_count, has_reference_labels, poses_estimated,"
+                f" origin_x, origin_y, origin_z) VALUES ({i}, '2026-01-01', '2026-01-01', 1,"
+                f" 's{i}', '{fmt}', '/s', 0, 0, 0, 0, 0, 0, 0)"
+            )
+        conn.exec_driver_sql(
+            "INSERT INTO model_version (id, created_at, updated_at, version, pipeline, name,"
+            " checkpoint_path, metrics, trained_on, is_promoted) VALUES (1, '2026-01-01',"
+            " '2026-01-01', 1, 'phantom', 'shipped:x.pt', '/x.pt', '{}', '{}', 1)"
+        )
+    old.dispose()
+    monkeypatch.undo()
+    engine = make_engine(f"sqlite:///{db_path}")
+    assert init_db(engine) == SCHEMA_VERSION
+    fresh = make_engine(f"sqlite:///{tmp_path / 'fresh.sqlite3'}")
+    init_db(fresh)
+    for table in ("survey", "model_version"):  # same columns; added ones come last
+        by_name = {c[1]: c[2:] for c in _columns(engine, table)}
+        assert by_name == {c[1]: c[2:] for c in _columns(fresh, table)}
+    fresh.dispose()
+    with engine.connect() as conn:
+        kinds = conn.exec_driver_sql("SELECT format, sensor_kind FROM survey ORDER BY id").all()
+        assert kinds == [("semantickitti", "rotating"), ("las", "unknown"), ("sim", "unknown")]
+        assert conn.exec_driver_sql("SELECT sensor_kind FROM model_version").scalar() == "profile"
+    engine.dispose()

@@ -13,6 +13,7 @@ from sqlalchemy.engine import Engine
 from sqlmodel import Session
 
 from app.core.errors import StaleWriteError
+from app.core.sensors import SensorKind
 from app.store.model_labels import store_model_labels
 from app.store.model_versions import register_version
 from app.store.models import Pipeline, Role, Survey
@@ -51,8 +52,9 @@ def user_id(engine: Engine, name: str) -> int:
 def model_version(engine: Engine, tmp_path: Path) -> int:
     with Session(engine) as session:
         version = register_version(
-            session, Pipeline.phantom, "test", tmp_path / "m.pt", {}, {}, None, promote=False
-        )
+            session, Pipeline.phantom, "test", tmp_path / "m.pt", {}, {}, None,
+            promote=False, sensor_kind=SensorKind.PROFILE,
+        )  # fmt: skip
         session.commit()
         return version.id
 

@@ -18,6 +18,7 @@ from sqlmodel import Session
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
+from app.core.sensors import SensorKind
 from app.store.db import make_engine
 from app.store.model_labels import store_model_labels
 from app.store.model_versions import register_version
@@ -282,8 +283,9 @@ def test_model_prelabels_from_another_process_show_lighter_hide_and_lead_the_cam
         cells = np.unique(STORE_GRID.point_cell_ids(local[near, :2] + origin[:2]))
         with Session(engine) as db:
             version = register_version(
-                db, Pipeline.phantom, "test", viewer_server.data_dir / "m.pt", {}, {}, None, False
-            )
+                db, Pipeline.phantom, "test", viewer_server.data_dir / "m.pt", {}, {}, None, False,
+                SensorKind.PROFILE,
+            )  # fmt: skip
             db.commit()
             version_id = version.id
         store_model_labels(

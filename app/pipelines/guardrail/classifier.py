@@ -161,3 +161,11 @@ def load_heads(path: Path) -> tuple[dict[str, SliceHead], dict]:
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise InputError(path, f"not a guardrail classifier checkpoint ({reason})") from None
     return heads, blob.get("card", {})
+
+
+def read_classifier_card(path: Path) -> dict:
+    """A classifier checkpoint's card: the JSON beside it, else the one inside."""
+    sidecar = Path(path).with_suffix(".json")
+    if sidecar.is_file():
+        return json.loads(sidecar.read_text())
+    return load_heads(path)[1]

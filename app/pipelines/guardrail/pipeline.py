@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from app.core.progress import Progress, Stopwatch, no_progress
+from app.core.sensors import SensorKind
 from app.io.survey import Survey
 from app.pipelines.guardrail.classifier import CropEncoder, load_heads, predict
 from app.pipelines.guardrail.config import GuardrailConfig, ReconstructionConfig
@@ -17,7 +18,14 @@ from app.pipelines.guardrail.correction import correct_labels
 from app.pipelines.guardrail.segmentation import SliceStage, prepare_slices
 from app.pipelines.guardrail.slices import SliceSet
 
-DEFAULT_MODEL = Path(__file__).resolve().parents[3] / "models" / "guardrail" / "slice_classifier.pt"
+MODELS = Path(__file__).resolve().parents[3] / "models" / "guardrail"
+DEFAULT_MODEL = MODELS / "slice_classifier.pt"  # profile scanners (simulated VQ-250 surveys)
+ROTATING_MODEL = MODELS / "slice_classifier_rotating.pt"  # rotating scanners (HDL-64E-like)
+# the shipped classifier a run picks for each sensor kind (app.pipelines.sensor_models)
+SHIPPED: dict[SensorKind, Path] = {
+    SensorKind.PROFILE: DEFAULT_MODEL,
+    SensorKind.ROTATING: ROTATING_MODEL,
+}
 
 
 @dataclass

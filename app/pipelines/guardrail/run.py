@@ -10,10 +10,12 @@ from pathlib import Path
 
 import numpy as np
 
+from app.core.sensors import SensorKind
 from app.io.asprs import GUARDRAIL_ASPRS
 from app.io.las import write_laz
 from app.io.survey import Survey
 from app.metrics.classification import binary_scores
+from app.pipelines.guardrail.classifier import read_classifier_card
 from app.pipelines.guardrail.config import GuardrailConfig
 from app.pipelines.guardrail.evaluation.reference import (
     DESCRIPTIONS,
@@ -22,8 +24,9 @@ from app.pipelines.guardrail.evaluation.reference import (
     reference_kind,
     slice_truth,
 )
-from app.pipelines.guardrail.pipeline import GuardrailPipeline, GuardrailResult, Progress
+from app.pipelines.guardrail.pipeline import SHIPPED, GuardrailPipeline, GuardrailResult, Progress
 from app.pipelines.outputs import write_frame_labels, write_report
+from app.pipelines.sensor_models import ModelChoice, choose_model
 
 
 def reference_points(survey: Survey, result: GuardrailResult) -> tuple[np.ndarray, str] | None:
@@ -54,15 +57,26 @@ def run_guardrail_to_folder(
     config: GuardrailConfig | None = None,
     model_path: Path | None = None,
     progress: Progress | None = None,
+    sensor: SensorKind | None = None,
+    model: ModelChoice | None = None,
 ) -> dict:
+    """`model` as a job chose it; else `model_path` forced by hand; else the shipped classifier
+    of the survey's sensor kind (`sensor` declared, else detected): `sensor_models`."""
     started = time.perf_counter()
-    pipeline = GuardrailPipeline(config, model_path)
+    if model is None:
+        model = choose_model("guardrail", SHIPPED, survey, read_classifier_card, model_path, sensor)
+    pipeline = GuardrailPipeline(config, model.path)
     result = pipeline.run(survey, progress)
-    return write_guardrail_folder(survey, pipeline, result, out, started)
+    return write_guardrail_folder(survey, pipeline, result, out, started, model)
 
 
 def write_guardrail_folder(
-    survey: Survey, pipeline: GuardrailPipeline, result: GuardrailResult, out: Path, started: float
+    survey: Survey,
+    pipeline: GuardrailPipeline,
+    result: GuardrailResult,
+    out: Path,
+    started: float,
+    model: ModelChoice,
 ) -> dict:
     """The run's outputs from its result (callers that keep the result, e.g. the web app's job,
     run the pipeline themselves); `started` is the perf_counter at the start of the run."""
@@ -98,7 +112,11 @@ def write_guardrail_folder(
         "pipeline": "guardrail",
         "survey": {"name": survey.name, "format": survey.format, "source": str(survey.source)},
         "config": pipeline.config.model_dump(),
-        "model": {"path": str(pipeline.model_path), "created": pipeline.card.get("created")},
+        "model": {
+            "path": str(pipeline.model_path),
+            "created": pipeline.card.get("created"),
+            **model.report(),
+        },
         "counts": {
             "frames": len(result.frame_ids),
             "points": int(len(pts)),

@@ -51,6 +51,7 @@ class LabelledPillars:
     xyz: np.ndarray  # (N, 3) float64 world points of the map
     pillars: np.ndarray  # (L, 2) int64 (ix, iy) on the s_c grid
     labels: np.ndarray  # (L,) int64 class 0..3
+    passes: np.ndarray | None = None  # (N,) scanner pass of each point, for a passes network
 
 
 def _lookup(found: np.ndarray, wanted: np.ndarray) -> np.ndarray:
@@ -85,7 +86,7 @@ def labelled_samples(
         xyz = rotate_about_z(lmap.xyz, angle, pivot) if angle else lmap.xyz
         turned = rotate_about_z(centres, angle, pivot) if angle else centres
         ground = estimate_ground(xyz, config.ground_cell, config.ground_opening)
-        pm = build_pillar_map(xyz, ground, config)
+        pm = build_pillar_map(xyz, ground, config, lmap.passes)
         index = _lookup(pm.pillars, np.floor(turned[:, :2] / cs).astype(np.int64))
         keep = index >= 0
         chosen = pm.pillars[index[keep]]
