@@ -10,6 +10,7 @@ from typing import Any
 from sqlmodel import Session
 
 from app.core.errors import InputError, MmscleanError
+from app.core.sensors import SensorKind
 from app.io import open_survey
 from app.io.detect import detect_format
 from app.io.point_files import one_line
@@ -24,9 +25,11 @@ def import_source(
     name: str | None,
     user_id: int | None,
     action: str,
+    sensor: SensorKind | None = None,
     **payload: Any,
 ) -> Survey:
-    """Open SOURCE with its reader (format detected when not given) and register it."""
+    """Open SOURCE with its reader (format detected when not given) and register it with the
+    SENSOR kind declared, or (None) as its reader or its point times tell."""
     fmt = fmt or detect_format(source)
     try:
         opened = open_survey(source, fmt)
@@ -40,6 +43,7 @@ def import_source(
             name=name,
             created_by=user_id,
             action=action,
+            sensor=sensor,
             **payload,
         )
     except MmscleanError:

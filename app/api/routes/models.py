@@ -11,6 +11,7 @@ from app.api.deps import Admin, CurrentUser, SessionDep, SettingsDep
 from app.api.errors import errors
 from app.api.types import Id
 from app.core.errors import ConfigError
+from app.core.sensors import SensorKind
 from app.jobs.queue import enqueue
 from app.jobs.retraining import retraining_state
 from app.store.model_versions import get_version, list_versions, promote_version
@@ -26,6 +27,7 @@ class ModelVersionPublic(ModelVersionBase):
 
     id: int
     version: int
+    sensor_kind: SensorKind = Field(description="the scanner kind it was trained for")
 
 
 class RetrainRequest(BaseModel):

@@ -1,10 +1,14 @@
-"""`/surveys`: list and inspect surveys, import one from a server path, upload one, delete one.
+"""`/surveys`: list and inspect surveys, import one from a server path, upload one, declare its
+sensor kind, delete one.
 
 Imports read only inside `allowed_import_root` (symlinks resolved); uploads are streamed under
 `surveys_dir/<uuid>/` and registered like imports. A survey is opened with its reader before it
 is registered, so bad data answers 422 with the reader's one-line message and leaves nothing
 behind. A drive that takes long to open (LiDAR odometry for a KITTI raw drive without OXTS) can
 be imported by a worker instead: `POST /jobs` with kind `import:survey` (app.jobs.survey_tasks).
+The sensor kind (rotating / profile, app.core.sensors) is declared at import or told by the
+reader or the point times; `PATCH /surveys/{id}` declares it later (every run uses the model
+for that kind).
 """
 
 from __future__ import annotations
@@ -12,7 +16,7 @@ from __future__ import annotations
 import re
 import uuid
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Query, Request, Response
 from pydantic import BaseModel, ConfigDict, Field
@@ -24,6 +28,7 @@ from app.api.schemas import JobBrief
 from app.api.types import FileName, Id, ImportPath
 from app.api.uploads import check_upload_name, extract_zip, receive_upload, remove_tree
 from app.core.errors import InputError
+from app.core.sensors import SensorKind
 from app.io.import_root import resolve_import_path
 from app.review.surveys import import_source
 from app.store.models import SurveyBase
@@ -34,12 +39,17 @@ from app.store.surveys import (
     get_survey,
     latest_jobs,
     list_surveys,
+    set_sensor_kind,
     surveys_using,
 )
 
 router = APIRouter(prefix="/surveys", tags=["surveys"], responses=errors(401))
 
 UPLOAD_FOLDER = re.compile(r"^[0-9a-f]{32}$")  # uuid4().hex: only folders uploads made
+
+# the kinds a person declares (app.core.sensors.KNOWN_KINDS); absent at import: detected
+DeclaredSensor = Literal["rotating", "profile"]
+SENSOR_HELP = "rotating (spinning multi-beam) or profile (MMS line scanner); detected when absent"
 
 
 class SurveyPublic(SurveyBase):  # the origin as one (x, y, z): `Survey.origin`
@@ -48,6 +58,8 @@ class SurveyPublic(SurveyBase):  # the origin as one (x, y, z): `Survey.origin`
     id: int
     origin: tuple[float, float, float]
     created_by: int | None
+    sensor_kind: SensorKind
+    sensor_note: str = Field(description="how the kind was told; empty: not looked at yet")
 
 
 class SurveyDetail(SurveyPublic):
@@ -60,6 +72,13 @@ class SurveyImport(BaseModel):
     path: ImportPath = Field(description="inside the import root")
     format: str | None = Field(None, description="reader name; detected when absent")
     name: str | None = Field(None, min_length=1, max_length=255)
+    sensor: DeclaredSensor | None = Field(None, description=SENSOR_HELP)
+
+
+class SurveyChange(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    sensor_kind: DeclaredSensor = Field(description="the scanner kind that recorded the survey")
 
 
 @router.get("", response_model=list[SurveyPublic])
@@ -92,9 +111,31 @@ def import_survey(
     """Register a survey from a path inside the import root (annotator role)."""
     source = resolve_import_path(body.path, settings.allowed_import_root)
     survey = import_source(
-        session, source, body.format, body.name, user.id, "survey.import", requested=body.path
+        session,
+        source,
+        body.format,
+        body.name,
+        user.id,
+        "survey.import",
+        sensor=declared(body.sensor),
+        requested=body.path,
     )
     return SurveyPublic.model_validate(survey)
+
+
+@router.patch("/{survey_id}", response_model=SurveyPublic, responses=errors(403, 404, 422))
+def change_survey(
+    survey_id: Id, body: SurveyChange, user: Annotator, session: SessionDep
+) -> SurveyPublic:
+    """Declare a survey's sensor kind (annotator role; audited): its runs use the model for
+    that kind from then on."""
+    kind = SensorKind(body.sensor_kind)
+    survey = set_sensor_kind(session, survey_id, kind, user.id, f"declared by {user.username}")
+    return SurveyPublic.model_validate(survey)
+
+
+def declared(sensor: DeclaredSensor | None) -> SensorKind | None:
+    return None if sensor is None else SensorKind(sensor)
 
 
 @router.post(
@@ -117,6 +158,7 @@ async def upload_survey(
     filename: Annotated[FileName, Query(description="survey.laz, or drive.zip")],
     format: str | None = Query(None, description="reader name; detected when absent"),
     name: str | None = Query(None, min_length=1, max_length=255),
+    sensor: DeclaredSensor | None = Query(None, description=SENSOR_HELP),
 ) -> SurveyPublic:
     """Upload a .las/.laz map or a .zip of a KITTI-raw / SemanticKITTI / simulator folder as the
     raw request body (annotator role); stored under the surveys folder and registered."""
@@ -142,6 +184,7 @@ async def upload_survey(
             name or Path(filename).stem,
             user.id,
             "survey.upload",
+            sensor=declared(sensor),
             filename=filename,
             bytes=size,
         )
