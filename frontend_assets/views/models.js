@@ -4,6 +4,7 @@
 import { api, hasRole } from "../api.js";
 import { ACTIVE, facts, h, note, num, pct, progressBar, section, shareBar, statusBadge, when } from "../dom.js";
 import { modelDetails, modelHeadline } from "../metrics.js";
+import { sensorBadge } from "../sensors.js";
 
 const TRAINABLE = [
   { pipeline: "phantom", text: "phantom CNN from the human pillar labels" },
@@ -42,7 +43,7 @@ function modelRow(ctx, model, refresh) {
         )
       : null;
   // validation plots in a full-width row under the version, drawn when first opened
-  const detailCell = h("td", { colspan: "10" });
+  const detailCell = h("td", { colspan: "11" });
   const detailRow = h("tr", { class: "model-detail", hidden: true }, detailCell);
   const toggle = h(
     "button",
@@ -67,6 +68,7 @@ function modelRow(ctx, model, refresh) {
     { "data-model": model.id },
     h("td", {}, String(model.id)),
     h("td", {}, model.pipeline),
+    h("td", { class: "sensor-cell" }, sensorBadge(model.sensor_kind, `trained for ${model.sensor_kind} scanners`)),
     h("td", {}, h("span", { class: "model-name" }, model.name), " ", toggle),
     h("td", {}, model.is_promoted ? h("span", { class: "badge promoted" }, "promoted") : ""),
     h(
@@ -155,7 +157,7 @@ function modelsTable(ctx, models, refresh) {
   if (!models.length) {
     return note("No model versions yet: they appear once a pipeline has run or a training finished.");
   }
-  const head = ["ID", "Pipeline", "Version", "", "F [%]", "Accuracy [%]", "Trained on", "Created", "Job", ""];
+  const head = ["ID", "Pipeline", "Sensor", "Version", "", "F [%]", "Accuracy [%]", "Trained on", "Created", "Job", ""];
   return h(
     "table",
     { class: "grid", id: "models" },

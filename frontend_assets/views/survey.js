@@ -1,5 +1,6 @@
-// One survey: start its pipelines, open the viewer modes, see the review state (pillar labels,
-// clutter decisions, guardrail models), download exports; and its metrics page.
+// One survey: its sensor kind (declared here when unknown), start its pipelines, open the
+// viewer modes, see the review state (pillar labels, clutter decisions, guardrail models),
+// download exports; and its metrics page.
 
 import { api, hasRole } from "../api.js";
 import {
@@ -18,6 +19,7 @@ import {
 } from "../dom.js";
 import { pipelineOf, renderMetrics } from "../metrics.js";
 import { bars, figure } from "../plots.js";
+import { sensorBlock } from "../sensors.js";
 
 // The options a run job takes that people change; everything else stays the paper's default.
 const PIPELINE_FORMS = [
@@ -357,7 +359,7 @@ export async function surveyView(ctx, root, id) {
   const exportsBox = h("div");
   root.append(
     pageHead(survey, "overview"),
-    section("Survey", surveyFacts(survey)),
+    section("Survey", surveyFacts(survey), sensorBlock(ctx, survey)),
     section("Pipelines", pipelines),
     section(
       "Viewer",

@@ -1,8 +1,10 @@
-// The surveys list: counts, reference labels, the newest job of each pipeline; import a survey
-// from a server path, upload one, delete one (reviewer).
+// The surveys list: counts, sensor kind, reference labels, the newest job of each pipeline;
+// import a survey from a server path, upload one (either with a declared sensor kind), delete
+// one (reviewer).
 
 import { api, hasRole, uploadRaw } from "../api.js";
 import { ACTIVE, bytes, h, num, progressBar, statusBadge } from "../dom.js";
+import { sensorBadge, sensorSelect } from "../sensors.js";
 
 export const FORMATS = ["kitti-raw", "semantickitti", "las", "ply", "pcd", "sim"];
 export const PIPELINES = [
@@ -71,6 +73,7 @@ function surveysTable(ctx, details, refresh, user) {
     "ID",
     "Name",
     "Format",
+    "Sensor",
     "Frames",
     "Points",
     "Reference labels",
@@ -96,6 +99,7 @@ function surveysTable(ctx, details, refresh, user) {
       h("td", {}, String(sv.id)),
       h("td", {}, h("a", { href: `#/surveys/${sv.id}`, class: "survey-link" }, sv.name)),
       h("td", {}, sv.format),
+      h("td", { class: "sensor-cell" }, sensorBadge(sv.sensor_kind, sv.sensor_note)),
       h("td", { class: "num" }, num(sv.frame_count)),
       h("td", { class: "num" }, num(sv.point_count)),
       h("td", {}, sv.has_reference_labels ? "yes" : "no"),
@@ -136,6 +140,7 @@ function importForm(ctx, refresh) {
     placeholder: "e.g. surveys/drive_0005_sync",
   });
   const format = formatSelect("import-format");
+  const sensor = sensorSelect("import-sensor");
   const name = h("input", { id: "import-name", name: "name", placeholder: "optional" });
   const submit = h("button", { type: "submit", class: "primary" }, "Import");
   const status = h("p", { class: "note", id: "import-status", hidden: true });
@@ -146,6 +151,7 @@ function importForm(ctx, refresh) {
     h("p", { class: "note" }, "A path inside the server's import root (MMSCLEAN_IMPORT_ROOT)."),
     h("label", {}, "Path", path),
     h("div", { class: "row" }, h("label", {}, "Format", format), h("label", {}, "Name", name)),
+    h("label", {}, "Sensor", sensor),
     status,
     submit,
   );
@@ -154,6 +160,7 @@ function importForm(ctx, refresh) {
     ctx.act(submit, async () => {
       const config = { path: path.value.trim() };
       if (format.value) config.format = format.value;
+      if (sensor.value) config.sensor = sensor.value;
       if (name.value.trim()) config.name = name.value.trim();
       // a worker opens the drive (odometry can take minutes); a bad path is refused at once
       const job = await api("/jobs", { method: "POST", json: { kind: "import:survey", config } });
@@ -197,6 +204,7 @@ function uploadForm(ctx, refresh) {
     accept: ".las,.laz,.zip",
   });
   const format = formatSelect("upload-format");
+  const sensor = sensorSelect("upload-sensor");
   const name = h("input", { id: "upload-name", name: "name", placeholder: "optional" });
   const submit = h("button", { type: "submit", class: "primary" }, "Upload");
   const fill = h("div", { class: "fill" });
@@ -209,6 +217,7 @@ function uploadForm(ctx, refresh) {
     h("p", { class: "note" }, "A .las / .laz map, or a .zip of a KITTI-raw, SemanticKITTI or simulator folder."),
     h("label", {}, "File", file),
     h("div", { class: "row" }, h("label", {}, "Format", format), h("label", {}, "Name", name)),
+    h("label", {}, "Sensor", sensor),
     bar,
     submit,
   );
@@ -218,6 +227,7 @@ function uploadForm(ctx, refresh) {
     if (!chosen) return;
     const params = new URLSearchParams({ filename: chosen.name });
     if (format.value) params.set("format", format.value);
+    if (sensor.value) params.set("sensor", sensor.value);
     if (name.value.trim()) params.set("name", name.value.trim());
     bar.hidden = false;
     bar.dataset.status = "running";

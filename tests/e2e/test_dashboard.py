@@ -370,6 +370,44 @@ def test_import_from_the_server_runs_as_a_job(page, dashboard_server: Server) ->
 
 
 @pytest.mark.e2e
+def test_surveys_show_their_sensor_and_the_survey_page_declares_it(
+    page, dashboard_server: Server, tmp_path: Path
+) -> None:
+    """The list shows each survey's sensor kind (how it was told as the title); a map without
+    point times is unknown, its page says runs need the kind and an annotator declares it."""
+    rng = np.random.default_rng(7)
+    xyz = rng.uniform([0, 0, 0], [20, 10, 3], size=(2_000, 3)) + [512_000.0, 5_400_000.0, 300]
+    laz = write_laz(tmp_path / "no-times.laz", xyz).read_bytes()
+    with dashboard_server.client() as admin:
+        params = {"filename": "no-times.laz", "name": "no times"}
+        survey = admin.post("/surveys/upload", params=params, content=laz).json()
+    log_in(page)
+    assert "Sensor" in page.locator("#surveys thead").text_content()
+    sample = page.locator("#surveys tr[data-survey]", has_text="sim-urban-60m")
+    badge = sample.locator(".sensor-cell [data-sensor]")
+    assert badge.inner_text() == "profile"
+    assert badge.get_attribute("title") == "sim reader: scanner profile"
+    assert page.locator("#import-sensor option").all_inner_texts() == [
+        "Detect from the data",
+        "Rotating (spinning multi-beam)",
+        "Profile (MMS line scanner)",
+    ]
+    row = page.locator("#surveys tr[data-survey]", has_text="no times")
+    assert row.locator("[data-sensor]").inner_text() == "unknown"
+
+    row.locator("a.survey-link").click()
+    page.wait_for_selector("#sensor-hint")
+    page.select_option("#sensor-kind", "rotating")
+    page.click("#sensor-save")
+    page.wait_for_selector("#survey-sensor [data-sensor='rotating']")
+    assert page.locator("#sensor-hint").count() == 0
+    assert "declared by admin" in page.locator("#survey-sensor").inner_text()
+    with dashboard_server.client() as admin:
+        assert admin.get(f"/surveys/{survey['id']}").json()["sensor_kind"] == "rotating"
+        assert admin.delete(f"/surveys/{survey['id']}").status_code == 204
+
+
+@pytest.mark.e2e
 def test_an_annotator_sees_only_what_the_role_allows(page, dashboard_server: Server) -> None:
     dashboard_server.add_user("annie", "annotator", password="annotator-pass-1")
     log_in(page, "annie", "annotator-pass-1")
