@@ -169,7 +169,7 @@ def kitti_train_config(args):
 def part_kitti(args) -> tuple[str, str, str]:
     """Leave-one-sequence-out on SemanticKITTI: per held-out sequence and per training-data
     choice (sim: simulated HDL-64E drives only; real: the other two sequences; sim+real)."""
-    from app.pipelines.phantom.training.train import train_phantom_model
+    from app.pipelines.phantom.training.from_surveys import train_phantom_model
 
     real = Path(os.environ["MMSCLEAN_REAL_DATA"]) / "semantickitti" / "sequences"
     held_out = [h.strip() for h in args.kitti_held.split(",") if h.strip()]
@@ -223,7 +223,8 @@ def object_f(f1: dict[str, float]) -> float:
 
 def part_train(args) -> tuple[str, str, str]:
     from app.pipelines.phantom.model import DEFAULT_MODEL, PAPER_MODEL
-    from app.pipelines.phantom.training.train import TrainConfig, train_phantom_model
+    from app.pipelines.phantom.training.from_surveys import train_phantom_model
+    from app.pipelines.phantom.training.train import TrainConfig
 
     out = args.model or (DEFAULT_MODEL if args.context else PAPER_MODEL)
     config = TrainConfig(per_class=10_000, epochs=args.epochs, context=args.context)

@@ -34,7 +34,8 @@ def train_phantom(
 ) -> None:
     """Train the phantom 3D CNN on simulated surveys and SemanticKITTI sequences."""
     from app.core.errors import ConfigError
-    from app.pipelines.phantom.training.train import TrainConfig, train_phantom_model
+    from app.pipelines.phantom.training.from_surveys import train_phantom_model
+    from app.pipelines.phantom.training.train import TrainConfig
 
     seeds = seed_list("--sim-seeds", sim_seeds)
     for folder in semantickitti or []:

@@ -22,13 +22,12 @@ from app.pipelines.phantom.training.dataset import (
     rotate_about_z,
     window_counts,
 )
+from app.pipelines.phantom.training.from_surveys import build_training_set, train_phantom_model
 from app.pipelines.phantom.training.train import (
     TrainConfig,
-    build_training_set,
     split_groups,
     stratified_folds,
     train,
-    train_phantom_model,
 )
 
 GROUND, HIGH, SHORT, PHANTOM = (int(c) for c in PillarClass)

@@ -33,7 +33,6 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
@@ -43,28 +42,14 @@ from torch.nn.functional import cross_entropy
 
 from app.core.bounds import Count, Epochs, Metres, Rate, Seconds, Seed, Threads
 from app.core.progress import Progress
-from app.core.settings import get_settings
-from app.io import open_survey
-from app.io.survey import Survey
 from app.metrics.classification import confusion_matrix, scores_from_confusion
-from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.evaluation import reference
-from app.pipelines.phantom.model import save_model
 from app.pipelines.phantom.network import CLASS_NAMES, PillarCNN
-from app.pipelines.phantom.priors import class_priors
 from app.pipelines.phantom.training.dataset import (
     N_CLASSES,
-    LabelledMap,
     Samples,
-    balanced,
-    concatenate,
-    frame_windows,
-    labelled_map_from_survey,
-    pillar_samples,
 )
-from app.simulate.survey import SimulationConfig, simulate
 
-SIM_PRESETS = ("urban", "highway", "mixed")
 Channels = Annotated[int, Field(ge=1, le=1024)]  # width of a network layer
 
 
@@ -371,159 +356,3 @@ def model_card(
         "torch": str(torch.__version__),
         "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
-
-
-def _sim_folder(cache_dir: Path, scene: str, length: float, seed: int, scanner: str) -> Path:
-    variant = "-varied" if scanner == "hdl64" else ""
-    return cache_dir / f"sim-{scene}-{length:g}m-{scanner}{variant}-seed{seed}"
-
-
-def _merge_infos(infos: list[dict], fmt: str, path: Path) -> dict:
-    """One entry per map from its per-rotation entries (pillar counts of the first rotation)."""
-    first = infos[0]
-    samples = {name: sum(i["samples"][name] for i in infos) for name in CLASS_NAMES}
-    return {
-        "name": first["name"],
-        "format": fmt,
-        "path": str(path),
-        "points": first["points"],
-        "pillars": first["pillars"],
-        "judged_pillars": first["judged_pillars"],
-        "rotations_deg": [i["rotation_deg"] for i in infos],
-        "samples": samples,
-    }
-
-
-def _map_count(survey: Survey, config: TrainConfig) -> int:
-    """How many labelled maps `_maps_of` makes of the survey (counted without reading points)."""
-    if config.frames_per_map and not survey.is_map:
-        return math.ceil(len(survey.frames) / config.frames_per_map)
-    return 1
-
-
-def _maps_of(path: Path, fmt: str, config: TrainConfig) -> list[LabelledMap]:
-    """The labelled maps of one training survey: the whole survey, or its frame windows."""
-    lmap = labelled_map_from_survey(open_survey(path, fmt))
-    if config.frames_per_map and lmap.passes is not None:
-        return frame_windows(lmap, config.frames_per_map)
-    return [lmap]
-
-
-def build_training_set(
-    sim_seeds: list[int],
-    semantickitti: list[Path],
-    config: TrainConfig | None = None,
-    rng: np.random.Generator | None = None,
-    sim_length: float = 200.0,
-    cache_dir: Path | None = None,
-    phantom_config: PhantomConfig | None = None,
-    progress: Progress | None = None,
-) -> Samples:
-    """Class-balanced samples from simulated surveys and SemanticKITTI sequences.
-
-    Simulations (`config.scanner`, no camera; presets urban / highway / mixed cycled over the
-    seeds) are written once into `cache_dir` (default `<data dir>/cache/phantom-train`) and reused,
-    they are deterministic. Each map gives at most ceil(2 * per_class / maps) samples per class, so
-    that no map dominates; a class with fewer pillars than that is taken again from further random
-    rotations of the map (up to `config.rotations` in all). The pool is then `balanced`.
-    """
-    config = config or TrainConfig()
-    rng = rng if rng is not None else np.random.default_rng(config.seed)
-    phantom_config = phantom_config or PhantomConfig()
-    cache_dir = (
-        Path(cache_dir) if cache_dir is not None else get_settings().cache_dir / "phantom-train"
-    )
-    sources: list[tuple[Path, str]] = []
-    for i, seed in enumerate(sim_seeds):
-        scene = SIM_PRESETS[i % len(SIM_PRESETS)]
-        folder = _sim_folder(cache_dir, scene, sim_length, seed, config.scanner)
-        if not (folder / "ground_truth" / "simulation.json").is_file():
-            cache_dir.mkdir(parents=True, exist_ok=True)
-            if progress is not None:
-                progress(f"simulate {folder.name}", i / max(len(sim_seeds), 1))
-            sim = SimulationConfig(
-                scene=scene,
-                length=sim_length,
-                seed=seed,
-                scanner=config.scanner,
-                camera=False,
-                vary_scanner=config.scanner == "hdl64",  # rotating scanners differ: draw one
-            )
-            simulate(sim, folder, overwrite=True)
-        sources.append((folder, "sim"))
-    sources += [(Path(p), "semantickitti") for p in semantickitti]
-    if not sources:
-        raise ValueError("no training data: give simulation seeds or SemanticKITTI sequences")
-    maps = sum(_map_count(open_survey(path, fmt), config) for path, fmt in sources)
-    cap = max(1, math.ceil(2 * config.per_class / maps))
-    parts: list[Samples] = []
-    infos: list[dict] = []
-    for k, (path, fmt) in enumerate(sources):
-        if progress is not None:
-            progress(f"samples {path.name}", k / len(sources))
-        for lmap in _maps_of(path, fmt, config):
-            taken = np.zeros(N_CLASSES, dtype=np.int64)
-            map_infos = []
-            for _ in range(config.rotations):
-                want = {c: int(max(cap - taken[c], 0)) for c in range(N_CLASSES)}
-                if not any(want.values()):
-                    break
-                part = pillar_samples(
-                    lmap, phantom_config, rng, rotate=True, max_per_class=want,
-                    context=config.context > 0, passes=config.passes,
-                )  # fmt: skip
-                taken += np.bincount(part.y, minlength=N_CLASSES)
-                map_infos += part.sources
-                parts.append(part)
-            infos.append(_merge_infos(map_infos, fmt, path))
-    pool = concatenate(parts)
-    del parts
-    out = balanced(pool, config.per_class, rng)
-    out.sources = infos
-    return out
-
-
-def train_phantom_model(
-    out: Path,
-    sim_seeds: list[int],
-    semantickitti: list[Path],
-    train_config: TrainConfig | None = None,
-    progress: Progress | None = None,
-    sim_length: float = 200.0,
-    cache_dir: Path | None = None,
-) -> dict:
-    """Build the training set, train, write the checkpoint and its card; returns the card."""
-    config = train_config or TrainConfig()
-    if config.threads:
-        torch.set_num_threads(config.threads)
-    started = time.perf_counter()
-    samples = build_training_set(
-        sim_seeds,
-        semantickitti,
-        config,
-        np.random.default_rng(config.seed),
-        sim_length=sim_length,
-        cache_dir=cache_dir,
-        progress=progress,
-    )
-    build_seconds = time.perf_counter() - started
-    result = train(samples, config, progress)
-    card = {
-        **result.card,
-        "build_seconds": round(build_seconds, 1),
-        "simulation": {
-            "seeds": list(sim_seeds),
-            "presets": [SIM_PRESETS[i % len(SIM_PRESETS)] for i in range(len(sim_seeds))],
-            "length_m": sim_length,
-            "scanner": config.scanner,
-        },
-        "threads": torch.get_num_threads(),
-    }
-    judged = np.zeros(N_CLASSES)
-    for source in samples.sources:
-        judged += [source["judged_pillars"][name] for name in CLASS_NAMES]
-    card["class_priors"] = class_priors(judged).round(5).tolist()
-    save_model(Path(out), result.net, card)
-    if progress is not None:
-        progress("done", 1.0)
-    return card
