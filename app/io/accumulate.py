@@ -17,7 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from app.io.survey import Survey
+from app.core.errors import InputError
+from app.io.survey import Frame, Survey
 
 
 @dataclass
@@ -95,7 +96,7 @@ def accumulate(
             values = cloud.intensity
             intensities.append(None if values is None else np.asarray(values, np.float32))
         if with_reference and survey.reference_label_kinds:
-            refs.append(frame.reference_labels())
+            refs.append(_checked_reference(survey, frame, len(xyz)))
     if not clouds:
         local = origin is not None
         return AccumulatedMap(
@@ -117,6 +118,19 @@ def accumulate(
         world_xy=np.concatenate(world_xy) if origin is not None else None,
         passes=scanner_passes(survey, [len(c) for c in clouds], times) if with_passes else None,
     )
+
+
+def _checked_reference(survey: Survey, frame: Frame, points: int) -> dict[str, np.ndarray]:
+    """The frame's reference labels, one per point (a label file of another length is an
+    error naming the frame, never a silently shifted label)."""
+    reference = frame.reference_labels()
+    for name, values in reference.items():
+        if len(values) != points:
+            raise InputError(
+                frame.source_path or survey.source,
+                f"frame {frame.frame_id} has {points} points and {len(values)} {name} labels",
+            )
+    return reference
 
 
 PASS_SECONDS = 0.1  # a map's point times are binned into passes this long (one revolution)

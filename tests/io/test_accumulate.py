@@ -91,3 +91,20 @@ def test_a_survey_without_frames_gives_empty_maps() -> None:
     kept, gone = kept_and_removed(empty, [], 0.3)
     same(kept.source_frame, np.zeros(0, np.uint32))
     same(gone.source_index, np.zeros(0, np.uint32))
+
+
+def test_a_label_file_of_another_length_names_its_frame() -> None:
+    from app.core.errors import InputError
+    from app.io.survey import Frame, PointCloud
+
+    frames = [
+        Frame(
+            i, f"{i:06d}", np.eye(4),
+            _load_points=lambda: PointCloud(np.zeros((5, 3))),
+            _load_reference=lambda i=i: {"semantic": np.zeros(5 if i == 0 else 4, np.uint32)},
+        )
+        for i in range(2)
+    ]  # fmt: skip
+    survey = Survey("s", Path("/s"), "sim", frames, reference_label_kinds=("semantic",))
+    with pytest.raises(InputError, match="frame 000001 has 5 points and 4 semantic labels"):
+        accumulate(survey, with_reference=True)

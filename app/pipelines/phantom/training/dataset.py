@@ -27,6 +27,7 @@ import torch
 
 from app.core.labels import PillarClass
 from app.geometry.ground import estimate_ground
+from app.io.accumulate import accumulate
 from app.io.survey import Survey
 from app.pipelines.phantom.classify import band_tensor, window_tensor
 from app.pipelines.phantom.config import PhantomConfig
@@ -54,32 +55,18 @@ class LabelledMap:
 
 def labelled_map_from_survey(survey: Survey) -> LabelledMap:
     """Every frame's world points and reference labels, accumulated (sim, semantickitti)."""
-    xyz, semantic, moving, passes = [], [], [], []
-    for index, frame in enumerate(survey.frames):
-        reference = frame.reference_labels()
-        if "semantic" not in reference:
-            raise ValueError(
-                f"survey {survey.name}: frame {frame.frame_id} has no reference labels"
-            )
-        points = frame.world_points().xyz
-        static, mov = static_and_moving(reference)
-        if len(static) != len(points):
-            raise ValueError(
-                f"survey {survey.name}: frame {frame.frame_id} has {len(points)} points "
-                f"and {len(static)} labels"
-            )
-        xyz.append(points)
-        semantic.append(static)
-        moving.append(mov)
-        passes.append(np.full(len(points), index, dtype=np.int64))
-    if not xyz:
+    if not len(survey.frames):
         raise ValueError(f"survey {survey.name} has no frames")
+    amap = accumulate(survey, with_reference=True, with_passes=True)
+    if "semantic" not in amap.reference:
+        raise ValueError(f"survey {survey.name}: its frames have no semantic reference labels")
+    semantic, moving = static_and_moving(amap.reference)
     return LabelledMap(
-        xyz=np.concatenate(xyz),
-        semantic=np.concatenate(semantic),
-        moving=np.concatenate(moving),
+        xyz=amap.xyz,
+        semantic=semantic,
+        moving=moving,
         source=survey.name,
-        passes=None if survey.is_map else np.concatenate(passes),
+        passes=None if survey.is_map else amap.passes,
     )
 
 
