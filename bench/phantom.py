@@ -135,6 +135,7 @@ def main() -> int:
         "--passes", action="store_true", help="kitti: time as evidence (scanner passes channel)"
     )
     parser.add_argument("--kitti-sim-seeds", type=int, default=12, help="kitti: HDL-64E drives")
+    parser.add_argument("--keep-models", default="", help="kitti: copy the trained models here")
     args = parser.parse_args()
     parts = {"speed": part_speed, "memory": part_memory}
     if args.part not in parts:

@@ -4,6 +4,7 @@ leave-one-sequence-out, and training time (see bench/phantom.py for the usage)."
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
 import time
 from pathlib import Path
@@ -180,18 +181,24 @@ def part_kitti(args) -> tuple[str, str, str]:
     sim_seeds = list(ROTATING_SIM_SEEDS[: args.kitti_sim_seeds])
     summary, details = [], []
     started = time.perf_counter()
+    tmp = tempfile.TemporaryDirectory()
     for held in held_out:
         for choice in choices:
             seeds = sim_seeds if "sim" in choice else []
             others = [real / s for s in KITTI if s != held] if "real" in choice else []
-            config = kitti_train_config(args)
             clock = time.perf_counter()
-            with tempfile.TemporaryDirectory() as tmp:
-                model = Path(tmp) / "loso.pt"
-                train_phantom_model(model, seeds, others, config, sim_length=ROTATING_SIM_LENGTH)
-                pipeline = PhantomPipeline(PhantomConfig(), model)
-                tally = Tally()
-                tally.add(pipeline.run(open_survey(real / held, "semantickitti")))
+            # the sim-only model sees no real sequence: one model serves every held-out one
+            model = Path(tmp.name) / ("sim.pt" if choice == "sim" else f"{held}-{choice}.pt")
+            if not model.is_file():
+                train_phantom_model(
+                    model, seeds, others, kitti_train_config(args), sim_length=ROTATING_SIM_LENGTH
+                )
+            if args.keep_models:
+                Path(args.keep_models).mkdir(parents=True, exist_ok=True)
+                shutil.copy(model, Path(args.keep_models) / model.name)
+            pipeline = PhantomPipeline(PhantomConfig(), model)
+            tally = Tally()
+            tally.add(pipeline.run(open_survey(real / held, "semantickitti")))
             pillar, point = tally.phantom_scores()
             summary.append(
                 [held, choice, *(f"{v:.1f}" for v in (*point, *pillar)),
@@ -201,6 +208,7 @@ def part_kitti(args) -> tuple[str, str, str]:
                 f"Sequence {held}, trained on {choice}:\n\n{tally.table_one()}\n\n"
                 f"{tally.table_two()}"
             )
+    tmp.cleanup()
     header = ["held out", "trained on", "point P", "point R", "point F", "pillar P",
               "pillar R", "pillar F", "s"]  # fmt: skip
     table = markdown_table(header, summary) + "\n\n" + "\n\n".join(details)
