@@ -11,6 +11,8 @@
             rotating scanner: per held-out sequence (--kitti-held) and training data
             (--kitti-sources: sim = simulated HDL-64E drives, real = the two other sequences,
             sim+real); --passes adds time as evidence (distinct scanner passes per voxel)
+  rotating-sim  a rotating-scanner model (--model) on held-out simulated drives (seeds
+            691-693, scanners drawn from the seed), cut into 10-frame maps
   train     training time on 40k pillars (10k per class) to the paper's validation F; writes the
             checkpoint (--model; default the shipped file of the network trained: --context 16, the
             default, or --context 0 for the paper network); --sim-seeds chooses the maps
@@ -111,7 +113,8 @@ def part_memory(args) -> tuple[str, str, str]:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
-        "part", choices=["speed", "memory", "accuracy", "validation", "kitti", "train"]
+        "part",
+        choices=["speed", "memory", "accuracy", "validation", "kitti", "rotating-sim", "train"],
     )
     parser.add_argument("--model", type=Path, default=None, help="checkpoint (default: shipped)")
     parser.add_argument("--no-record", action="store_true")
