@@ -61,3 +61,13 @@ def test_a_forced_model_runs_and_is_flagged_off_domain(untimed_map: Path, tmp_pa
     assert "off-domain: a model for profile scanners ran on a rotating-scanner survey" in (
         result.stderr
     )
+
+
+def test_real_rotating_data_trains_only_a_rotating_model(real_data: Path, tmp_path: Path) -> None:
+    sequence = real_data / "semantickitti" / "sequences" / "05"
+    result = mmsclean(
+        "train", "phantom", "--semantickitti", str(sequence), "-o", str(tmp_path / "m.pt")
+    )
+    assert_one_line_error(result, "--semantickitti", "--sensor rotating")
+    bad = mmsclean("train", "phantom", "--sensor", "lidar", "-o", str(tmp_path / "m.pt"))
+    assert_one_line_error(bad, "--sensor")

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from app.core.progress import Progress
+from app.core.sensors import SensorKind, kind_of_scanner
 from app.core.settings import get_settings
 from app.io import open_survey
 from app.io.survey import Survey
@@ -34,6 +35,21 @@ from app.pipelines.phantom.training.train import TrainConfig, train
 from app.simulate.survey import SimulationConfig, simulate
 
 SIM_PRESETS = ("urban", "highway", "mixed")
+
+
+def training_sensor_kind(
+    sim_seeds: list[int], semantickitti: list[Path], config: TrainConfig
+) -> SensorKind:
+    """The one scanner kind a model is trained for: the simulator's scanner, and SemanticKITTI
+    sequences are HDL-64E (rotating). Kinds are never mixed: mixed with profile scans, a model
+    called the parked cars of the profile scans phantoms."""
+    sim_kind = kind_of_scanner(config.scanner) if sim_seeds else None
+    if semantickitti and sim_kind is SensorKind.PROFILE:
+        raise ValueError(
+            "SemanticKITTI sequences are rotating-scanner (HDL-64E) data: train them with "
+            "simulated rotating drives (scanner hdl64), not with profile-scanner surveys"
+        )
+    return SensorKind.ROTATING if semantickitti else (sim_kind or SensorKind.UNKNOWN)
 
 
 def _sim_folder(cache_dir: Path, scene: str, length: float, seed: int, scanner: str) -> Path:
@@ -157,6 +173,7 @@ def train_phantom_model(
 ) -> dict:
     """Build the training set, train, write the checkpoint and its card; returns the card."""
     config = train_config or TrainConfig()
+    kind = training_sensor_kind(sim_seeds, semantickitti, config)
     if config.threads:
         torch.set_num_threads(config.threads)
     started = time.perf_counter()
@@ -173,6 +190,7 @@ def train_phantom_model(
     result = train(samples, config, progress)
     card = {
         **result.card,
+        "sensor_kind": kind.value,
         "build_seconds": round(build_seconds, 1),
         "simulation": {
             "seeds": list(sim_seeds),
