@@ -284,6 +284,19 @@ def test_version_1_database_is_upgraded_to_2_keeping_labels(
     engine.dispose()
 
 
+def _upgraded(
+    old: Engine, db_path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> tuple[Engine, Engine]:
+    """The old database migrated by the real migrations, and a new database to compare with."""
+    old.dispose()
+    monkeypatch.undo()
+    engine = make_engine(f"sqlite:///{db_path}")
+    assert init_db(engine) == SCHEMA_VERSION
+    fresh = make_engine(f"sqlite:///{tmp_path / 'fresh.sqlite3'}")
+    init_db(fresh)
+    return engine, fresh
+
+
 def _columns(engine: Engine, table: str) -> list[tuple]:
     with engine.connect() as conn:
         return [tuple(r) for r in conn.exec_driver_sql(f"PRAGMA table_info({table})")]
@@ -307,12 +320,7 @@ def test_version_2_database_gets_login_sessions_and_throttling(
             " role, is_active) VALUES (1, '2026-01-01', '2026-01-01', 1, 'ann', 'x',"
             " 'annotator', 1)"
         )
-    old.dispose()
-    monkeypatch.undo()
-    engine = make_engine(f"sqlite:///{db_path}")
-    assert init_db(engine) == SCHEMA_VERSION
-    fresh = make_engine(f"sqlite:///{tmp_path / 'fresh.sqlite3'}")
-    init_db(fresh)
+    engine, fresh = _upgraded(old, db_path, tmp_path, monkeypatch)
     for table in V3_TABLES:
         assert _columns(engine, table) == _columns(fresh, table)
     fresh.dispose()
@@ -356,12 +364,7 @@ def test_version_3_database_gets_tombstones_edit_versions_and_issued_ids(
             "INSERT INTO pillar_edit (batch_id, cell_id, before_label, after_label)"
             " VALUES (1, 2, NULL, 2)"
         )
-    old.dispose()
-    monkeypatch.undo()
-    engine = make_engine(f"sqlite:///{db_path}")
-    assert init_db(engine) == SCHEMA_VERSION
-    fresh = make_engine(f"sqlite:///{tmp_path / 'fresh.sqlite3'}")
-    init_db(fresh)
+    engine, fresh = _upgraded(old, db_path, tmp_path, monkeypatch)
     for table in (*V4_TABLES, "pillar_edit"):
         assert _columns(engine, table) == _columns(fresh, table)
     fresh.dispose()
@@ -408,12 +411,7 @@ def test_version_4_database_gets_sensor_kinds(
             " checkpoint_path, metrics, trained_on, is_promoted) VALUES (1, '2026-01-01',"
             " '2026-01-01', 1, 'phantom', 'shipped:x.pt', '/x.pt', '{}', '{}', 1)"
         )
-    old.dispose()
-    monkeypatch.undo()
-    engine = make_engine(f"sqlite:///{db_path}")
-    assert init_db(engine) == SCHEMA_VERSION
-    fresh = make_engine(f"sqlite:///{tmp_path / 'fresh.sqlite3'}")
-    init_db(fresh)
+    engine, fresh = _upgraded(old, db_path, tmp_path, monkeypatch)
     for table in ("survey", "model_version"):  # same columns; added ones come last
         by_name = {c[1]: c[2:] for c in _columns(engine, table)}
         assert by_name == {c[1]: c[2:] for c in _columns(fresh, table)}
