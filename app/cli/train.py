@@ -12,11 +12,19 @@ from app.cli.common import config_from_options, console, seed_list, sensor_kind,
 train_app = typer.Typer(help="Train a pipeline's model.")
 
 
-# what `--sensor` trains by default: where the checkpoint goes, the simulated drives, and how
-# maps are cut (rotating: 10-frame maps like the real sequences, time as evidence on)
+# what `--sensor` trains by default (the shipped models' recipes): where the checkpoint goes,
+# the simulated drives and their length, how maps are cut (rotating: 10-frame maps like the
+# real sequences, time as evidence on), pillars per class, epochs
 PHANTOM_DEFAULTS = {
-    "profile": ("models/phantom/phantom_cnn_context.pt", "101-110,114-200,204-250", 200.0, 0),
-    "rotating": ("models/phantom/phantom_rotating.pt", "601-636", 60.0, 10),
+    "profile": (
+        "models/phantom/phantom_cnn_context.pt",
+        "101-110,114-200,204-250",
+        200.0,
+        0,
+        20_000,
+        10,
+    ),
+    "rotating": ("models/phantom/phantom_rotating.pt", "601-612", 60.0, 10, 3_000, 6),
 }
 
 
@@ -39,8 +47,10 @@ def train_phantom(
     semantickitti: Annotated[
         list[Path] | None, typer.Option(help="SemanticKITTI sequence folder (repeatable)")
     ] = None,
-    per_class: Annotated[int, typer.Option(help="pillars per class (paper: 10,000)")] = 20_000,
-    epochs: Annotated[int, typer.Option(help="training epochs")] = 10,
+    per_class: Annotated[
+        int | None, typer.Option(help="pillars per class (paper: 10,000; default by kind)")
+    ] = None,
+    epochs: Annotated[int | None, typer.Option(help="training epochs (default by kind)")] = None,
     folds_to_run: Annotated[int, typer.Option(help="folds of the 5-fold split to train")] = 1,
     seed: Annotated[int, typer.Option(help="sampling / initialisation seed")] = 0,
     context: Annotated[
@@ -62,7 +72,14 @@ def train_phantom(
 
     kind = sensor_kind(sensor)
     assert kind is not None
-    default_out, default_seeds, default_length, frames_per_map = PHANTOM_DEFAULTS[kind.value]
+    (
+        default_out,
+        default_seeds,
+        default_length,
+        frames_per_map,
+        default_per_class,
+        default_epochs,
+    ) = PHANTOM_DEFAULTS[kind.value]
     seeds = seed_list("--sim-seeds", sim_seeds if sim_seeds is not None else default_seeds)
     for folder in semantickitti or []:
         if not (folder / "velodyne").is_dir():
@@ -73,8 +90,8 @@ def train_phantom(
         )
     config = config_from_options(
         TrainConfig,
-        per_class=per_class,
-        epochs=epochs,
+        per_class=per_class if per_class is not None else default_per_class,
+        epochs=epochs if epochs is not None else default_epochs,
         folds_to_run=folds_to_run,
         seed=seed,
         context=context,
@@ -95,27 +112,67 @@ def train_phantom(
     )
 
 
+# where `--sensor` writes by default; the simulated surveys it trains on by default are the
+# kind's in app.pipelines.guardrail.training.dataset.TRAINING_DATA (profile: seeds 401-409,
+# validation 410-412, 100 m; rotating: HDL-64E-class scanners drawn from seeds 701-708,
+# validation 781-782, 40 m)
+GUARDRAIL_DEFAULTS = {
+    "profile": "models/guardrail/slice_classifier.pt",
+    "rotating": "models/guardrail/slice_classifier_rotating.pt",
+}
+
+
 @train_app.command("guardrail")
 def train_guardrail(
-    out: Annotated[Path, typer.Option("--out", "-o", help="checkpoint to write (.pt)")] = Path(
-        "models/guardrail/slice_classifier.pt"
-    ),
-    sim_seeds: Annotated[str, typer.Option(help="training simulator seeds: 401-409")] = "401-409",
-    validation_seeds: Annotated[str, typer.Option(help="validation seeds")] = "410-412",
-    length: Annotated[float, typer.Option(help="metres per simulated survey")] = 100.0,
+    out: Annotated[
+        Path | None,
+        typer.Option("--out", "-o", help="checkpoint to write (.pt; default: the shipped one)"),
+    ] = None,
+    sensor: Annotated[
+        str, typer.Option(help="the scanner kind to train for: profile or rotating")
+    ] = "profile",
+    sim_seeds: Annotated[
+        str | None, typer.Option(help="training simulator seeds: 401-409 (default by kind)")
+    ] = None,
+    validation_seeds: Annotated[
+        str | None, typer.Option(help="validation seeds (default by kind)")
+    ] = None,
+    length: Annotated[
+        float | None, typer.Option(help="metres per simulated survey (default by kind)")
+    ] = None,
     epochs: Annotated[int, typer.Option(help="epochs of the classifier heads")] = 60,
+    default_head: Annotated[
+        str | None,
+        typer.Option(
+            help="the head runs use unless told: image+geometry, image, geometry "
+            "(default by kind: the one that holds on real data)"
+        ),
+    ] = None,
 ) -> None:
-    """Train the guardrail slice classifier on simulated surveys (camera crops + geometry)."""
-    from app.pipelines.guardrail.training.train import train_guardrail_model
+    """Train the guardrail slice classifier for one scanner kind on simulated surveys (camera
+    crops + geometry; rotating: HDL-64E-class scanners drawn from the seed)."""
+    from app.core.errors import ConfigError
+    from app.pipelines.guardrail.training.train import HEAD_INPUTS, train_guardrail_model
 
-    seeds, validation = (
-        seed_list("--sim-seeds", sim_seeds),
-        seed_list("--validation-seeds", validation_seeds),
+    kind = sensor_kind(sensor)
+    assert kind is not None
+    seeds = seed_list("--sim-seeds", sim_seeds) if sim_seeds is not None else None
+    validation = (
+        seed_list("--validation-seeds", validation_seeds) if validation_seeds is not None else None
     )
+    if default_head is not None and default_head not in HEAD_INPUTS:
+        raise ConfigError("--default-head", f"{default_head!r}: use {', '.join(HEAD_INPUTS)}")
+    out = out or Path(GUARDRAIL_DEFAULTS[kind.value])
     with stage_progress("training") as progress:
-        card = train_guardrail_model(out, seeds, validation, length, epochs, progress)
+        try:
+            card = train_guardrail_model(
+                out, seeds, validation, length, epochs, progress,
+                sensor=kind.value, default_head=default_head,  # type: ignore[arg-type]
+            )  # fmt: skip
+        except ValueError as exc:  # held-out seeds
+            raise ConfigError("--sim-seeds", str(exc)) from None
     scores = card["validation"]["scores"]
     console.print(
-        f"{out}: validation slice F "
-        + ", ".join(f"{name} {s['f1']:.1f}" for name, s in scores.items())
+        f"{out} ({card['sensor_kind']}, default head {card['default_head']}): validation "
+        "slice F " + ", ".join(f"{name} {s['f1']:.1f}" for name, s in scores.items())
     )
