@@ -37,6 +37,20 @@ from app.simulate.survey import SimulationConfig, simulate
 SIM_PRESETS = ("urban", "highway", "mixed")
 
 
+def street_priors(sources: list[dict]) -> tuple[list[float], str]:
+    """The class frequencies of the classified pillars the pipeline moves its softmax to
+    (priors.py): of the real training maps when there are any, else of all maps. Simulated
+    traffic is denser than a real street's: with the priors of the simulated 10-frame drives
+    (31.6 % phantom pillars) the model called 13 times as many phantoms as there were on a
+    real sequence it never saw."""
+    real = [s for s in sources if s.get("format") != "sim"]
+    judged = np.zeros(N_CLASSES)
+    for source in real or sources:
+        judged += [source["judged_pillars"][name] for name in CLASS_NAMES]
+    origin = "real training maps" if real else "all training maps"
+    return class_priors(judged).round(5).tolist(), origin
+
+
 def training_sensor_kind(
     sim_seeds: list[int], semantickitti: list[Path], config: TrainConfig
 ) -> SensorKind:
@@ -200,10 +214,7 @@ def train_phantom_model(
         },
         "threads": torch.get_num_threads(),
     }
-    judged = np.zeros(N_CLASSES)
-    for source in samples.sources:
-        judged += [source["judged_pillars"][name] for name in CLASS_NAMES]
-    card["class_priors"] = class_priors(judged).round(5).tolist()
+    card["class_priors"], card["class_priors_from"] = street_priors(samples.sources)
     save_model(Path(out), result.net, card)
     if progress is not None:
         progress("done", 1.0)
