@@ -48,3 +48,14 @@ def test_off_domain_is_reported() -> None:
     assert report["off_domain"] and "off-domain" in report["warning"]
     same = ModelChoice(DEFAULT_MODEL, SensorKind.PROFILE, SensorKind.PROFILE, forced=True)
     assert "warning" not in same.report()
+
+
+def test_a_semantickitti_sequence_gets_the_rotating_model_by_itself(real_data: Path) -> None:
+    from app.io import open_survey
+    from app.pipelines.phantom.model import ROTATING_MODEL, SHIPPED, read_card
+    from app.pipelines.sensor_models import choose_model
+
+    survey = open_survey(real_data / "semantickitti" / "sequences" / "05", "semantickitti")
+    choice = choose_model("phantom", SHIPPED, survey, read_card)
+    assert choice.path == ROTATING_MODEL and not choice.forced and not choice.off_domain
+    assert card_sensor_kind(read_card(ROTATING_MODEL)) == SensorKind.ROTATING
