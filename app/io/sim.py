@@ -93,4 +93,5 @@ def read_sim(source: Path) -> Survey:
         poses_estimated=False,
         reference_label_kinds=REFERENCE_KINDS,
         scanner=info.get("scanner"),
+        scanner_params=info.get("scanner_params"),
     )

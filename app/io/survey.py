@@ -14,6 +14,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -121,6 +122,9 @@ class Survey:
     reference_label_kinds: tuple[str, ...] = ()  # e.g. ("semantic", "instance"); empty = none
     trajectory: np.ndarray | None = None  # (M, 4, 4) sensor poses when known, for maps
     scanner: str | None = None  # e.g. "hdl64", "profile"; None when unknown
+    # the scanner's parameters where the source records them (the simulator: beams, elevation
+    # range, azimuth step, rate), e.g. to put a varied rotating scanner's points on its lattice
+    scanner_params: dict[str, Any] | None = None
     # a map's first N points without reading the whole file (sensor-kind detection)
     sample_points: Callable[[int], PointCloud] | None = field(default=None, repr=False)
 

@@ -18,7 +18,9 @@ Lattices:
     azimuth crosses from negative to non-negative in front of the car (x > 0); checked on the
     real KITTI raw and SemanticKITTI scans in `../shared/data` (exactly 63 such crossings per
     scan, ring elevations strictly decreasing);
-  - otherwise the elevation angle, snapped to the nearest beam elevation (`elevations`). The
+  - otherwise the elevation angle, snapped to the nearest beam elevation (`elevations`: the
+    survey's recorded scanner parameters where it has them, as the simulator's varied rotating
+    scanners do, 32 or 64 beams and 0.09-0.35 degree steps; HDL-64E's otherwise). The
     simulator (and KITTI) deliver motion-compensated scans: the sensor moved up to ~0.5 m during
     the sweep, which bends near elevations by several beams, so when the points have times the
     ray is taken from the sensor position at the point's time (frame poses interpolated) to the
@@ -158,6 +160,22 @@ def rotating_frame_lattice(
     return ring, col
 
 
+def rotating_layout(survey: Survey) -> tuple[np.ndarray, int, float]:
+    """(beam elevations in degrees, azimuth columns, revolutions per second) of the survey's
+    rotating scanner: its recorded parameters (`Survey.scanner_params`, beams spaced uniformly
+    as the simulator's are), else HDL-64E's. A 32-beam or coarser scanner put on HDL-64E's
+    lattice breaks its surfaces into thousands of fragments (the wireframe misses the
+    neighbours)."""
+    p = survey.scanner_params or {}
+    if not {"beams", "elevation_max_deg", "elevation_min_deg", "azimuth_step_deg"} <= p.keys():
+        return HDL64_ELEVATIONS_DEG, HDL64_COLUMNS, HDL64_RATE_HZ
+    elevations = np.linspace(
+        float(p["elevation_max_deg"]), float(p["elevation_min_deg"]), int(p["beams"])
+    )
+    columns = int(round(360.0 / float(p["azimuth_step_deg"])))
+    return elevations, columns, float(p.get("rate_hz", HDL64_RATE_HZ))
+
+
 def _clock_offset(frames: list, times: list[np.ndarray | None]) -> float:
     """Seconds to add to the points' times to get the frames' timestamps (0 when they agree).
 
@@ -188,18 +206,23 @@ def load_scan_points(
     frames: list[int] | None = None,
     profiles_per_s: float = PROFILE_RATE_HZ,
     points_per_s: float = PROFILE_POINTS_PER_S,
-    elevations_deg: np.ndarray = HDL64_ELEVATIONS_DEG,
-    columns: int = HDL64_COLUMNS,
-    rate_hz: float = HDL64_RATE_HZ,
+    elevations_deg: np.ndarray | None = None,
+    columns: int | None = None,
+    rate_hz: float | None = None,
     motion_compensated: bool = True,
 ) -> ScanPoints:
     """Every point of the survey in world coordinates, with its lattice cell when recoverable.
 
     `scanner` defaults to `survey.scanner`. Profile: needs per-point times. HDL-64 (or an
     unknown scanner on a multi-frame survey): rings from point order or elevation, columns from
-    time or azimuth. A single accumulated map without a profile scanner's times gets no lattice.
+    time or azimuth; the beams, columns and rate not given come from `rotating_layout`. A
+    single accumulated map without a profile scanner's times gets no lattice.
     """
     scanner = scanner or survey.scanner  # type: ignore[assignment]
+    layout = rotating_layout(survey)
+    elevations_deg = layout[0] if elevations_deg is None else elevations_deg
+    columns = layout[1] if columns is None else columns
+    rate_hz = layout[2] if rate_hz is None else rate_hz
     picked = list(range(len(survey))) if frames is None else list(frames)
     clouds = [survey.frames[i].points() for i in picked]
     times = [c.time for c in clouds]
