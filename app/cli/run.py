@@ -143,8 +143,12 @@ def run_guardrail(
         typer.Option(help="classifier checkpoint (default: shipped, for the sensor kind)"),
     ] = None,
     head: Annotated[
-        str, typer.Option(help="classifier inputs: image+geometry, image (the paper), geometry")
-    ] = "image+geometry",
+        str | None,
+        typer.Option(
+            help="classifier inputs: image+geometry, image (the paper), geometry "
+            "(default: the model's, from its card)"
+        ),
+    ] = None,
     reconstruct: Annotated[bool, typer.Option(help="model the guardrails as meshes")] = True,
     sensor: SensorOption = None,
 ) -> None:

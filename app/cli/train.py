@@ -11,6 +11,14 @@ from app.cli.common import config_from_options, console, seed_list, sensor_kind,
 
 train_app = typer.Typer(help="Train a pipeline's model.")
 
+OutOption = Annotated[
+    Path | None,
+    typer.Option("--out", "-o", help="checkpoint to write (.pt; default: the shipped one)"),
+]
+KindOption = Annotated[
+    str, typer.Option("--sensor", help="the scanner kind to train for: profile or rotating")
+]
+
 
 # what `--sensor` trains by default (the shipped models' recipes): where the checkpoint goes,
 # the simulated drives and their length, how maps are cut (rotating: 10-frame maps like the
@@ -30,13 +38,8 @@ PHANTOM_DEFAULTS = {
 
 @train_app.command("phantom")
 def train_phantom(
-    out: Annotated[
-        Path | None,
-        typer.Option("--out", "-o", help="checkpoint to write (.pt; default: the shipped one)"),
-    ] = None,
-    sensor: Annotated[
-        str, typer.Option(help="the scanner kind to train for: profile or rotating")
-    ] = "profile",
+    out: OutOption = None,
+    sensor: KindOption = "profile",
     sim_seeds: Annotated[
         str | None,
         typer.Option(help="simulator seeds: 101,102 or 101-110 (presets cycle; default by kind)"),
@@ -114,8 +117,8 @@ def train_phantom(
 
 # where `--sensor` writes by default; the simulated surveys it trains on by default are the
 # kind's in app.pipelines.guardrail.training.dataset.TRAINING_DATA (profile: seeds 401-409,
-# validation 410-412, 100 m; rotating: HDL-64E-class scanners drawn from seeds 701-708,
-# validation 781-782, 40 m)
+# validation 410-412, 100 m; rotating: HDL-64E-class scanners drawn from seeds 701-709,
+# validation 781-782, 30 m)
 GUARDRAIL_DEFAULTS = {
     "profile": "models/guardrail/slice_classifier.pt",
     "rotating": "models/guardrail/slice_classifier_rotating.pt",
@@ -124,13 +127,8 @@ GUARDRAIL_DEFAULTS = {
 
 @train_app.command("guardrail")
 def train_guardrail(
-    out: Annotated[
-        Path | None,
-        typer.Option("--out", "-o", help="checkpoint to write (.pt; default: the shipped one)"),
-    ] = None,
-    sensor: Annotated[
-        str, typer.Option(help="the scanner kind to train for: profile or rotating")
-    ] = "profile",
+    out: OutOption = None,
+    sensor: KindOption = "profile",
     sim_seeds: Annotated[
         str | None, typer.Option(help="training simulator seeds: 401-409 (default by kind)")
     ] = None,

@@ -277,11 +277,18 @@ def _slice_samples(
         )
 
 
-def pipeline_scores(heads: dict[str, SliceHead], samples: SliceSamples, has_crop: np.ndarray):
-    """Guardrail-slice scores as the pipeline predicts: the image+geometry head where a camera
-    crop shows the slice, the geometry head elsewhere."""
+def pipeline_scores(
+    heads: dict[str, SliceHead],
+    samples: SliceSamples,
+    has_crop: np.ndarray,
+    head: str = "image+geometry",
+):
+    """Guardrail-slice scores as the pipeline predicts with `head` (the model's default): that
+    head where a camera crop shows the slice (or the head needs none), the geometry head
+    elsewhere."""
     guess = np.zeros(len(samples.label), dtype=bool)
-    for name, where in (("image+geometry", has_crop), ("geometry", ~has_crop)):
+    with_head = has_crop if "image" in head else np.ones(len(samples.label), dtype=bool)
+    for name, where in ((head, with_head), ("geometry", ~with_head)):
         if where.any():
             probability = predict(heads[name], samples.embedding[where], samples.geometry[where])
             guess[where] = probability[:, 1] >= 0.5
@@ -336,10 +343,12 @@ def train_guardrail(context: JobContext, config: dict[str, Any]) -> dict[str, An
             new_heads[name] = head
             continue
         new_heads[name] = fit_head(
-            subset, name, epochs=cfg.epochs, lr=cfg.lr, seed=cfg.seed, initial=head
-        )
-    new_scores = pipeline_scores(new_heads, val_set, val_crop)
-    base_scores = pipeline_scores(heads, val_set, val_crop)
+            subset, name, epochs=cfg.epochs, lr=cfg.lr, seed=cfg.seed, initial=head,
+            balance=float(base_card.get("training", {}).get("class_balance", 1.0)),
+        )  # fmt: skip
+    default_head = base_card.get("default_head", "image+geometry")
+    new_scores = pipeline_scores(new_heads, val_set, val_crop, default_head)
+    base_scores = pipeline_scores(heads, val_set, val_crop, default_head)
     promote = (new_scores["f1"], new_scores["accuracy"]) >= (
         base_scores["f1"],
         base_scores["accuracy"],

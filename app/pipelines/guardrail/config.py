@@ -306,8 +306,10 @@ class ReconstructionConfig(_Group):
 
 class GuardrailConfig(BaseModel):
     spacing: Resolution = Field(0.5, description="metres: slice length along the trajectory")
-    head: Literal["image+geometry", "image", "geometry"] = Field(
-        "image+geometry", description="classifier inputs: image (the paper), geometry, or both"
+    head: Literal["image+geometry", "image", "geometry"] | None = Field(
+        None,
+        description="classifier inputs: image (the paper), geometry, or both; "
+        "default: the model's (its card's default_head)",
     )
     threshold: Share = Field(0.5, gt=0, lt=1, description="guardrail probability to say yes")
     max_gap: Count = Field(2, ge=0, description="slices: other slices filled inside a run")

@@ -67,31 +67,26 @@ class GuardrailPipeline:
         self.config = config or GuardrailConfig()
         self.model_path = Path(model_path or DEFAULT_MODEL)
         self.heads, self.card = load_heads(self.model_path)
-        if self.config.head not in self.heads:
+        # the head asked for, else the model's default (the one that holds on real data)
+        self.head: str = self.config.head or self.card.get("default_head") or "image+geometry"
+        if self.head not in self.heads:
             from app.core.errors import ConfigError
 
             known = ", ".join(self.heads)
-            problem = f"{self.model_path} has no {self.config.head!r} head ({known})"
+            problem = f"{self.model_path} has no {self.head!r} head ({known})"
             raise ConfigError("head", problem)
 
     def run(self, survey: Survey, progress: Progress | None = None) -> GuardrailResult:
         cfg = self.config
         report = progress or no_progress
-        uses_image = "image" in cfg.head
+        uses_image = "image" in self.head
         encoder = CropEncoder() if uses_image and survey.cameras else None
         stage = prepare_slices(survey, encoder, cfg.spacing, report)
         clock = Stopwatch()
         with clock("classify"):
             report("classifier", 0.7)
-            probability = self.classify(stage)
-            raw = probability >= cfg.threshold
-            corrected = correct_labels(
-                stage.slices, raw, max_gap=cfg.max_gap, max_isolated=cfg.max_isolated
-            ).astype(bool)
-        point_slice = stage.slices.point_slice
-        point_labels = np.zeros(len(stage.points), dtype=np.uint8)
-        inside = point_slice >= 0
-        point_labels[inside] = corrected[point_slice[inside]]
+            probability, raw, corrected = self.label(stage)
+        point_labels = slice_point_labels(stage.slices, corrected)
         guardrails = self.instances(stage, corrected)
         if cfg.reconstruct:
             with clock("reconstruction"):
@@ -111,17 +106,31 @@ class GuardrailPipeline:
             [f.frame_id for f in frames], frame_sizes, timings,
         )  # fmt: skip
 
-    def classify(self, stage: SliceStage) -> np.ndarray:
-        """Guardrail probability per slice: the configured head where the slice has a crop (or
-        the head needs none), the geometry head elsewhere."""
+    def label(
+        self, stage: SliceStage, head: str | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(probability, raw, corrected) per slice: `classify`, the threshold, then the
+        adjacency correction."""
+        cfg = self.config
+        probability = self.classify(stage, head)
+        raw = probability >= cfg.threshold
+        corrected = correct_labels(
+            stage.slices, raw, max_gap=cfg.max_gap, max_isolated=cfg.max_isolated
+        ).astype(bool)
+        return probability, raw, corrected
+
+    def classify(self, stage: SliceStage, head: str | None = None) -> np.ndarray:
+        """Guardrail probability per slice: the head named (default: the run's, `self.head`)
+        where the slice has a crop (or the head needs none), the geometry head elsewhere."""
+        name = head or self.head
         k = len(stage.slices)
         probability = np.zeros(k)
-        head = self.heads[self.config.head]
-        needs_image = "image" in self.config.head
+        head_model = self.heads[name]
+        needs_image = "image" in name
         with_image = stage.has_crop if needs_image else np.ones(k, dtype=bool)
         if with_image.any():
             probability[with_image] = predict(
-                head, stage.embedding[with_image], stage.geometry[with_image]
+                head_model, stage.embedding[with_image], stage.geometry[with_image]
             )[:, 1]
         rest = ~with_image
         if rest.any():
@@ -137,6 +146,14 @@ class GuardrailPipeline:
         reconstruct_instance(
             stage.points.xyz, stage.trajectory, guardrail, self.config.reconstruction
         )
+
+
+def slice_point_labels(s: SliceSet, labels: np.ndarray) -> np.ndarray:
+    """(N,) uint8 per point the slices index: its slice's label, 0 outside every slice."""
+    out = np.zeros(len(s.point_slice), dtype=np.uint8)
+    inside = s.point_slice >= 0
+    out[inside] = labels[s.point_slice[inside]]
+    return out
 
 
 def group_guardrails(

@@ -115,6 +115,7 @@ def write_guardrail_folder(
         "model": {
             "path": str(pipeline.model_path),
             "created": pipeline.card.get("created"),
+            "head": pipeline.head,
             **model.report(),
         },
         "counts": {

@@ -1,6 +1,14 @@
 """Training slices from simulated surveys: the simulator knows which points are guardrail, so
 each slice gets its reference label (most of its points on a guardrail) for free.
 
+One set of simulated surveys per sensor kind (`TRAINING_DATA`), never mixed: `profile`
+(VQ-250-like profile scanner, seeds 401-412) and `rotating` (HDL-64E-class scanners drawn from
+the seed, `vary_scanner`: 32 / 64 beams, azimuth steps, mounting heights, noise, dropouts;
+seeds 701-709 and 781-782, 30 m each (sized so training fits 30 minutes on 2 cores),
+highway-heavy presets so beam and pipe guardrails and the median barrier appear as a rotating
+scanner sees them, a few rings at grazing angles). Each kind has its own held-out seeds
+(bench/guardrail.py only).
+
 Surveys and their slice samples are cached under `$MMSCLEAN_DATA_DIR/cache/guardrail-train`:
 the crop embeddings are the expensive part and never change for a given survey.
 """
@@ -39,43 +47,97 @@ class SliceSamples:
         )
 
 
-PRESETS = ("urban", "highway", "mixed")  # seeds cycle through them
-TRAIN_SEEDS = tuple(range(401, 410))  # 9 surveys
-VALIDATION_SEEDS = (410, 411, 412)  # for the card and for choosing settings
-HELD_OUT_SEEDS = (501, 502, 503)  # bench/guardrail.py only: never trained on or tuned with
+@dataclass(frozen=True)
+class SimulatedData:
+    """The simulated surveys a classifier for one sensor kind is trained, validated and
+    evaluated on; `presets` cycle with the seed (`seed % len(presets)`)."""
+
+    sensor_kind: str
+    scanner: str  # the simulator's scanner
+    vary_scanner: bool  # rotating: a scanner drawn from the seed
+    presets: tuple[str, ...]
+    train_seeds: tuple[int, ...]
+    validation_seeds: tuple[int, ...]  # for the card and for choosing settings
+    held_out_seeds: tuple[int, ...]  # bench/guardrail.py only: never trained on or tuned with
+    length: float  # metres per survey
+
+    def preset_of(self, seed: int) -> str:
+        return self.presets[seed % len(self.presets)]
+
+    def name(self, seed: int, length: float) -> str:
+        """The cached survey's folder name (the profile kind's as before kinds existed)."""
+        scanner = self.scanner + ("-varied" if self.vary_scanner else "")
+        return f"sim-{self.preset_of(seed)}-{length:g}m-{scanner}-seed{seed}"
+
+    def samples_name(self, seed: int, length: float) -> str:
+        scanner = "" if self.sensor_kind == "profile" else f"-{self.scanner}-varied"
+        return f"samples-{self.preset_of(seed)}-{length:g}m{scanner}-seed{seed}.npz"
 
 
-def preset_of(seed: int) -> str:
-    return PRESETS[seed % len(PRESETS)]
+PROFILE_DATA = SimulatedData(
+    "profile", "profile", False, ("urban", "highway", "mixed"),
+    tuple(range(401, 410)), (410, 411, 412), (501, 502, 503), 100.0,
+)  # fmt: skip
+# highway-heavy: half the drives are highways (beam guardrails on both edges and the median),
+# the rest carry pipe and beam guardrails among urban objects (the negatives real streets have)
+ROTATING_DATA = SimulatedData(
+    "rotating", "hdl64", True, ("highway", "highway", "mixed", "urban"),
+    tuple(range(701, 710)), (781, 782), (791, 792, 793), 30.0,
+)  # fmt: skip
+TRAINING_DATA: dict[str, SimulatedData] = {"profile": PROFILE_DATA, "rotating": ROTATING_DATA}
+
+# the profile kind's, by their names before kinds existed
+PRESETS = PROFILE_DATA.presets
+TRAIN_SEEDS = PROFILE_DATA.train_seeds  # 9 surveys
+VALIDATION_SEEDS = PROFILE_DATA.validation_seeds
+HELD_OUT_SEEDS = PROFILE_DATA.held_out_seeds
 
 
-def simulated_survey(seed: int, length: float, cache: Path | None = None) -> Path:
-    """A cached simulated survey with camera and profile scanner (deterministic)."""
+def training_data(sensor: str = "profile") -> SimulatedData:
+    """The simulated surveys of a sensor kind (`profile` or `rotating`)."""
+    if str(sensor) not in TRAINING_DATA:
+        raise ValueError(f"no simulated guardrail training data for {sensor!r} scanners")
+    return TRAINING_DATA[str(sensor)]
+
+
+def preset_of(seed: int, sensor: str = "profile") -> str:
+    return training_data(sensor).preset_of(seed)
+
+
+def simulated_survey(
+    seed: int, length: float, cache: Path | None = None, sensor: str = "profile"
+) -> Path:
+    """A cached simulated survey with camera and the kind's scanner (deterministic)."""
     from app.simulate.survey import SimulationConfig, simulate
 
+    data = training_data(sensor)
     cache = cache or get_settings().cache_dir / "guardrail-train"
-    folder = cache / f"sim-{preset_of(seed)}-{length:g}m-profile-seed{seed}"
+    folder = cache / data.name(seed, length)
     if not folder.is_dir():
         config = SimulationConfig(
-            scene=preset_of(seed), length=length, seed=seed, scanner="profile", camera=True,
-            write_map=False,
+            scene=data.preset_of(seed), length=length, seed=seed, scanner=data.scanner,
+            camera=True, write_map=False, vary_scanner=data.vary_scanner,
         )  # fmt: skip
         simulate(config, folder)
     return folder
 
 
 def survey_samples(
-    seed: int, length: float, encoder: CropEncoder, cache: Path | None = None
+    seed: int,
+    length: float,
+    encoder: CropEncoder,
+    cache: Path | None = None,
+    sensor: str = "profile",
 ) -> SliceSamples:
     """The slices of one simulated survey with embeddings, features and reference labels."""
     cache = cache or get_settings().cache_dir / "guardrail-train"
-    target = cache / f"samples-{preset_of(seed)}-{length:g}m-seed{seed}.npz"
+    target = cache / training_data(sensor).samples_name(seed, length)
     if target.is_file():
         z = np.load(target, allow_pickle=False)
         return SliceSamples(
             z["embedding"], z["geometry"], z["label"], z["group"], [str(n) for n in z["names"]]
         )
-    folder = simulated_survey(seed, length, cache)
+    folder = simulated_survey(seed, length, cache, sensor)
     survey = open_survey(folder, "sim")
     stage = prepare_slices(survey, encoder)
     label = slice_truth(stage, point_reference(survey, stage.points, "guardrail"))
@@ -106,13 +168,14 @@ def build_samples(
     length: float,
     encoder: CropEncoder | None = None,
     progress: Progress | None = None,
+    sensor: str = "profile",
 ) -> SliceSamples:
     encoder = encoder or CropEncoder()
     parts = []
     for i, seed in enumerate(seeds):
         if progress:
             progress(f"survey {seed}", i / max(len(seeds), 1))
-        parts.append(survey_samples(seed, length, encoder))
+        parts.append(survey_samples(seed, length, encoder, sensor=sensor))
     return SliceSamples(
         np.concatenate([p.embedding for p in parts]),
         np.concatenate([p.geometry for p in parts]),

@@ -4,7 +4,9 @@ loading a checkpoint is `classifier.save_heads` / `load_heads`).
 Samples are slices with their crop embedding, geometric features and label (guardrail or
 other); `group` names the survey a slice came from, so validation slices never share a survey
 with training slices (neighbouring slices of one guardrail are near-duplicates). The loss
-weights the classes by their inverse frequency: guardrail slices are a few percent of a street.
+weights the classes by their inverse frequency raised to `balance` (1: balanced, as the profile
+classifier is trained: guardrail slices are a few percent of a street; 0: unweighted, as the
+rotating one is: balanced weights bought its recall with precision on the validation surveys).
 """
 
 from __future__ import annotations
@@ -17,13 +19,7 @@ from torch import nn
 
 from app.metrics.classification import binary_scores
 from app.pipelines.guardrail.classifier import Inputs, SliceHead, predict, save_heads
-from app.pipelines.guardrail.training.dataset import (
-    HELD_OUT_SEEDS,
-    TRAIN_SEEDS,
-    VALIDATION_SEEDS,
-    SliceSamples,
-    build_samples,
-)
+from app.pipelines.guardrail.training.dataset import SliceSamples, build_samples, training_data
 
 
 def fit_head(
@@ -35,6 +31,7 @@ def fit_head(
     batch_size: int = 256,
     seed: int = 0,
     initial: SliceHead | None = None,
+    balance: float = 1.0,
 ) -> SliceHead:
     """Adam on the class-weighted cross entropy; returns the head in eval mode. With `initial`
     it fine-tunes a copy of that head (keeping its feature standardisation) instead of
@@ -52,7 +49,9 @@ def fit_head(
     embedding = torch.from_numpy(samples.embedding).float()
     label = torch.from_numpy(samples.label).long()
     counts = np.bincount(samples.label, minlength=2).astype(np.float64)
-    weights = torch.tensor(counts.sum() / (2 * np.maximum(counts, 1)), dtype=torch.float32)
+    weights = torch.tensor(
+        (counts.sum() / (2 * np.maximum(counts, 1))) ** balance, dtype=torch.float32
+    )
     loss_fn = nn.CrossEntropyLoss(weight=weights)
     optimiser = torch.optim.Adam(head.parameters(), lr=lr, weight_decay=weight_decay)
     n = len(label)
@@ -75,42 +74,63 @@ def slice_scores(head: SliceHead, samples: SliceSamples) -> dict:
 
 
 HEAD_INPUTS: tuple[Inputs, ...] = ("image+geometry", "image", "geometry")
+# the head a run uses unless told (`GuardrailConfig.head`), per sensor kind: the one that holds
+# on real data (rotating: geometry, decided on SemanticKITTI 05 against its fences, where the
+# image heads, trained on rendered crops, called more false guardrails; models/guardrail/README.md)
+DEFAULT_HEADS: dict[str, Inputs] = {"profile": "image+geometry", "rotating": "geometry"}
+# the class weights' exponent per sensor kind (`fit_head`), chosen on the validation surveys
+CLASS_BALANCE: dict[str, float] = {"profile": 1.0, "rotating": 0.0}
 
 
 def train_guardrail_model(
     out: Path,
     seeds: list[int] | None = None,
     validation_seeds: list[int] | None = None,
-    length: float = 100.0,
+    length: float | None = None,
     epochs: int = 60,
     progress=None,
+    sensor: str = "profile",
+    default_head: Inputs | None = None,
+    balance: float | None = None,
 ) -> dict:
-    """Fit one head per input set on the training surveys, score them on the validation
-    surveys, save them with the card; returns the card."""
+    """Fit one head per input set on the training surveys of the sensor kind's simulated data
+    (`training_data`), score them on its validation surveys, save them with the card; returns
+    the card. Seeds and length default to the kind's."""
     import time
 
-    seeds = list(seeds or TRAIN_SEEDS)
-    validation_seeds = list(validation_seeds or VALIDATION_SEEDS)
-    if set(seeds) & set(HELD_OUT_SEEDS):
-        raise ValueError(f"seeds {sorted(set(seeds) & set(HELD_OUT_SEEDS))} are held out")
+    data = training_data(sensor)
+    seeds = list(seeds or data.train_seeds)
+    validation_seeds = list(validation_seeds or data.validation_seeds)
+    length = length or data.length
+    default_head = default_head or DEFAULT_HEADS[data.sensor_kind]
+    balance = CLASS_BALANCE[data.sensor_kind] if balance is None else balance
+    if default_head not in HEAD_INPUTS:
+        raise ValueError(f"no head {default_head!r}: {', '.join(HEAD_INPUTS)}")
+    held_out = (set(seeds) | set(validation_seeds)) & set(data.held_out_seeds)
+    if held_out:
+        raise ValueError(f"seeds {sorted(held_out)} are held out")
     started = time.perf_counter()
-    train = build_samples(seeds, length, progress=progress)
-    valid = build_samples(validation_seeds, length, progress=progress)
+    train = build_samples(seeds, length, progress=progress, sensor=data.sensor_kind)
+    valid = build_samples(validation_seeds, length, progress=progress, sensor=data.sensor_kind)
     built = time.perf_counter() - started
     heads, scores = {}, {}
     for inputs in HEAD_INPUTS:
-        heads[inputs] = fit_head(train, inputs=inputs, epochs=epochs)
+        heads[inputs] = fit_head(train, inputs=inputs, epochs=epochs, balance=balance)
         scores[inputs] = slice_scores(heads[inputs], valid)
     card = {
         "model": "EfficientNet-Lite0 (ImageNet, frozen) + MLP heads; geometric slice features",
         "classes": ["other", "guardrail"],
+        "sensor_kind": data.sensor_kind,
         "training": {
             "simulation_seeds": seeds,
             "length_m": length,
-            "scanner": "profile",
+            "scanner": data.scanner,
+            "vary_scanner": data.vary_scanner,
+            "presets": {str(s): data.preset_of(s) for s in seeds},
             "slices": int(len(train.label)),
             "guardrail_slices": int(train.label.sum()),
             "epochs": epochs,
+            "class_balance": balance,
         },
         "validation": {
             "simulation_seeds": validation_seeds,
@@ -118,8 +138,9 @@ def train_guardrail_model(
             "guardrail_slices": int(valid.label.sum()),
             "scores": scores,
         },
+        "held_out_seeds": list(data.held_out_seeds),
         "geometry_features": train.geometry_names,
-        "default_head": "image+geometry",
+        "default_head": default_head,
         "seconds": {"samples": round(built, 1), "total": round(time.perf_counter() - started, 1)},
     }
     save_heads(out, heads, card)
