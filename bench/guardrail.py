@@ -271,7 +271,8 @@ def part_kitti(args) -> tuple[str, str, str]:
     card = pipeline.card
     text = (
         f"Real data: SemanticKITTI (frames 0-9 of each sequence, HDL-64E), reference: {what}. "
-        "Slice and point scores after the adjacency correction (raw: before). "
+        "Slice and point scores after the adjacency correction (raw: before). The image heads "
+        "classify the slices a camera image shows whole, the geometry head the others. "
         f"Classifier {pipeline.model_path.name} ({card.get('sensor_kind', '?')} scanners, "
         f"trained on simulated surveys {card.get('training', {}).get('simulation_seeds')}, "
         f"no real data). " + "; ".join(notes) + "."
