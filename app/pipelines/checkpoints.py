@@ -8,7 +8,9 @@ list, str, numbers); anything else is refused with one line naming the file.
 
 from __future__ import annotations
 
+import json
 import pickle
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -33,3 +35,12 @@ def load_checkpoint(path: Path, what: str) -> dict[str, Any]:
     if not isinstance(blob, dict):
         raise InputError(path, f"not a {what} checkpoint (holds a {type(blob).__name__})")
     return blob
+
+
+def card_of(path: Path, sidecar_suffix: str, embedded: Callable[[Path], dict]) -> dict:
+    """A checkpoint's model card: the JSON beside it (`path` with `sidecar_suffix`), else the
+    one inside the checkpoint as `embedded` reads it."""
+    sidecar = Path(path).with_suffix(sidecar_suffix)
+    if sidecar.is_file():
+        return json.loads(sidecar.read_text())
+    return embedded(Path(path))

@@ -25,7 +25,7 @@ import torch
 from torch import nn
 
 from app.core.errors import DependencyMissingError, InputError
-from app.pipelines.checkpoints import load_checkpoint
+from app.pipelines.checkpoints import card_of, load_checkpoint
 
 Inputs = Literal["image", "geometry", "image+geometry"]
 CROP_SIZE = 224  # EfficientNet-Lite0's input
@@ -165,7 +165,4 @@ def load_heads(path: Path) -> tuple[dict[str, SliceHead], dict]:
 
 def read_classifier_card(path: Path) -> dict:
     """A classifier checkpoint's card: the JSON beside it, else the one inside."""
-    sidecar = Path(path).with_suffix(".json")
-    if sidecar.is_file():
-        return json.loads(sidecar.read_text())
-    return load_heads(path)[1]
+    return card_of(path, ".json", lambda p: load_heads(p)[1])

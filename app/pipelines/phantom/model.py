@@ -10,7 +10,7 @@ import torch
 
 from app.core.errors import DependencyMissingError, InputError
 from app.core.sensors import SensorKind
-from app.pipelines.checkpoints import load_checkpoint
+from app.pipelines.checkpoints import card_of, load_checkpoint
 from app.pipelines.phantom.network import PillarCNN
 
 MODELS = Path(__file__).resolve().parents[3] / "models" / "phantom"
@@ -55,7 +55,4 @@ def load_model(path: Path | None = None) -> tuple[PillarCNN, dict]:
 
 def read_card(path: Path) -> dict:
     """A checkpoint's model card: the JSON beside it, else the one inside the checkpoint."""
-    sidecar = Path(path).with_suffix(".card.json")
-    if sidecar.is_file():
-        return json.loads(sidecar.read_text())
-    return load_model(path)[1]
+    return card_of(path, ".card.json", lambda p: load_model(p)[1])
