@@ -33,6 +33,7 @@ import numpy as np
 from app.core.sensors import SensorKind
 from app.io import open_survey
 from app.metrics.classification import binary_scores
+from app.pipelines.guardrail.classifier import read_classifier_card
 from app.pipelines.guardrail.config import GuardrailConfig
 from app.pipelines.guardrail.evaluation.reference import point_reference, slice_truth
 from app.pipelines.guardrail.pipeline import (
@@ -43,6 +44,7 @@ from app.pipelines.guardrail.pipeline import (
 )
 from app.pipelines.guardrail.run import reference_points, slice_metrics
 from app.pipelines.guardrail.training.dataset import simulated_survey, training_data
+from app.pipelines.sensor_models import card_sensor_kind
 from bench.common import append_results, markdown_table
 
 COMMAND = "MMSCLEAN_DATA_DIR=/tmp/mmsvar .venv/bin/python -m bench.guardrail"
@@ -74,6 +76,11 @@ def _all_heads(model: Path) -> GuardrailPipeline:
 
 def _default_head(pipeline: GuardrailPipeline) -> str:
     return pipeline.card.get("default_head") or "image+geometry"
+
+
+def _kind(pipeline: GuardrailPipeline) -> str:
+    """The sensor kind the classifier was trained for, as its card (the JSON beside it) says."""
+    return card_sensor_kind(read_classifier_card(pipeline.model_path)).value
 
 
 def _head_label(pipeline: GuardrailPipeline, name: str) -> str:
@@ -153,7 +160,7 @@ def part_heldout(args) -> tuple[str, str, str]:
     notes = (
         f"Synthetic, held out: seeds {', '.join(scanners)}, {data.length:g} m each, {scanner}, "
         f"with camera; {len(truth):,} slices, {int(truth.sum()):,} of them guardrail; the "
-        f"classifier ({pipeline.model_path.name}, {pipeline.card.get('sensor_kind', '?')}) never "
+        f"classifier ({pipeline.model_path.name}, {_kind(pipeline)} scanners) never "
         f"saw these seeds (trained on {sorted(trained)}). Target: slice F >= 96 (the paper: "
         f"P 91.5, R 97.9, F 94.6). Reconstruction from the default head's "
         f"({_default_head(pipeline)}) slices. Whole pipeline (crops included) {seconds:.1f} s "
@@ -273,7 +280,7 @@ def part_kitti(args) -> tuple[str, str, str]:
         f"Real data: SemanticKITTI (frames 0-9 of each sequence, HDL-64E), reference: {what}. "
         "Slice and point scores after the adjacency correction (raw: before). The image heads "
         "classify the slices a camera image shows whole, the geometry head the others. "
-        f"Classifier {pipeline.model_path.name} ({card.get('sensor_kind', '?')} scanners, "
+        f"Classifier {pipeline.model_path.name} ({_kind(pipeline)} scanners, "
         f"trained on simulated surveys {card.get('training', {}).get('simulation_seeds')}, "
         f"no real data). " + "; ".join(notes) + "."
     )
