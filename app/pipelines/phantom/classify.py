@@ -23,9 +23,7 @@ def window_tensor(pm: PillarMap, pillars: np.ndarray, passes: bool = False) -> t
     origins = window_origin(pillars, pm.config)
     lo = origins.min(axis=0)
     span = origins.max(axis=0) - lo + side
-    block = pm.dense_block(int(lo[0]), int(lo[1]), int(span[0]), int(span[1]), passes)
-    if not passes:
-        block = block[None]
+    block = pm.channel_block(int(lo[0]), int(lo[1]), int(span[0]), int(span[1]), passes)
     ox, oy = (origins - lo).T
     r = np.arange(side)
     windows = block[
@@ -104,8 +102,7 @@ def classify_dense(
         members = order[bounds[k] : bounds[k + 1]]
         first = np.array([tx * tile - half, ty * tile - half])  # first window pillar P0
         v0 = first * per - 1
-        block = pm.dense_block(int(v0[0]), int(v0[1]), side, side, net.passes)
-        block = block if net.passes else block[None]
+        block = pm.channel_block(int(v0[0]), int(v0[1]), side, side, net.passes)
         bands = None
         if net.context:  # surroundings of the tile's pillars tx * tile.., ty * tile..
             c0 = np.array([tx, ty]) * tile - CONTEXT_SPAN // 2

@@ -56,13 +56,18 @@ class PillarMap:
         """Input channels the map can give: counts, and passes when it has them."""
         return 1 if self.passes is None else 2
 
-    def dense_block(self, vx0: int, vy0: int, nx: int, ny: int, passes: bool = False) -> np.ndarray:
-        """(Z, nx, ny) float32 counts of voxels vx0..vx0+nx-1, vy0..vy0+ny-1 (zeros elsewhere);
-        with `passes`, (2, Z, nx, ny): counts and distinct passes."""
+    def dense_block(self, vx0: int, vy0: int, nx: int, ny: int) -> np.ndarray:
+        """(Z, nx, ny) float32 counts of voxels vx0..vx0+nx-1, vy0..vy0+ny-1 (zeros elsewhere)."""
+        return self.channel_block(vx0, vy0, nx, ny, passes=False)[0]
+
+    def channel_block(
+        self, vx0: int, vy0: int, nx: int, ny: int, passes: bool = False
+    ) -> np.ndarray:
+        """(C, Z, nx, ny) float32 network input channels of the same voxels: counts, and with
+        `passes` the distinct scanner passes (C = 2)."""
         if passes and self.passes is None:
             raise ValueError("this pillar map has no scanner passes (no point times)")
-        layers = 2 if passes else 1
-        block = np.zeros((layers, self.config.voxels_high, nx, ny), dtype=np.float32)
+        block = np.zeros((2 if passes else 1, self.config.voxels_high, nx, ny), dtype=np.float32)
         a, b = np.searchsorted(self.vx, [vx0, vx0 + nx])
         vy = self.vy[a:b]
         sel = (vy >= vy0) & (vy < vy0 + ny)
@@ -70,7 +75,7 @@ class PillarMap:
         block[0][where] = self.counts[a:b][sel]
         if passes:
             block[1][where] = self.passes[a:b][sel]  # type: ignore[index]
-        return block if passes else block[0]
+        return block
 
     def band_block(self, px0: int, py0: int, nx: int, ny: int, bands: int = 6) -> np.ndarray:
         """(bands, nx, ny) float32 point counts per pillar px0.., py0.. and height band (the

@@ -23,7 +23,7 @@ def test_a_voxel_counts_each_pass_once() -> None:
     xyz = np.array([[0.05, 0.05, 1.05]] * 7 + [[1.05, 1.05, 1.05]] + [[5.0, 5.0, 0.0]])
     passes = np.array([0, 0, 0, 0, 0, 3, 7, 2, 1])
     pm = build_pillar_map(xyz, estimate_ground(xyz), CFG, passes)
-    block = pm.dense_block(0, 0, 12, 12, passes=True)
+    block = pm.channel_block(0, 0, 12, 12, passes=True)
     assert block.shape == (2, 30, 12, 12)
     ground = estimate_ground(xyz).height(xyz[:1])[0]
     vz = int(np.floor((1.05 - ground) / 0.1))
