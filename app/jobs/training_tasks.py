@@ -44,6 +44,7 @@ from app.pipelines.guardrail.training.train import fit_head
 from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.model import SHIPPED as PHANTOM_SHIPPED
 from app.pipelines.phantom.model import load_model, read_card, save_model
+from app.pipelines.phantom.priors import class_priors
 from app.pipelines.phantom.training.dataset import Samples, concatenate
 from app.pipelines.phantom.training.finetune import (
     LabelledPillars,
@@ -56,7 +57,7 @@ from app.store.guardrail_runs import latest_run, match_slices
 from app.store.model_versions import register_version
 from app.store.models import Pipeline
 from app.store.pillar_labels import STORE_GRID
-from app.store.pillar_reads import human_labels_since
+from app.store.pillar_reads import human_labels_since, reviewed_class_counts
 from app.store.surveys import get_survey
 from app.store.training_labels import human_pillar_labels, reviewed_slices
 
@@ -116,6 +117,22 @@ def refuse_if_blocked(counts: ClassCounts, cfg: PhantomRetrainConfig) -> None:
         raise ConfigError("labels", blocked)
 
 
+def retraining_priors(
+    reviewed: np.ndarray, base_card: dict[str, Any], surveys: list[int]
+) -> tuple[list[float] | None, str]:
+    """The new version's class priors (priors.py): the labelled surveys' class shares as
+    reviewed so far, since the model is retrained for the streets its operators label, which the
+    base's training maps may not resemble (simulated drives hold about a third phantom pillars,
+    real streets a few per cent); the base's priors when no labelled survey had a phantom run."""
+    if reviewed.sum() == 0:
+        return base_card.get("class_priors"), str(base_card.get("class_priors_from", "base"))
+    origin = (
+        f"surveys {surveys} as reviewed: {int(reviewed.sum()):,} pillars their last phantom run "
+        "judged, each with its human label where one was given, else its pre-label"
+    )
+    return class_priors(reviewed).round(5).tolist(), origin
+
+
 def class_counts(parts: list[Samples]) -> np.ndarray:
     """(4,) samples per class over PARTS."""
     return sum((np.bincount(p.y, minlength=4)[:4] for p in parts), np.zeros(4, np.int64))
@@ -131,6 +148,9 @@ def train_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]
         labels = {sid: labels[sid] for sid in usable}
         refuse_if_blocked(label_counts(labels, cfg), cfg)  # before any map is opened
         total = sum(len(s.cells) for s in labels.values())
+        reviewed = sum(
+            (reviewed_class_counts(session, sid) for sid in labels), np.zeros(4, np.int64)
+        )
         surveys = {}
         for survey_id in labels:
             record = get_survey(session, survey_id)
@@ -190,10 +210,12 @@ def train_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]
     promote = new_scores.macro.f1 >= base_scores.macro.f1
     name = f"phantom-job{context.job_id}-{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}"
     checkpoint = context.settings.data_dir / "models" / "phantom" / f"{name}.pt"
+    priors, priors_from = retraining_priors(reviewed, base_card, sorted(labels))
     card = {
         **result.card,
         "sensor_kind": kind.value,
-        "class_priors": base_card.get("class_priors"),
+        "class_priors": priors,
+        "class_priors_from": priors_from,
         "fine_tuned_from": str(base_path),
         "held_out_validation": new_scores.as_dict(),
         "base_on_held_out": base_scores.as_dict(),

@@ -225,6 +225,29 @@ def label_counts(session: Session, survey_id: int) -> dict[str, list[int]]:
     return counts
 
 
+def reviewed_class_counts(session: Session, survey_id: int) -> np.ndarray:
+    """(4,) pillars per class over the pillars a phantom run judged (its model pre-labels), each
+    counted with its human label where a person gave one: the survey's class shares as reviewed
+    so far (retraining's class priors)."""
+    rows = (
+        session.connection()
+        .execute(
+            text(
+                "SELECT coalesce(h.label, m.label), count(*) FROM pillar_label AS m "
+                "LEFT JOIN pillar_label AS h ON h.survey_id = m.survey_id "
+                "AND h.cell_id = m.cell_id AND h.source = 'human' "
+                "WHERE m.survey_id = :s AND m.source = 'model' GROUP BY 1"
+            ),
+            {"s": survey_id},
+        )
+        .all()
+    )
+    counts = np.zeros(4, dtype=np.int64)
+    for label, n in rows:
+        counts[int(label)] += int(n)
+    return counts
+
+
 def human_labels_since(session: Session, since: datetime | None) -> int:
     """Human labels written (created or changed) after `since`, all surveys: the retraining
     trigger counts these."""

@@ -16,13 +16,15 @@ from app.core.errors import ConfigError
 from app.core.settings import Settings
 from app.io import open_survey
 from app.jobs.registry import JobContext, load_tasks
-from app.jobs.training_tasks import train_phantom
+from app.jobs.training_tasks import retraining_priors, train_phantom
 from app.jobs.worker import run_job
 from app.pipelines.phantom.config import PhantomConfig
+from app.pipelines.phantom.priors import class_priors
 from app.pipelines.phantom.training.dataset import labelled_map_from_survey, labelled_pillars
 from app.store.jobs import claim_next
 from app.store.models import Job, JobStatus, ModelVersion, Survey
 from app.store.pillar_labels import STORE_GRID, write_labels
+from app.store.pillar_reads import reviewed_class_counts
 from tests.jobs.conftest import job_context
 
 
@@ -161,3 +163,28 @@ def test_a_due_retraining_refused_when_queued_is_logged_not_raised(
     with caplog.at_level("WARNING", logger="app.jobs.retraining"):
         assert trigger() is None
     assert "the limit is 64 MB" in caplog.text
+
+
+def test_retrained_priors_are_the_labelled_survey_as_reviewed(context: JobContext) -> None:
+    """Pre-labels on ten pillars (six ground, four phantom), two phantoms corrected to ground by
+    a person, and a human label where the run judged nothing (not counted)."""
+    rows = [(c, 0, "model") for c in range(1, 7)] + [(c, 3, "model") for c in range(7, 11)]
+    rows += [(7, 0, "human"), (8, 0, "human"), (99, 1, "human")]
+    with context.engine.begin() as conn:
+        conn.execute(
+            text(
+                "INSERT INTO pillar_label (survey_id, cell_id, label, source, confidence, version,"
+                " created_at, updated_at) VALUES (:s, :c, :l, :src, 0.5, 1, datetime('now'),"
+                " datetime('now'))"
+            ),
+            [{"s": context.survey_id, "c": c, "l": v, "src": src} for c, v, src in rows],
+        )
+    with Session(context.engine) as session:
+        reviewed = reviewed_class_counts(session, context.survey_id)
+    assert reviewed.tolist() == [8, 0, 0, 2]
+    base = {"class_priors": [0.25] * 4, "class_priors_from": "simulated drives"}
+    priors, origin = retraining_priors(reviewed, base, [context.survey_id])
+    assert priors == class_priors(np.array([8, 0, 0, 2])).round(5).tolist()
+    assert "10 pillars" in origin
+    # no labelled survey had a phantom run: the base model's priors stay
+    assert retraining_priors(np.zeros(4, np.int64), base, [1]) == ([0.25] * 4, "simulated drives")
