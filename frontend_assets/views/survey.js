@@ -51,7 +51,9 @@ const PIPELINE_FORMS = [
     title: "Guardrail extraction",
     paper: "Matsumoto, Mori, Masuda: slice classification and shape reconstruction",
     options: [
-      { key: "head", label: "Classifier", type: "select", choices: ["image+geometry", "image", "geometry"], default: "image+geometry" },
+      // "" leaves the choice to the classifier version's card (default_head: geometry-only for
+      // rotating scanners, whose real crops do not look like rendered ones)
+      { key: "head", label: "Classifier", type: "select", choices: [["", "the model's default"], "image+geometry", "image", "geometry"], default: "" },
       { key: "threshold", label: "Threshold", type: "number", step: 0.05, min: 0.05, max: 0.95, default: 0.5 },
       { key: "spacing", label: "Slice length [m]", type: "number", step: 0.1, min: 0.1, max: 5, default: 0.5 },
       { key: "reconstruct", label: "reconstruct models", type: "checkbox", default: true },
@@ -138,7 +140,10 @@ function optionInput(kind, option) {
     input = h(
       "select",
       { id, name: option.key },
-      option.choices.map((c) => h("option", { value: c, selected: c === option.default }, c)),
+      option.choices.map((choice) => {
+        const [value, text] = Array.isArray(choice) ? choice : [choice, choice];
+        return h("option", { value, selected: value === option.default }, text);
+      }),
     );
   } else {
     input = h("input", {
@@ -164,7 +169,7 @@ function configOf(form, inputs) {
     if (option.type === "checkbox") value = input.checked;
     else if (option.type === "number") value = Number(input.value);
     else value = input.value.trim();
-    if ((option.type === "text" || option.type === "model") && !value) continue;
+    if (option.type !== "checkbox" && option.type !== "number" && !value) continue; // unset
     if (option.type === "model") value = Number(value);
     if (value !== option.default) config[option.key] = value;
   }

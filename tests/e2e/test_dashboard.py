@@ -296,6 +296,10 @@ def test_cancel_a_running_job_from_the_jobs_page(
 ) -> None:
     log_in(page)
     page.locator("#surveys a.survey-link").first.click()
+    # the classifier head is the model's default unless chosen; a choice is always sent, even
+    # the one that used to be the form's default (a rotating card defaults to geometry)
+    assert page.input_value("#opt-run-guardrail-head") == ""
+    page.select_option("#opt-run-guardrail-head", "image+geometry")
     page.click("button[data-start='run:guardrail']")
     page.wait_for_selector(".latest[data-kind='run:guardrail'] .progress")
     page.click("nav [data-nav='jobs']")
@@ -316,6 +320,7 @@ def test_cancel_a_running_job_from_the_jobs_page(
     with dashboard_server.client() as api:
         job = api.get(f"/jobs/{job_id}").json()
     assert job["status"] == "cancelled" and job["cancel_requested"]
+    assert job["config"]["head"] == "image+geometry"
 
 
 @pytest.mark.e2e
