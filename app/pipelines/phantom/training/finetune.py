@@ -127,6 +127,11 @@ def finetune(
     want = int(min(max(present.max(), 1), per_class))
     pool = balanced(train_samples, want, rng, allow_missing=True)
     shaped = config.model_copy(
-        update={"channels": tuple(base.channels), "hidden": base.hidden, "context": base.context}
+        update={
+            "channels": tuple(base.channels),
+            "hidden": base.hidden,
+            "context": base.context,
+            "passes": base.passes,
+        }
     )
     return train(pool, shaped, progress, initial_state=base.state_dict())
