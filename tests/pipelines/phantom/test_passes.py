@@ -13,8 +13,6 @@ from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.network import PillarCNN
 from app.pipelines.phantom.pillars import build_pillar_map
 from app.pipelines.phantom.training.dataset import LabelledMap, frame_windows, pillar_samples
-from app.pipelines.phantom.training.finetune import LabelledPillars, finetune, labelled_samples
-from app.pipelines.phantom.training.train import TrainConfig
 from tests.pipelines.phantom.test_core import street
 
 CFG = PhantomConfig()
@@ -86,19 +84,3 @@ def test_training_windows_carry_passes_and_frame_windows_cut_drives() -> None:
     samples = pillar_samples(lmap, CFG, np.random.default_rng(0), max_per_class=50, passes=True)
     assert samples.x.shape[1:] == (2, 30, 24, 24)
     assert (samples.x[:, 1] <= samples.x[:, 0]).all()
-
-
-def test_fine_tuning_a_passes_network_keeps_its_second_channel() -> None:
-    """train:phantom fine-tunes the promoted model, which for rotating scanners reads passes."""
-    xyz = street(40_000)
-    n = len(xyz)
-    passes = np.arange(n) % 10
-    pm = build_pillar_map(xyz, estimate_ground(xyz, CFG.ground_cell, CFG.ground_opening), CFG)
-    chosen = pm.pillars[pm.candidates()][:40]
-    labels = np.arange(len(chosen)) % 4
-    lmap = LabelledPillars("street", xyz, chosen, labels, passes)
-    samples = labelled_samples(lmap, CFG, 1, np.random.default_rng(0), context=False)
-    assert samples.x.shape[1] == 2
-    base = PillarCNN(channels=(2, 2, 2), hidden=4, passes=True)
-    result = finetune(samples, base, TrainConfig(epochs=1, batch=16, block_size=1.0), per_class=10)
-    assert result.net.passes and result.net.conv1.in_channels == 2

@@ -39,6 +39,7 @@ from app.pipelines.phantom.training.train import (
     TrainResult,
     evaluate_net,
     pillar_scores,
+    split_groups,
     train,
 )
 
@@ -126,7 +127,7 @@ def finetune(
     present = np.bincount(train_samples.y, minlength=4)
     want = int(min(max(present.max(), 1), per_class))
     pool = balanced(train_samples, want, rng, allow_missing=True)
-    shaped = config.model_copy(
+    shaped = epoch_split(pool, config).model_copy(
         update={
             "channels": tuple(base.channels),
             "hidden": base.hidden,
@@ -135,3 +136,18 @@ def finetune(
         }
     )
     return train(pool, shaped, progress, initial_state=base.state_dict())
+
+
+def epoch_split(pool: Samples, config: TrainConfig) -> TrainConfig:
+    """The split fine-tuning picks its best epoch on. An operator's first labels lie in a few
+    map blocks, too few for the usual five folds: as many folds as blocks (at least two), or in
+    one block, pillars apart (neighbours then share windows across this split; the held-out
+    blocks that decide promotion stay whole)."""
+    blocks = len(np.unique(split_groups(pool, config.block_size)))
+    if blocks >= config.folds:
+        return config
+    if blocks >= 2:
+        return config.model_copy(
+            update={"folds": blocks, "folds_to_run": min(config.folds_to_run, blocks)}
+        )
+    return config.model_copy(update={"block_size": 0.0})

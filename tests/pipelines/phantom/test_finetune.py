@@ -1,0 +1,59 @@
+"""Fine-tuning the promoted phantom CNN on an operator's pillar labels (train:phantom's core)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from app.geometry.ground import estimate_ground
+from app.pipelines.phantom.config import PhantomConfig
+from app.pipelines.phantom.network import PillarCNN
+from app.pipelines.phantom.pillars import build_pillar_map
+from app.pipelines.phantom.training.finetune import (
+    LabelledPillars,
+    epoch_split,
+    finetune,
+    labelled_samples,
+)
+from app.pipelines.phantom.training.train import TrainConfig
+from tests.pipelines.phantom.test_core import street
+
+CFG = PhantomConfig()
+
+
+def samples_near(xyz: np.ndarray, passes: np.ndarray | None, centre_x: list[float]):
+    """Labelled samples of 40 judged pillars round each x (a few metres of street each)."""
+    pm = build_pillar_map(xyz, estimate_ground(xyz, CFG.ground_cell, CFG.ground_opening), CFG)
+    judged = pm.pillars[pm.candidates()]
+    centres = (judged + 0.5) * CFG.cell_size
+    chosen = np.concatenate(
+        [judged[np.argsort(np.abs(centres[:, 0] - x), kind="stable")[:40]] for x in centre_x]
+    )
+    labels = np.arange(len(chosen)) % 4
+    lmap = LabelledPillars("street", xyz, chosen, labels, passes)
+    return labelled_samples(lmap, CFG, 1, np.random.default_rng(0), context=False)
+
+
+def test_fine_tuning_a_passes_network_keeps_its_second_channel() -> None:
+    """train:phantom fine-tunes the promoted model, which for rotating scanners reads passes."""
+    xyz = street(40_000)
+    n = len(xyz)
+    passes = np.arange(n) % 10
+    samples = samples_near(xyz, passes, [float(np.median(xyz[:, 0]))])
+    assert samples.x.shape[1] == 2
+    base = PillarCNN(channels=(2, 2, 2), hidden=4, passes=True)
+    result = finetune(samples, base, TrainConfig(epochs=1, batch=16), per_class=10)
+    assert result.net.passes and result.net.conv1.in_channels == 2
+
+
+def test_labels_in_few_blocks_still_pick_an_epoch() -> None:
+    """An operator's first labels: two 10 m blocks (two folds), then one (pillars apart)."""
+    xyz = street(40_000)
+    lo, hi = np.percentile(xyz[:, 0], [10, 90])
+    two = samples_near(xyz, None, [float(lo), float(hi)])
+    config = TrainConfig(epochs=1, batch=16, block_size=10.0)
+    assert epoch_split(two, config).folds == 2
+    one = samples_near(xyz, None, [float(lo)])
+    assert epoch_split(one, config).block_size == 0.0
+    base = PillarCNN(channels=(2, 2, 2), hidden=4)
+    for samples in (two, one):
+        assert finetune(samples, base, config, per_class=10).net is not None
