@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from app.geometry.ground import estimate_ground
 from app.pipelines.phantom.config import PhantomConfig
@@ -57,3 +58,20 @@ def test_labels_in_few_blocks_still_pick_an_epoch() -> None:
     base = PillarCNN(channels=(2, 2, 2), hidden=4)
     for samples in (two, one):
         assert finetune(samples, base, config, per_class=10).net is not None
+
+
+def test_classes_nobody_labelled_stay_out_of_the_loss() -> None:
+    """Labels of ground and high objects only: the loss compares those two logits, so the
+    phantom and short-object outputs get no gradient from being absent (weight decay off)."""
+    xyz = street(40_000)
+    samples = samples_near(xyz, None, [float(np.median(xyz[:, 0]))])
+    two = samples.subset(np.flatnonzero(samples.y < 2))
+    base = PillarCNN(channels=(2, 2, 2), hidden=4)
+    config = TrainConfig(epochs=1, batch=16, weight_decay=0.0)
+    result = finetune(two, base, config, per_class=10)
+    assert result.card["train_config"]["compared"] == [0, 1]
+    before, after = base.state_dict(), result.net.state_dict()
+    for name in ("fc2.weight", "fc2.bias"):
+        change = after[name] - before[name]
+        assert torch.equal(change[2:], torch.zeros_like(change[2:])), name
+        assert change[:2].abs().sum() > 0, name

@@ -121,18 +121,23 @@ def finetune(
     per_class: int,
     progress: Progress | None = None,
 ) -> TrainResult:
-    """Train from the base network's weights on class-balanced copies of the labelled samples
-    (classes nobody labelled are left out: the base network keeps what it knew of them)."""
+    """Train from the base network's weights on class-balanced copies of the labelled samples.
+    Classes nobody labelled are left out of the samples and of the loss (which compares the
+    labelled classes' logits only): an operator's first labels are often ground and buildings
+    alone, and a loss over all four classes would teach the network that phantoms never occur
+    (measured: phantom recall 0 on the held-out sequences after 500 such labels)."""
     rng = np.random.default_rng(config.seed)
     present = np.bincount(train_samples.y, minlength=4)
     want = int(min(max(present.max(), 1), per_class))
     pool = balanced(train_samples, want, rng, allow_missing=True)
+    labelled = np.flatnonzero(present).tolist()
     shaped = epoch_split(pool, config).model_copy(
         update={
             "channels": tuple(base.channels),
             "hidden": base.hidden,
             "context": base.context,
             "passes": base.passes,
+            "compared": labelled if 2 <= len(labelled) < 4 else None,
         }
     )
     return train(pool, shaped, progress, initial_state=base.state_dict())

@@ -95,6 +95,13 @@ class TrainConfig(BaseModel):
     frames_per_map: int = Field(
         0, ge=0, le=100_000, description="frames per training map (0: whole surveys)"
     )
+    compared: list[Annotated[int, Field(ge=0, lt=N_CLASSES)]] | None = Field(
+        None,
+        min_length=2,
+        max_length=N_CLASSES,
+        description="the classes the loss compares (None: all); fine-tuning on labels of some "
+        "classes compares those only, so it does not teach that the others never occur",
+    )
 
     def learning_rate(self, epoch: int) -> float:
         return self.lr / (epoch + 1) if self.lr_schedule == "paper" else self.lr
@@ -163,6 +170,16 @@ def pillar_scores(reference_y: np.ndarray, predicted: np.ndarray):
     return scores_from_confusion(confusion, CLASS_NAMES)
 
 
+def _compared(classes: list[int] | None) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """(the compared classes, their position among them per class) for the loss, or None."""
+    if classes is None:
+        return None
+    kept = torch.tensor(sorted(set(classes)), dtype=torch.long)
+    position = torch.full((N_CLASSES,), -1, dtype=torch.long)  # -1: a class never compared
+    position[kept] = torch.arange(len(kept))
+    return kept, position
+
+
 def _train_fold(
     samples: Samples,
     fold_of: np.ndarray,
@@ -198,6 +215,7 @@ def _train_fold(
     best: dict | None = None
     best_state: dict | None = None
     steps = math.ceil(len(train_index) / config.batch)
+    compared = _compared(config.compared)
     fold_started = time.perf_counter()
     for epoch in range(config.epochs):
         started = time.perf_counter()
@@ -214,6 +232,8 @@ def _train_fold(
         for step, a in enumerate(range(0, len(order), config.batch)):
             x, y = samples.batch(order[a : a + config.batch])
             logits = net(x, samples.context_batch(order[a : a + config.batch]))
+            if compared is not None:  # the labelled classes' logits only
+                logits, y = logits[:, compared[0]], compared[1][y]
             loss = cross_entropy(logits, y)
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
