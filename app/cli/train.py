@@ -146,11 +146,25 @@ def train_guardrail(
             "(default by kind: the one that holds on real data)"
         ),
     ] = None,
+    correction_only: Annotated[
+        bool,
+        typer.Option(
+            "--correction-only",
+            help="keep the classifier at --out and only choose its adjacency correction "
+            "(threshold, max gap, max isolated) on the validation surveys again",
+        ),
+    ] = False,
 ) -> None:
     """Train the guardrail slice classifier for one scanner kind on simulated surveys (camera
-    crops + geometry; rotating: HDL-64E-class scanners drawn from the seed)."""
+    crops + geometry; rotating: HDL-64E-class scanners drawn from the seed), then choose its
+    adjacency correction on the validation surveys."""
     from app.core.errors import ConfigError
-    from app.pipelines.guardrail.training.train import HEAD_INPUTS, train_guardrail_model
+    from app.pipelines.guardrail.training.dataset import training_data
+    from app.pipelines.guardrail.training.train import (
+        HEAD_INPUTS,
+        choose_model_correction,
+        train_guardrail_model,
+    )
 
     kind = sensor_kind(sensor)
     assert kind is not None
@@ -161,6 +175,19 @@ def train_guardrail(
     if default_head is not None and default_head not in HEAD_INPUTS:
         raise ConfigError("--default-head", f"{default_head!r}: use {', '.join(HEAD_INPUTS)}")
     out = out or Path(GUARDRAIL_DEFAULTS[kind.value])
+    if correction_only:
+        data = training_data(kind.value)
+        card = choose_model_correction(
+            out, validation or list(data.validation_seeds), length or data.length, kind.value
+        )
+        chosen = card["correction"]
+        console.print(
+            f"{out}: correction threshold {chosen['threshold']}, max gap {chosen['max_gap']}, "
+            f"max isolated {chosen['max_isolated']}: validation slice F "
+            f"{chosen['validation_slice_f']:.1f} (the paper's settings "
+            f"{chosen['paper_validation_slice_f']:.1f})"
+        )
+        return
     with stage_progress("training") as progress:
         try:
             card = train_guardrail_model(
@@ -172,5 +199,7 @@ def train_guardrail(
     scores = card["validation"]["scores"]
     console.print(
         f"{out} ({card['sensor_kind']}, default head {card['default_head']}): validation "
-        "slice F " + ", ".join(f"{name} {s['f1']:.1f}" for name, s in scores.items())
+        "slice F "
+        + ", ".join(f"{name} {s['f1']:.1f}" for name, s in scores.items())
+        + f"; corrected {card['correction']['validation_slice_f']:.1f}"
     )

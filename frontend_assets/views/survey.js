@@ -54,7 +54,7 @@ const PIPELINE_FORMS = [
       // "" leaves the choice to the classifier version's card (default_head: geometry-only for
       // rotating scanners, whose real crops do not look like rendered ones)
       { key: "head", label: "Classifier", type: "select", choices: [["", "the model's default"], "image+geometry", "image", "geometry"], default: "" },
-      { key: "threshold", label: "Threshold", type: "number", step: 0.05, min: 0.05, max: 0.95, default: 0.5 },
+      { key: "threshold", label: "Threshold", type: "number", step: 0.05, min: 0.05, max: 0.95, default: "", placeholder: "the model's" },
       { key: "spacing", label: "Slice length [m]", type: "number", step: 0.1, min: 0.1, max: 5, default: 0.5 },
       { key: "reconstruct", label: "reconstruct models", type: "checkbox", default: true },
       { key: "model_id", label: "Classifier version", type: "model", pipeline: "guardrail", default: "" },
@@ -167,7 +167,10 @@ function configOf(form, inputs) {
     const input = inputs[option.key];
     let value;
     if (option.type === "checkbox") value = input.checked;
-    else if (option.type === "number") value = Number(input.value);
+    else if (option.type === "number") {
+      if (!input.value.trim()) continue; // unset: the server's (or the model's) default
+      value = Number(input.value);
+    }
     else value = input.value.trim();
     if (option.type !== "checkbox" && option.type !== "number" && !value) continue; // unset
     if (option.type === "model") value = Number(value);

@@ -299,6 +299,7 @@ def test_cancel_a_running_job_from_the_jobs_page(
     # the classifier head is the model's default unless chosen; a choice is always sent, even
     # the one that used to be the form's default (a rotating card defaults to geometry)
     assert page.input_value("#opt-run-guardrail-head") == ""
+    assert page.input_value("#opt-run-guardrail-threshold") == ""  # the model's, unless set
     page.select_option("#opt-run-guardrail-head", "image+geometry")
     page.click("button[data-start='run:guardrail']")
     page.wait_for_selector(".latest[data-kind='run:guardrail'] .progress")
@@ -320,7 +321,7 @@ def test_cancel_a_running_job_from_the_jobs_page(
     with dashboard_server.client() as api:
         job = api.get(f"/jobs/{job_id}").json()
     assert job["status"] == "cancelled" and job["cancel_requested"]
-    assert job["config"]["head"] == "image+geometry"
+    assert job["config"]["head"] == "image+geometry" and "threshold" not in job["config"]
 
 
 @pytest.mark.e2e

@@ -304,6 +304,11 @@ class ReconstructionConfig(_Group):
         return ReconstructionConfig.model_validate(values)
 
 
+# the paper's adjacency correction as read here (correction.py): a guardrail probability of 0.5
+# says yes, runs of up to two other slices inside a guardrail are filled, lone slices dropped
+PAPER_CORRECTION: dict[str, float | int] = {"threshold": 0.5, "max_gap": 2, "max_isolated": 1}
+
+
 class GuardrailConfig(BaseModel):
     spacing: Resolution = Field(0.5, description="metres: slice length along the trajectory")
     head: Literal["image+geometry", "image", "geometry"] | None = Field(
@@ -311,9 +316,17 @@ class GuardrailConfig(BaseModel):
         description="classifier inputs: image (the paper), geometry, or both; "
         "default: the model's (its card's default_head)",
     )
-    threshold: Share = Field(0.5, gt=0, lt=1, description="guardrail probability to say yes")
-    max_gap: Count = Field(2, ge=0, description="slices: other slices filled inside a run")
-    max_isolated: Count = Field(1, ge=0, description="slices: guardrail runs this short go")
+    # the adjacency correction (correction.py); unset: the classifier's own, chosen on its
+    # validation surveys (its card's `correction`), else the paper's reading (PAPER_CORRECTION)
+    threshold: Share | None = Field(
+        None, gt=0, lt=1, description="guardrail probability to say yes; default: the model's"
+    )
+    max_gap: Count | None = Field(
+        None, ge=0, description="slices: other slices filled inside a run; default: the model's"
+    )
+    max_isolated: Count | None = Field(
+        None, ge=0, description="slices: guardrail runs this short go; default: the model's"
+    )
     min_guardrail_length: Metres = Field(
         3.0, gt=0, description="metres: shorter guardrail runs are not reconstructed"
     )
@@ -328,3 +341,13 @@ class GuardrailConfig(BaseModel):
         description="the reconstruction's settings: rail course, poles, units, superimposition, "
         "pipes, beam, beam-or-pipes test, meshes",
     )
+
+    def with_correction(self, card: dict[str, Any]) -> GuardrailConfig:
+        """This config with every unset correction setting taken from the classifier's card
+        (`correction`, chosen on its validation surveys), else from PAPER_CORRECTION."""
+        chosen = card.get("correction") or {}
+        values = {
+            key: (getattr(self, key) if getattr(self, key) is not None else chosen.get(key, paper))
+            for key, paper in PAPER_CORRECTION.items()
+        }
+        return type(self).model_validate({**self.model_dump(), **values})

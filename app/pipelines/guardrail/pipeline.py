@@ -67,6 +67,8 @@ class GuardrailPipeline:
         self.config = config or GuardrailConfig()
         self.model_path = Path(model_path or DEFAULT_MODEL)
         self.heads, self.card = load_heads(self.model_path)
+        # the correction settings left unset are the classifier's own (chosen with it)
+        self.config = self.config.with_correction(self.card)
         # the head asked for, else the model's default (the one that holds on real data)
         self.head: str = self.config.head or self.card.get("default_head") or "image+geometry"
         if self.head not in self.heads:

@@ -38,6 +38,7 @@ from app.pipelines.guardrail.training.dataset import (
 )
 from app.pipelines.guardrail.training.train import train_guardrail_model
 from app.pipelines.sensor_models import card_sensor_kind, choose_model
+from tests.pipelines.guardrail.test_correction_choice import validation_parts
 
 SAMPLE = Path(__file__).resolve().parents[3] / "data_samples" / "urban-60m"
 
@@ -121,6 +122,13 @@ def test_the_card_records_the_kind_its_scanner_and_default_head(monkeypatch, tmp
         return SliceSamples(embedding, geometry, label, np.zeros(40, np.int64), ["a", "b", "c"])
 
     monkeypatch.setattr("app.pipelines.guardrail.training.train.build_samples", samples)
+    validated = []
+
+    def validation(model, seeds, length, sensor):
+        validated.append((list(seeds), length, sensor))
+        return validation_parts()
+
+    monkeypatch.setattr("app.pipelines.guardrail.training.train.validation_slices", validation)
     card = train_guardrail_model(tmp_path / "r.pt", epochs=1, sensor="rotating")
     data = ROTATING_DATA
     assert asked == [
@@ -131,6 +139,10 @@ def test_the_card_records_the_kind_its_scanner_and_default_head(monkeypatch, tmp
     assert card["training"]["scanner"] == "hdl64" and card["training"]["vary_scanner"]
     assert card["default_head"] == "geometry" and card["training"]["class_balance"] == 0.0
     assert card_sensor_kind(read_classifier_card(tmp_path / "r.pt")) == SensorKind.ROTATING
+    # the correction is chosen on the validation surveys, after training, into the card
+    assert validated == [(list(data.validation_seeds), data.length, "rotating")]
+    assert read_classifier_card(tmp_path / "r.pt")["correction"] == card["correction"]
+    assert card["correction"]["validation_slice_f"] == 100.0
 
 
 def test_a_run_uses_the_model_default_head_unless_told(tmp_path: Path) -> None:

@@ -18,7 +18,8 @@ import torch
 from torch import nn
 
 from app.metrics.classification import binary_scores
-from app.pipelines.guardrail.classifier import Inputs, SliceHead, predict, save_heads
+from app.pipelines.guardrail.classifier import Inputs, SliceHead, load_heads, predict, save_heads
+from app.pipelines.guardrail.training.correction_choice import choose_correction, validation_slices
 from app.pipelines.guardrail.training.dataset import SliceSamples, build_samples, training_data
 
 
@@ -143,5 +144,15 @@ def train_guardrail_model(
         "default_head": default_head,
         "seconds": {"samples": round(built, 1), "total": round(time.perf_counter() - started, 1)},
     }
+    save_heads(out, heads, card)
+    return choose_model_correction(out, validation_seeds, length, data.sensor_kind)
+
+
+def choose_model_correction(out: Path, seeds: list[int], length: float, sensor: str) -> dict:
+    """Choose the adjacency correction of a saved classifier on its validation surveys
+    (correction_choice.py), write it into its card and return the card."""
+    heads, card = load_heads(out)
+    parts = validation_slices(out, seeds, length, sensor)
+    card["correction"] = choose_correction(parts, seeds)
     save_heads(out, heads, card)
     return card

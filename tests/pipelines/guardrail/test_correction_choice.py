@@ -1,0 +1,52 @@
+"""The adjacency correction chosen with a classifier on its validation surveys, and runs using
+it unless their config says otherwise."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from app.pipelines.guardrail.classifier import SliceHead, save_heads
+from app.pipelines.guardrail.config import PAPER_CORRECTION, GuardrailConfig
+from app.pipelines.guardrail.pipeline import GuardrailPipeline
+from app.pipelines.guardrail.training.correction_choice import (
+    ValidationSlices,
+    choose_correction,
+)
+from tests.pipelines.guardrail.test_segmentation import _chains
+
+
+def validation_parts() -> list[ValidationSlices]:
+    """A 12-slice guardrail whose classifier dips below 0.5 at two slices, beside a 4-slice
+    fence it scores 0.6 to 0.65: the paper's 0.5 keeps the fence and cuts the guardrail."""
+    slices = _chains()
+    order = np.lexsort((slices.station_index, slices.component))
+    sorted_probability = np.array([0.9, 0.9, 0.4, 0.9, 0.9, 0.9, 0.45, 0.9, 0.9, 0.9, 0.9, 0.9,
+                                   0.6, 0.65, 0.65, 0.6])  # fmt: skip
+    probability, truth = np.empty(16), np.empty(16, dtype=bool)
+    probability[order] = sorted_probability
+    truth[order] = np.arange(16) < 12
+    return [ValidationSlices(slices, probability, truth)]
+
+
+def test_the_choice_beats_the_paper_settings_on_validation() -> None:
+    chosen = choose_correction(validation_parts(), [781])
+    assert chosen["validation_slice_f"] == 100.0
+    assert chosen["paper_validation_slice_f"] < 100.0
+    # ties go to the first in grid order: the lowest threshold, then gap, then isolated run
+    # (here 0.3 keeps the dips and dropping runs of four takes the fence)
+    assert (chosen["threshold"], chosen["max_gap"], chosen["max_isolated"]) == (0.3, 0, 4)
+    assert chosen["chosen_on"] == {"simulation_seeds": [781], "slices": 16}
+
+
+def test_a_run_uses_the_card_correction_unless_its_config_sets_one(tmp_path: Path) -> None:
+    heads = {name: SliceHead(name, 3) for name in ("image+geometry", "image", "geometry")}
+    correction = {"threshold": 0.75, "max_gap": 1, "max_isolated": 0}
+    path = save_heads(tmp_path / "m.pt", heads, {"correction": correction})
+    config = GuardrailPipeline(GuardrailConfig(), path).config
+    assert (config.threshold, config.max_gap, config.max_isolated) == (0.75, 1, 0)
+    told = GuardrailPipeline(GuardrailConfig(threshold=0.4, max_isolated=2), path).config
+    assert (told.threshold, told.max_gap, told.max_isolated) == (0.4, 1, 2)
+    older = GuardrailPipeline(GuardrailConfig(), save_heads(tmp_path / "o.pt", heads, {})).config
+    assert older.model_dump(include=set(PAPER_CORRECTION)) == PAPER_CORRECTION
