@@ -28,10 +28,11 @@ if TYPE_CHECKING:
 
 
 def held_out(labels: SurveyLabels, cfg: PhantomRetrainConfig) -> np.ndarray:
-    """(L,) True for the survey's labels in the map blocks held out for validation."""
+    """(L,) True for the survey's labels in the map blocks held out for validation (every
+    labelled class on both sides where its labels span two blocks or more)."""
     ix, iy = STORE_GRID.decode(labels.cells)
     centres = STORE_GRID.cell_center(ix, iy)
-    return held_out_blocks(centres, cfg.block_size, cfg.holdout, cfg.seed)
+    return held_out_blocks(centres, cfg.block_size, cfg.holdout, cfg.seed, labels.classes)
 
 
 @dataclass(frozen=True)
