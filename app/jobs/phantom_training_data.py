@@ -8,7 +8,8 @@ for validation with labels left outside them (a survey whose labels lie in one b
 validation labels only); labelled pillars with points on both sides (a pillar with no points in
 its survey's map gives no sample); and at least `min_classes` classes among the training labels
 (a network fine-tuned on one class learns to answer it everywhere, and validated on that class
-alone it would even look better than the one it replaces).
+alone it would even look better than the one it replaces), two of them with `min_class_labels`
+pillars each (fine-tuning leaves rarer classes out).
 """
 
 from __future__ import annotations
@@ -94,5 +95,12 @@ def training_blocker(counts: ClassCounts, cfg: PhantomRetrainConfig) -> str | No
         return (
             f"the training labels hold {len(present)} class(es) ({', '.join(present)}); "
             f"retraining needs at least {cfg.min_classes}"
+        )
+    enough = np.flatnonzero(counts.train >= cfg.min_class_labels)
+    if len(enough) < max(cfg.min_classes, 2):
+        held = ", ".join(f"{PillarClass(c).name} {n}" for c, n in enumerate(counts.train) if n)
+        return (
+            f"retraining needs {max(cfg.min_classes, 2)} classes with at least "
+            f"{cfg.min_class_labels} labelled pillars outside the held-out blocks ({held})"
         )
     return None

@@ -49,6 +49,7 @@ from app.pipelines.phantom.training.dataset import Samples, concatenate
 from app.pipelines.phantom.training.finetune import (
     LabelledPillars,
     finetune,
+    labelled_pillars_per_class,
     labelled_samples,
     score,
 )
@@ -79,6 +80,12 @@ class PhantomRetrainConfig(BaseModel):
     min_labels: Count = Field(50, ge=1, description="fewer human labels: refuse to train")
     min_classes: int = Field(
         2, ge=1, le=4, description="fewer classes among the training labels: refuse to train"
+    )
+    min_class_labels: Count = Field(
+        50,
+        ge=1,
+        description="a class with fewer labelled pillars in training is left out (as the base "
+        "model knew it): a few pillars copied up to the largest class's size teach those pillars",
     )
     trigger: Literal["on demand", "labels"] = Field(
         "on demand", description="who asked: a user, or the new-labels trigger"
@@ -134,8 +141,8 @@ def retraining_priors(
 
 
 def class_counts(parts: list[Samples]) -> np.ndarray:
-    """(4,) samples per class over PARTS."""
-    return sum((np.bincount(p.y, minlength=4)[:4] for p in parts), np.zeros(4, np.int64))
+    """(4,) distinct labelled pillars per class over PARTS (rotated copies count once)."""
+    return sum((labelled_pillars_per_class(p) for p in parts), np.zeros(4, np.int64))
 
 
 @task("train:phantom", check=check_phantom_config, estimate=estimate_phantom)
@@ -204,6 +211,7 @@ def train_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]
         train_config,
         cfg.per_class,
         lambda stage, f: context.progress(0.3 + 0.6 * f, stage),
+        cfg.min_class_labels,
     )
     context.progress(0.92, "validation on held-out labels")
     new_scores, base_scores = score(result.net, val_samples), score(base_net, val_samples)

@@ -15,8 +15,9 @@ from app.api.sample import load_sample_on_first_start
 from app.core.errors import ConfigError
 from app.core.settings import Settings
 from app.io import open_survey
+from app.jobs.phantom_training_data import ClassCounts, training_blocker
 from app.jobs.registry import JobContext, load_tasks
-from app.jobs.training_tasks import retraining_priors, train_phantom
+from app.jobs.training_tasks import PhantomRetrainConfig, retraining_priors, train_phantom
 from app.jobs.worker import run_job
 from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.priors import class_priors
@@ -188,3 +189,15 @@ def test_retrained_priors_are_the_labelled_survey_as_reviewed(context: JobContex
     assert "10 pillars" in origin
     # no labelled survey had a phantom run: the base model's priors stay
     assert retraining_priors(np.zeros(4, np.int64), base, [1]) == ([0.25] * 4, "simulated drives")
+
+
+def test_training_needs_two_classes_with_enough_pillars() -> None:
+    cfg = PhantomRetrainConfig()
+    held = np.array([10, 10, 0, 0])
+    fine = ClassCounts(230, np.array([150, 60, 0, 10]), held, True)
+    assert training_blocker(fine, cfg) is None
+    short = ClassCounts(220, np.array([150, 40, 0, 10]), held, True)
+    assert training_blocker(short, cfg) == (
+        "retraining needs 2 classes with at least 50 labelled pillars outside the held-out "
+        "blocks (ground 150, high_object 40, phantom 10)"
+    )

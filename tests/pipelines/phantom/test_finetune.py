@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from app.geometry.ground import estimate_ground
@@ -13,6 +14,7 @@ from app.pipelines.phantom.training.finetune import (
     LabelledPillars,
     epoch_split,
     finetune,
+    labelled_pillars_per_class,
     labelled_samples,
 )
 from app.pipelines.phantom.training.train import TrainConfig
@@ -75,3 +77,18 @@ def test_classes_nobody_labelled_stay_out_of_the_loss() -> None:
         change = after[name] - before[name]
         assert torch.equal(change[2:], torch.zeros_like(change[2:])), name
         assert change[:2].abs().sum() > 0, name
+
+
+def test_a_class_with_a_handful_of_pillars_is_left_as_the_base_knew_it() -> None:
+    xyz = street(40_000)
+    samples = samples_near(xyz, None, [float(np.median(xyz[:, 0]))])
+    rare = np.flatnonzero(samples.y == 3)[:3]
+    few = samples.subset(np.concatenate([np.flatnonzero(samples.y < 2), rare]))
+    assert labelled_pillars_per_class(few).tolist() == [10, 10, 0, 3]
+    base = PillarCNN(channels=(2, 2, 2), hidden=4)
+    config = TrainConfig(epochs=1, batch=16)
+    result = finetune(few, base, config, per_class=10, min_class_labels=5)
+    assert result.card["train_config"]["compared"] == [0, 1]
+    assert sum(result.card["samples_per_class"].values()) == 20  # no phantom copies
+    with pytest.raises(ValueError, match="fewer than two classes"):
+        finetune(few, base, config, per_class=10, min_class_labels=11)

@@ -114,23 +114,39 @@ def score(net: PillarCNN, samples: Samples) -> Scores:
     return pillar_scores(samples.y, predicted)
 
 
+def labelled_pillars_per_class(samples: Samples) -> np.ndarray:
+    """(4,) distinct labelled pillars per class (rotated copies of one pillar count once)."""
+    _, source = np.unique(samples.source, return_inverse=True)
+    keys = np.unique(np.c_[samples.y, source.ravel(), samples.group], axis=0)
+    return np.bincount(keys[:, 0], minlength=4)[:4]
+
+
 def finetune(
     train_samples: Samples,
     base: PillarCNN,
     config: TrainConfig,
     per_class: int,
     progress: Progress | None = None,
+    min_class_labels: int = 1,
 ) -> TrainResult:
     """Train from the base network's weights on class-balanced copies of the labelled samples.
-    Classes nobody labelled are left out of the samples and of the loss (which compares the
-    labelled classes' logits only): an operator's first labels are often ground and buildings
-    alone, and a loss over all four classes would teach the network that phantoms never occur
-    (measured: phantom recall 0 on the held-out sequences after 500 such labels)."""
+    Classes nobody labelled, or fewer than `min_class_labels` pillars of, are left out of the
+    samples and of the loss (which compares the kept classes' logits only), as the base knew
+    them: an operator's first labels are often ground and buildings alone, and a loss over all
+    four classes teaches the network that phantoms never occur; a handful of phantom pillars
+    copied up to the largest class's size teaches it those pillars, not the class (measured in
+    the labelling loop: phantom recall 0 on the held-out sequences either way)."""
     rng = np.random.default_rng(config.seed)
+    kept = np.flatnonzero(labelled_pillars_per_class(train_samples) >= min_class_labels)
+    if len(kept) < 2:
+        raise ValueError(
+            f"fewer than two classes with {min_class_labels} labelled pillars to fine-tune on"
+        )
+    train_samples = train_samples.subset(np.flatnonzero(np.isin(train_samples.y, kept)))
     present = np.bincount(train_samples.y, minlength=4)
     want = int(min(max(present.max(), 1), per_class))
     pool = balanced(train_samples, want, rng, allow_missing=True)
-    labelled = np.flatnonzero(present).tolist()
+    labelled = kept.tolist()
     shaped = epoch_split(pool, config).model_copy(
         update={
             "channels": tuple(base.channels),
