@@ -210,7 +210,7 @@ def run(args) -> tuple[str, str]:
     print(f"{args.labelled}: {len(operator.cells):,} pillars with points", flush=True)
     rows = []
     base_scores = score(Path(args.base_model), held_out)
-    rows.append(["0", "", "", "", "", _phantom_share(args.base_model)]
+    rows.append(["0", "", "", "", "", "", _phantom_share(args.base_model)]
                 + _score_cells(base_scores, held_out))  # fmt: skip
     print(rows[-1], flush=True)
     with tempfile.TemporaryDirectory(prefix="mmsclean-labelling-") as scratch:
@@ -253,8 +253,10 @@ def run(args) -> tuple[str, str]:
                     val = f"{result['validation_macro_f1']:.1f} / {result['baseline_macro_f1']:.1f}"
                 else:  # what a team would see: the job's one line
                     outcome, val = f"job {job['status']}: {job['message']}", ""
+                answers = np.bincount(operator.classes[operator.labelled], minlength=4)
                 rows.append(
-                    [f"{step:,}", str(strokes), f"{job['seconds']:.0f}", outcome, val,
+                    [f"{step:,}", " / ".join(map(str, answers)), str(strokes),
+                     f"{job['seconds']:.0f}", outcome, val,
                      _phantom_share(current["checkpoint_path"])]
                     + _score_cells(scores, held_out)
                 )  # fmt: skip
@@ -265,17 +267,16 @@ def run(args) -> tuple[str, str]:
             tracebacks = server.log().count("Traceback")
         finally:
             server.stop()
-    header = ["labelled pillars", "brush strokes", "retraining s", "promoted",
+    header = ["labelled pillars", "ground / high / short / phantom", "brush strokes",
+              "retraining s", "promoted",
               "held-out label blocks macro F new / base", "phantom prior"]  # fmt: skip
     for s in held_out:
         header += [f"{s.name} {what}" for what in ("point P", "point R", "point F", "pillar F")]
     table = markdown_table(header, rows)
-    classes = np.bincount(operator.classes[operator.labelled], minlength=4).tolist()
     notes = (
         f"Operator: SemanticKITTI {args.labelled} (10 frames, {len(operator.cells):,} pillars "
         f"with points), uncertain-first areas from the API, brush r = {BRUSH_RADIUS:g} m, the "
-        f"reference classes as answers (ground / high / short / phantom of the last step's "
-        f"labels: {classes}). Base (row 0): {Path(args.base_model).name}, a rotating-scanner "
+        f"reference classes as answers. Base (row 0): {Path(args.base_model).name}, a rotating-scanner "
         f"model trained on simulated drives only. Each retraining is the trigger's train:phantom "
         f"job (default settings) on all labels so far, from the promoted version; the scores "
         f"are the promoted version's after it, on sequences no model here saw. Server "

@@ -17,7 +17,7 @@ from app.pipelines.phantom.training.finetune import (
     labelled_pillars_per_class,
     labelled_samples,
 )
-from app.pipelines.phantom.training.train import TrainConfig
+from app.pipelines.phantom.training.train import TrainConfig, distillation
 from tests.pipelines.phantom.test_core import street
 
 CFG = PhantomConfig()
@@ -70,7 +70,7 @@ def test_classes_nobody_labelled_stay_out_of_the_loss() -> None:
     two = samples.subset(np.flatnonzero(samples.y < 2))
     base = PillarCNN(channels=(2, 2, 2), hidden=4)
     config = TrainConfig(epochs=1, batch=16, weight_decay=0.0)
-    result = finetune(two, base, config, per_class=10)
+    result = finetune(two, base, config, per_class=10, distill=0.0)
     assert result.card["train_config"]["compared"] == [0, 1]
     before, after = base.state_dict(), result.net.state_dict()
     for name in ("fc2.weight", "fc2.bias"):
@@ -92,3 +92,17 @@ def test_a_class_with_a_handful_of_pillars_is_left_as_the_base_knew_it() -> None
     assert sum(result.card["samples_per_class"].values()) == 20  # no phantom copies
     with pytest.raises(ValueError, match="fewer than two classes"):
         finetune(few, base, config, per_class=10, min_class_labels=11)
+
+
+def test_fine_tuning_keeps_the_base_answers_by_distillation() -> None:
+    """Learning without forgetting: the KL to the starting network's softened answers is 0 for
+    the same logits and grows as the answers part; fine-tuning uses it by default."""
+    same = torch.tensor([[2.0, 0.5, -1.0, 0.0]])
+    assert distillation(same, same).item() == pytest.approx(0.0, abs=1e-7)
+    apart = torch.tensor([[-1.0, 0.5, 2.0, 0.0]])
+    assert distillation(apart, same).item() > distillation(same * 0.9, same).item() > 0
+    xyz = street(40_000)
+    samples = samples_near(xyz, None, [float(np.median(xyz[:, 0]))])
+    base = PillarCNN(channels=(2, 2, 2), hidden=4)
+    result = finetune(samples, base, TrainConfig(epochs=1, batch=16), per_class=10)
+    assert result.card["train_config"]["distill"] == 1.0

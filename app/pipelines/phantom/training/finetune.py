@@ -128,14 +128,17 @@ def finetune(
     per_class: int,
     progress: Progress | None = None,
     min_class_labels: int = 1,
+    distill: float = 1.0,
 ) -> TrainResult:
     """Train from the base network's weights on class-balanced copies of the labelled samples.
     Classes nobody labelled, or fewer than `min_class_labels` pillars of, are left out of the
     samples and of the loss (which compares the kept classes' logits only), as the base knew
     them: an operator's first labels are often ground and buildings alone, and a loss over all
     four classes teaches the network that phantoms never occur; a handful of phantom pillars
-    copied up to the largest class's size teaches it those pillars, not the class (measured in
-    the labelling loop: phantom recall 0 on the held-out sequences either way)."""
+    copied up to the largest class's size teaches it those pillars, not the class. And the
+    base network's answers on the training windows are kept (`distill`, learning without
+    forgetting), since new labels reshape the features every class shares (measured in the
+    labelling loop: phantom recall 0 on the held-out sequences without these)."""
     rng = np.random.default_rng(config.seed)
     kept = np.flatnonzero(labelled_pillars_per_class(train_samples) >= min_class_labels)
     if len(kept) < 2:
@@ -154,6 +157,7 @@ def finetune(
             "context": base.context,
             "passes": base.passes,
             "compared": labelled if 2 <= len(labelled) < 4 else None,
+            "distill": distill,
         }
     )
     return train(pool, shaped, progress, initial_state=base.state_dict())

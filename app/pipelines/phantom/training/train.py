@@ -29,6 +29,7 @@ Decisions where the paper is terse:
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from collections.abc import Callable
@@ -38,7 +39,7 @@ from typing import Annotated, Literal
 import numpy as np
 import torch
 from pydantic import BaseModel, Field
-from torch.nn.functional import cross_entropy
+from torch.nn.functional import cross_entropy, kl_div, log_softmax
 
 from app.core.bounds import Count, Epochs, Metres, Rate, Seconds, Seed, Threads
 from app.core.progress import Progress
@@ -94,6 +95,11 @@ class TrainConfig(BaseModel):
     )
     frames_per_map: int = Field(
         0, ge=0, le=100_000, description="frames per training map (0: whole surveys)"
+    )
+    distill: Annotated[float, Field(ge=0.0, le=100.0, allow_inf_nan=False)] = Field(
+        0.0,
+        description="fine-tuning: weight of keeping the starting network's answers on the "
+        "training windows (learning without forgetting; 0: off)",
     )
     compared: list[Annotated[int, Field(ge=0, lt=N_CLASSES)]] | None = Field(
         None,
@@ -170,6 +176,31 @@ def pillar_scores(reference_y: np.ndarray, predicted: np.ndarray):
     return scores_from_confusion(confusion, CLASS_NAMES)
 
 
+DISTILL_T = 2.0  # softmax temperature of the distillation (Li & Hoiem, learning without forgetting)
+
+
+def _teacher(net: PillarCNN, weight: float) -> PillarCNN | None:
+    """A frozen copy of the starting network when its answers are to be kept."""
+    if weight <= 0:
+        return None
+    teacher = copy.deepcopy(net).eval()
+    for p in teacher.parameters():
+        p.requires_grad_(False)
+    return teacher
+
+
+def distillation(logits: torch.Tensor, teacher_logits: torch.Tensor) -> torch.Tensor:
+    """KL from the starting network's softened answers to the new ones, over all four classes:
+    fine-tuning on an operator's labels of some classes otherwise reshapes the shared features
+    until the classes nobody labelled are no longer called (the labelling loop's 2,000-label
+    version called no phantom)."""
+    t = DISTILL_T
+    return kl_div(
+        log_softmax(logits / t, dim=1), log_softmax(teacher_logits / t, dim=1),
+        reduction="batchmean", log_target=True,
+    ) * (t * t)  # fmt: skip
+
+
 def _compared(classes: list[int] | None) -> tuple[torch.Tensor, torch.Tensor] | None:
     """(the compared classes, their position among them per class) for the loss, or None."""
     if classes is None:
@@ -200,6 +231,7 @@ def _train_fold(
     )
     if initial_state is not None:
         net.load_state_dict(initial_state)
+    teacher = _teacher(net, config.distill)
     optimiser = torch.optim.SGD(
         net.parameters(), lr=config.lr, momentum=config.momentum, weight_decay=config.weight_decay
     )
@@ -231,10 +263,17 @@ def _train_fold(
         total_loss, correct = 0.0, 0
         for step, a in enumerate(range(0, len(order), config.batch)):
             x, y = samples.batch(order[a : a + config.batch])
-            logits = net(x, samples.context_batch(order[a : a + config.batch]))
+            context = samples.context_batch(order[a : a + config.batch])
+            logits = net(x, context)
+            kept = logits
+            if teacher is not None:
+                with torch.no_grad():
+                    before = teacher(x, context)
             if compared is not None:  # the labelled classes' logits only
                 logits, y = logits[:, compared[0]], compared[1][y]
             loss = cross_entropy(logits, y)
+            if teacher is not None:
+                loss = loss + config.distill * distillation(kept, before)
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             optimiser.step()
