@@ -276,11 +276,11 @@ def run(args) -> tuple[str, str]:
     notes = (
         f"Operator: SemanticKITTI {args.labelled} (10 frames, {len(operator.cells):,} pillars "
         f"with points), uncertain-first areas from the API, brush r = {BRUSH_RADIUS:g} m, the "
-        f"reference classes as answers. Base (row 0): {Path(args.base_model).name}, a rotating-scanner "
-        f"model trained on simulated drives only. Each retraining is the trigger's train:phantom "
-        f"job (default settings) on all labels so far, from the promoted version; the scores "
-        f"are the promoted version's after it, on sequences no model here saw. Server "
-        f"tracebacks: {tracebacks}."
+        f"reference classes as answers. Base (row 0): {Path(args.base_model).name}, a "
+        "rotating-scanner model trained on simulated drives only. Each retraining is the "
+        "trigger's train:phantom job (default settings) on all labels so far, from the "
+        "promoted version; the scores are the promoted version's after it, on sequences no "
+        f"model here saw. Server tracebacks: {tracebacks}."
     )
     return table, notes
 
