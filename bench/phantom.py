@@ -16,6 +16,9 @@
   train     training time on 40k pillars (10k per class) to the paper's validation F; writes the
             checkpoint (--model; default the shipped file of the network trained: --context 16, the
             default, or --context 0 for the paper network); --sim-seeds chooses the maps
+  profile-time  time as evidence on a profile scanner: two networks trained alike (seeds
+            101-112 or --sim-seeds, --kitti-per-class, --kitti-epochs), with and without the
+            passes channel, scored on the held-out surveys 201-203
 
 Usage: python -m bench.phantom PART [--model PATH] [--context N] [--no-record]
 Simulated maps are synthetic (app.simulate); they are cached under $MMSCLEAN_DATA_DIR/cache.
@@ -114,7 +117,16 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
         "part",
-        choices=["speed", "memory", "accuracy", "validation", "kitti", "rotating-sim", "train"],
+        choices=[
+            "speed",
+            "memory",
+            "accuracy",
+            "validation",
+            "kitti",
+            "rotating-sim",
+            "train",
+            "profile-time",
+        ],  # fmt: skip
     )
     parser.add_argument("--model", type=Path, default=None, help="checkpoint (default: shipped)")
     parser.add_argument("--no-record", action="store_true")
