@@ -351,7 +351,7 @@ def part_profile_time(args) -> tuple[str, str, str]:
     header = ["passes", "point P", "point R", "point F", "pillar P", "pillar R", "pillar F",
               "object F (Table I overall)", "training s"]  # fmt: skip
     notes = (
-        f"Synthetic: profile scanner, trained on seeds {seeds[0]}-{seeds[-1]} (200 m each), "
+        f"Synthetic: profile scanner, trained on seeds {', '.join(map(str, seeds))} (200 m each), "
         f"{args.kitti_per_class} pillars per class, {args.kitti_epochs} epochs, context "
         f"{args.context}, one fold; scored on the held-out seeds "
         f"{', '.join(f'{s} ({n})' for s, n in HELD_OUT_SEEDS)}. The two networks differ only in "
