@@ -327,10 +327,14 @@ def pole_spacing(
     spacing_range: tuple[float, float] = (0.8, 6.0),  # m, plausible unit lengths
     tol: float = 0.15,  # m, a gap "is" k units when within this of k * L
     inlier_share: float = 0.75,  # share of gaps that must be whole numbers of units
+    max_units: int = 3,  # a gap counts as at most this many units (two poles missed in a row)
 ) -> float:
     """Unit length: the longest L (on a 1 cm grid) for which most pole gaps (weighted by the
     support of their weaker pole) are whole multiples of L (missed poles make gaps of 2 L,
-    3 L; a spurious pole makes an odd one), refined as the median of gap / k over them."""
+    3 L; a spurious pole makes an odd one), refined as the median of gap / k over them. A gap
+    of more than `max_units` units is no evidence for L: any short L divides a long gap nearly
+    evenly, and a spurious pole 0.8 m from a real one once made 0.8 m "explain" gaps of 3.2 and
+    4 m (and the pipe guardrail between 2 m poles came out a beam)."""
     g = np.diff([p.station for p in poles])
     support = np.array([max(p.points, 1) * max(p.top - p.base, 0.01) for p in poles])
     w = np.minimum(support[:-1], support[1:])  # a gap is as trustworthy as its weaker pole
@@ -339,7 +343,7 @@ def pole_spacing(
         return float("nan")
     L = np.arange(spacing_range[0], spacing_range[1] + 1e-9, 0.01)
     k = np.maximum(1.0, np.round(g[None, :] / L[:, None]))
-    ok = np.abs(g[None, :] - k * L[:, None]) <= tol
+    ok = (np.abs(g[None, :] - k * L[:, None]) <= tol) & (k <= max_units)
     good = np.flatnonzero((ok * w).sum(1) >= inlier_share * w.sum())
     if not len(good):
         return float(np.median(g))

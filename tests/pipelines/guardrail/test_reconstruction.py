@@ -257,6 +257,17 @@ def test_pole_spacing_survives_missed_and_spurious_poles():
     assert abs(pole_spacing(poles) - 2.0) < 0.02
 
 
+def test_a_spurious_pole_beside_the_first_does_not_set_a_short_spacing():
+    """Poles every 2 m, 2 and 10 m missed, a well supported spurious column 0.8 m after the
+    first (the urban pipe guardrail of held-out drive 791): 0.8 m divides the long gaps 3.2 and
+    4 m too, but a gap of four or five units is no evidence."""
+    st = [0.0, 0.8, 4.0, 6.0, 8.0, 12.0]
+    support = [251, 107, 292, 131, 223, 421]
+    poles = [Pole(np.zeros(2), 0.03, 0.0, 1.0, s, n) for s, n in zip(st, support, strict=True)]
+    assert abs(pole_spacing(poles) - 2.0) < 0.02
+    assert abs(pole_spacing(poles, max_units=10) - 2.0) > 0.5  # without the bound: 1 m
+
+
 def test_taubin_smooths_without_shrinking():
     rng = np.random.default_rng(2)
     t = np.linspace(0, np.pi, 60)
