@@ -265,7 +265,7 @@ def _train_fold(
             x, y = samples.batch(order[a : a + config.batch])
             context = samples.context_batch(order[a : a + config.batch])
             logits = net(x, context)
-            kept = logits
+            every_class = logits
             if teacher is not None:
                 with torch.no_grad():
                     before = teacher(x, context)
@@ -273,7 +273,7 @@ def _train_fold(
                 logits, y = logits[:, compared[0]], compared[1][y]
             loss = cross_entropy(logits, y)
             if teacher is not None:
-                loss = loss + config.distill * distillation(kept, before)
+                loss = loss + config.distill * distillation(every_class, before)
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             optimiser.step()
