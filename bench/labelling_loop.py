@@ -49,6 +49,7 @@ from app.core.sensors import SensorKind
 from app.geometry.ground import estimate_ground
 from app.io import open_survey
 from app.io.accumulate import accumulate
+from app.jobs.retraining import TRIGGER_CONFIG  # what the trigger queues
 from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.evaluation.reference import reference_pillar_labels, static_and_moving
 from app.pipelines.phantom.model import read_card
@@ -59,11 +60,11 @@ from app.store.model_versions import register_version
 from app.store.models import Pipeline
 from app.store.pillar_labels import STORE_GRID
 from app.viewer.picking import pillars_in_disc
+from bench import security
 from bench.common import append_results, markdown_table
 from bench.phantom_quality import Tally
 from tests.api.server import Server
 
-TRIGGER_CONFIG = {"trigger": "labels"}  # app.jobs.retraining.TRIGGER_CONFIG: what it queues
 BRUSH_RADIUS = 1.0  # metres: the viewer's default brush
 JOB_TIMEOUT = 3 * 3600.0
 
@@ -111,13 +112,11 @@ def reference_answers(sequence: Path) -> Operator:
 
 
 def wait_job(client: httpx.Client, job_id: int) -> dict:
-    deadline = time.monotonic() + JOB_TIMEOUT
-    while time.monotonic() < deadline:
-        job = client.get(f"/jobs/{job_id}").json()
-        if job["status"] not in ("queued", "running"):
-            return job
-        time.sleep(1.0)
-    raise RuntimeError(f"job {job_id} did not end within {JOB_TIMEOUT:.0f} s")
+    """The job once it ended (`bench.security.wait_job`); a job still going is an error here."""
+    job = security.wait_job(client, job_id, JOB_TIMEOUT)
+    if job["status"] in ("queued", "running"):
+        raise RuntimeError(f"job {job_id} did not end within {JOB_TIMEOUT:.0f} s")
+    return job
 
 
 def run_phantom(client: httpx.Client, survey_id: int) -> dict:

@@ -156,7 +156,7 @@ def finetune(
             "hidden": base.hidden,
             "context": base.context,
             "passes": base.passes,
-            "compared": labelled if 2 <= len(labelled) < 4 else None,
+            "compared": labelled if len(labelled) < 4 else None,  # two or more (above)
             "distill": distill,
         }
     )
