@@ -12,7 +12,7 @@ from sqlmodel import Session
 
 from app.core.errors import ConfigError, ConflictError, NotFoundError
 from app.pipelines.guardrail.correction import correct_labels
-from app.pipelines.guardrail.pipeline import ReconstructionInput
+from app.pipelines.guardrail.pipeline import ReconstructionInput, confident
 from app.store.guardrail_review import slice_table, trajectory_position
 from app.store.guardrail_runs import GuardrailRun, latest_run, match_slices
 from app.store.models import GuardrailSlice
@@ -82,7 +82,13 @@ def preview_correction(
     stage_labels[at] = proposed
     gap = saved.config.max_gap if max_gap is None else max_gap
     isolated = saved.config.max_isolated if max_isolated is None else max_isolated
-    corrected = correct_labels(saved.slices, stage_labels, max_gap=gap, max_isolated=isolated)[at]
+    keep = np.zeros(len(saved.slices), dtype=bool)
+    sure = confident(table.probability, saved.config.keep_confident)
+    if sure is not None:
+        keep[at] = sure
+    corrected = correct_labels(
+        saved.slices, stage_labels, max_gap=gap, max_isolated=isolated, keep=keep
+    )[at]
     show = corrected != table.label
     show[rows] = True
     pick = np.flatnonzero(show)

@@ -13,6 +13,12 @@ beyond both ends of the driven stretch so the scanner sees a complete street eve
 - `mixed`: an arterial with two lanes each way, buildings along its first half only, guardrails
   of both kinds, cars overtaking the survey vehicle (long phantoms), a traffic light where
   oncoming traffic stops and starts again, and a tram.
+- `interchange`: the highway at an exit: an auxiliary lane on the right that leaves as a ramp
+  curving away (its guardrail turns away from the trajectory, seen at ever more grazing
+  angles), the edge guardrail resuming at the gore, often a second guardrail along the ramp's
+  inner edge facing away from the survey, and in the median a concrete New Jersey barrier
+  (two drives in three; else the beam guardrail): a guardrail-shaped object the classifier
+  must call other.
 """
 
 from __future__ import annotations
@@ -31,6 +37,7 @@ from app.simulate.road import Centerline, RoadProfile
 from app.simulate.scene import Body, Mesh, Motion, Scene
 from app.simulate.traffic import SpeedPlan, path_motion
 
+PRESETS = ("urban", "highway", "mixed", "interchange")
 SCENE_MARGIN = 30.0  # metres of street modelled beyond both ends of the drive
 CURB_HEIGHT = 0.15
 HALO_MARGIN = 0.2  # metres: laser-bounce halo around vehicle bodies (clutter paper, Fig. 6)
@@ -179,9 +186,11 @@ def building_rows(b: SceneBuilder, cs: CrossSection, s0: float, s1: float) -> No
         b.stuff("buildings", mesh, Semantic.BUILDING)
 
 
-def street_furniture(b: SceneBuilder, cs: CrossSection, s0: float, s1: float, dz: float) -> None:
-    """Trees, lamps and signs along both sides."""
-    for side in (1.0, -1.0):
+def street_furniture(
+    b: SceneBuilder, cs: CrossSection, s0: float, s1: float, dz: float, sides=(1.0, -1.0)
+) -> None:
+    """Trees, lamps and signs along both sides (or the `sides` given: +1 left, -1 right)."""
+    for side in sides:
         # road side of a roadside object is its local -y: turn it to face the road
         facing_road = np.pi if side < 0 else 0.0
         s = s0 + b.rng.uniform(2.0, 8.0)
@@ -236,12 +245,62 @@ def parked_vehicles(
 def add_guardrail(b: SceneBuilder, kind: str, lateral: float, s0: float, s1: float, dz: float):
     """A guardrail on a line parallel to the road; the road is towards the centreline."""
     line = b.centerline.line(lateral, s0, s1, step=0.25, dz=dz)
-    road_side = "left" if lateral < 0 else "right"
+    add_guardrail_on(b, kind, line, "left" if lateral < 0 else "right")
+
+
+def add_guardrail_on(b: SceneBuilder, kind: str, line: np.ndarray, road_side: str) -> None:
+    """A guardrail along any `line` (K, 3) with its road on `road_side` of the line."""
     make = pipe_guardrail if kind == "pipe" else beam_guardrail
     rail = make(line, b.rng, road_side=road_side)
     index = len(b.guardrails)
     b.guardrails.append(rail.model)
     b.thing(f"guardrail-{kind}", [(rail.mesh, Semantic.FENCE)], guardrail=index)
+
+
+@dataclass(frozen=True)
+class ExitRamp:
+    """An exit on the right: an auxiliary lane `width` m wide outside the shoulder edge that,
+    from station `start`, swings `shift` m further right over `length` m (a cosine easing) and
+    then runs parallel as the ramp."""
+
+    edge: float  # the main road's right edge (positive metres from the centreline)
+    width: float
+    start: float
+    length: float
+    shift: float
+
+    def offset(self, s: np.ndarray) -> np.ndarray:
+        """Metres the ramp has moved right of the auxiliary lane at stations `s`."""
+        u = np.clip((np.asarray(s, dtype=np.float64) - self.start) / self.length, 0.0, 1.0)
+        return self.shift * 0.5 * (1.0 - np.cos(np.pi * u))
+
+    def station_at_offset(self, offset: float) -> float:
+        """First station where the ramp has moved `offset` m (offset < shift)."""
+        u = np.arccos(1.0 - 2.0 * offset / self.shift) / np.pi
+        return self.start + float(u) * self.length
+
+    def line(self, b: SceneBuilder, extra: float, s0: float, s1: float, dz: float = 0.0):
+        """Polyline at the ramp's inner edge moved `extra` m right, from s0 to s1."""
+        stations = np.linspace(s0, s1, max(int(np.ceil((s1 - s0) / 0.25)), 1) + 1)
+        lateral = -(self.edge + self.offset(stations) + extra)
+        return b.centerline.offset_points(stations, lateral, dz)
+
+
+def exit_ramp(b: SceneBuilder, cs: CrossSection, s0: float, s1: float, length: float) -> ExitRamp:
+    """The ramp's pavement, its outer guardrail, the edge guardrail from the gore on and (one
+    in two) a guardrail along the ramp's inner edge from the gore, facing the ramp."""
+    rng = b.rng
+    ramp = ExitRamp(cs.outer_edge, rng.uniform(3.75, 4.5), rng.uniform(-0.2, 0.5) * length,
+                    rng.uniform(50.0, 80.0), rng.uniform(8.0, 12.0))  # fmt: skip
+    pavement = strip(ramp.line(b, 0.0, s0, s1, 0.01), ramp.line(b, ramp.width, s0, s1, 0.01))
+    b.stuff("ramp", pavement, Semantic.ROAD)
+    add_guardrail_on(b, "beam", ramp.line(b, ramp.width + 0.5, s0, s1), "left")
+    gore = ramp.station_at_offset(2.5)
+    if gore < s1 - 5.0:
+        add_guardrail(b, "beam", -(cs.outer_edge + 0.3), gore, s1, dz=0.0)
+        if rng.random() < 0.5:
+            add_guardrail_on(b, "beam", ramp.line(b, -0.4, gore + 2.0, s1), "right")
+    return ramp
 
 
 # ------------------------------------------------------------------------------ traffic
@@ -383,10 +442,28 @@ def survey_drive(b: SceneBuilder, lateral: float, speed: float, length: float) -
     return Drive(speed, duration), motion
 
 
+def interchange(b: SceneBuilder, cs: CrossSection, s0: float, s1: float, length: float) -> None:
+    """The static parts of the `interchange` preset (module doc)."""
+    ground_strips(b, cs, s0, s1, sidewalk=False)
+    lane_markings(b, cs, s0, s1, dashed=[3.875, -3.875])
+    add_guardrail(b, "beam", cs.outer_edge + 0.3, s0, s1, dz=0.0)
+    if b.rng.random() < 2.0 / 3.0:
+        barrier = objects.median_barrier(b.centerline.line(0.0, s0, s1, step=0.25), b.rng)
+        b.thing("median-barrier", [(barrier, Semantic.FENCE)])
+    else:
+        add_guardrail(b, "beam", -0.3, s0, s1, dz=0.0)
+    ramp = exit_ramp(b, cs, s0, s1, length)
+    verge = CrossSection(cs.outer_edge, cs.outer_edge + 2.0, 30.0, 40.0, ())
+    street_furniture(b, verge, s0, s1, dz=-0.1, sides=(1.0,))
+    beyond = cs.outer_edge + ramp.width + ramp.shift + 1.5  # past the ramp's guardrail
+    street_furniture(b, CrossSection(beyond - 2.0, beyond, beyond + 15.0, 40.0, ()), s0, s1,
+                     dz=-0.1, sides=(-1.0,))  # fmt: skip
+
+
 def build_scene(preset: str, length: float, rng: np.random.Generator) -> Scene:
-    if preset not in ("urban", "highway", "mixed"):
-        raise ValueError(f"unknown scene preset {preset!r}: urban, highway or mixed")
-    highway = preset == "highway"
+    if preset not in PRESETS:
+        raise ValueError(f"unknown scene preset {preset!r}: {', '.join(PRESETS)}")
+    highway = preset in ("highway", "interchange")
     radius = rng.uniform(600.0, 1200.0) if highway else rng.uniform(120.0, 300.0)
     turn = (1 if rng.random() < 0.5 else -1) / radius
     profile = RoadProfile(
@@ -399,7 +476,12 @@ def build_scene(preset: str, length: float, rng: np.random.Generator) -> Scene:
     b = SceneBuilder(centerline, rng)
     s0, s1 = -SCENE_MARGIN, length + SCENE_MARGIN
     light = None
-    if highway:
+    if preset == "interchange":
+        cs = HIGHWAY
+        interchange(b, cs, s0, s1, length)
+        drive, vehicle = survey_drive(b, cs.lane_centres[1], rng.uniform(20.0, 25.0), length)
+        highway_traffic(b, drive, cs)
+    elif highway:
         cs = HIGHWAY
         ground_strips(b, cs, s0, s1, sidewalk=False)
         lane_markings(b, cs, s0, s1, dashed=[3.875, -3.875])

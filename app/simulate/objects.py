@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from app.simulate.meshes import box, cylinder, ellipsoid, extrude_polygon, tube
+from app.simulate.meshes import box, cylinder, ellipsoid, extrude_polygon, sweep_profile, tube
 from app.simulate.scene import Mesh
 
 
@@ -341,6 +341,23 @@ def sign(rng: np.random.Generator, shape: str | None = None) -> StreetObject:
     post = cylinder((0.0, 0.0, 0.0), (0.0, 0.0, H), r, 12)
     params = {"height": H, "radius": r, "plate": s}
     return _finish(f"sign-{shape}", {"pole": post, "plate": plate}, params)
+
+
+# ----------------------------------------------------------------------------- barriers
+
+
+def median_barrier(line: np.ndarray, rng: np.random.Generator) -> Mesh:
+    """A concrete safety-shape (New Jersey) barrier along `line` (K, 3, on the ground), WORLD
+    coordinates: 0.61 m base, a 75 mm vertical reveal, the 55 degree lower face up to 0.33 m,
+    the 84 degree upper face to a 0.15 m wide top, 0.81 m high (one in three 1.07 m, the tall
+    variant). A guardrail to the eye of a rotating scanner, but no posts and no beam: the
+    guardrail classifier must call it other."""
+    tall = rng.random() < 1.0 / 3.0
+    top = 1.07 if tall else 0.81
+    half = np.array([0.305, 0.305, 0.125, 0.075])
+    height = np.array([0.0, 0.075, 0.33, top])
+    profile = np.column_stack([np.r_[half, -half[::-1]], np.r_[height, height[::-1]]])
+    return sweep_profile(profile, np.asarray(line, dtype=np.float64))
 
 
 # ----------------------------------------------------------------------------- buildings

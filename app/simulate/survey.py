@@ -41,7 +41,7 @@ T_VEHICLE_CAMERA = make_transform(
 
 
 class SimulationConfig(BaseModel):
-    scene: Literal["urban", "highway", "mixed"] = "urban"
+    scene: Literal["urban", "highway", "mixed", "interchange"] = "urban"
     length: float = Field(60.0, gt=5.0, le=5000.0, description="metres of street driven")
     seed: int = Field(0, ge=0)
     scanner: Literal["hdl64", "profile"] = "hdl64"

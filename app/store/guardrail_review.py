@@ -176,6 +176,7 @@ class SliceTable:
     predicted: np.ndarray
     label: np.ndarray
     human: np.ndarray  # bool: labelled by a person
+    probability: np.ndarray  # float: the classifier's, nan where the run stored none
 
 
 def slice_table(session: Session, survey_id: int) -> SliceTable:
@@ -186,14 +187,18 @@ def slice_table(session: Session, survey_id: int) -> SliceTable:
         GuardrailSlice.predicted_label,
         GuardrailSlice.label,
         col(GuardrailSlice.labelled_by).is_not(None),
+        GuardrailSlice.probability,
     )
     rows = session.exec(
         select(*cols)
         .where(GuardrailSlice.survey_id == survey_id)
         .order_by(GuardrailSlice.component_id, GuardrailSlice.slice_index)
     ).all()
-    a = np.asarray(rows, dtype=np.int64).reshape(-1, 6)
-    return SliceTable(a[:, 0], a[:, 1], a[:, 2], a[:, 3], a[:, 4], a[:, 5].astype(bool))
+    a = np.asarray([row[:6] for row in rows], dtype=np.int64).reshape(-1, 6)
+    probability = np.array([np.nan if row[6] is None else row[6] for row in rows], dtype=float)
+    return SliceTable(
+        a[:, 0], a[:, 1], a[:, 2], a[:, 3], a[:, 4], a[:, 5].astype(bool), probability
+    )
 
 
 def review_slice_rows(session: Session, survey_id: int) -> list[tuple]:

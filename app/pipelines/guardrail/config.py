@@ -306,7 +306,10 @@ class ReconstructionConfig(_Group):
 
 # the paper's adjacency correction as read here (correction.py): a guardrail probability of 0.5
 # says yes, runs of up to two other slices inside a guardrail are filled, lone slices dropped
-PAPER_CORRECTION: dict[str, float | int] = {"threshold": 0.5, "max_gap": 2, "max_isolated": 1}
+# however confident the classifier was (keep_confident None)
+PAPER_CORRECTION: dict[str, float | int | None] = {
+    "threshold": 0.5, "max_gap": 2, "max_isolated": 1, "keep_confident": None,
+}  # fmt: skip
 
 
 class GuardrailConfig(BaseModel):
@@ -326,6 +329,13 @@ class GuardrailConfig(BaseModel):
     )
     max_isolated: Count | None = Field(
         None, ge=0, description="slices: guardrail runs this short go; default: the model's"
+    )
+    keep_confident: Share | None = Field(
+        None,
+        gt=0,
+        le=1,
+        description="guardrail probability at which an isolated slice stays a guardrail "
+        "(1: none stays); default: the model's, else none",
     )
     min_guardrail_length: Metres = Field(
         3.0, gt=0, description="metres: shorter guardrail runs are not reconstructed"

@@ -117,8 +117,9 @@ class GuardrailPipeline:
         probability = self.classify(stage, head)
         raw = probability >= cfg.threshold
         corrected = correct_labels(
-            stage.slices, raw, max_gap=cfg.max_gap, max_isolated=cfg.max_isolated
-        ).astype(bool)
+            stage.slices, raw, max_gap=cfg.max_gap, max_isolated=cfg.max_isolated,
+            keep=confident(probability, cfg.keep_confident),
+        ).astype(bool)  # fmt: skip
         return probability, raw, corrected
 
     def classify(self, stage: SliceStage, head: str | None = None) -> np.ndarray:
@@ -148,6 +149,13 @@ class GuardrailPipeline:
         reconstruct_instance(
             stage.points.xyz, stage.trajectory, guardrail, self.config.reconstruction
         )
+
+
+def confident(probability: np.ndarray, keep_confident: float | None) -> np.ndarray | None:
+    """Slices the adjacency correction never drops as isolated (None: no such slice)."""
+    if keep_confident is None:
+        return None
+    return np.nan_to_num(np.asarray(probability, dtype=np.float64), nan=0.0) >= keep_confident
 
 
 def slice_point_labels(s: SliceSet, labels: np.ndarray) -> np.ndarray:

@@ -306,6 +306,22 @@ def test_correction_respects_components_and_max_gap():
     assert list(fixed3[:7]) == [1, 1, 1, 1, 1, 1, 1]
 
 
+def test_correction_keeps_confident_isolated_slices():
+    """A rotating scanner breaks a rail into many components: a lone slice the classifier is
+    sure of stays (`keep`); a lone unsure one still goes, and keep never makes a guardrail."""
+    slices = _chains()
+    order = np.lexsort((slices.station_index, slices.component))
+    wanted = np.zeros(16, dtype=bool)
+    wanted[[3, 13]] = True  # lone guardrail slices in both components
+    labels = np.empty(16, dtype=bool)
+    labels[order] = wanted
+    sure = np.zeros(16, dtype=bool)
+    sure[order[[3, 7]]] = True  # confident: the lone slice 3 and the "other" slice 7
+    fixed = correct_labels(slices, labels, keep=sure)[order]
+    assert list(np.flatnonzero(fixed)) == [3]
+    assert not correct_labels(slices, labels)[order].any()
+
+
 def test_scan_points_type(segmented):
     _, points, _, _, _, _ = segmented
     assert isinstance(points, ScanPoints)

@@ -4,7 +4,9 @@ The paper's correction (fill short gaps, drop lone slices) at a 0.5 threshold su
 whose slice errors are scattered. A classifier for another scanner errs otherwise: on rotating
 scanners a guardrail is a few rings at grazing angles, and the geometry head's false calls come
 in short runs on fences and kerbs, which a higher threshold removes better than the lone-slice
-rule. So the threshold, `max_gap` and `max_isolated` are chosen per classifier on the slices of
+rule, and its true slices are often alone in their chain, which only `keep_confident` saves
+(correction.py). So the threshold, `max_gap`, `max_isolated` and `keep_confident` are chosen
+per classifier on the slices of
 its validation surveys (never its held-out ones) and kept in its card (`correction`); a run uses
 them unless its config sets them (`GuardrailConfig.with_correction`).
 """
@@ -22,7 +24,7 @@ from app.metrics.classification import binary_scores
 from app.pipelines.guardrail.config import PAPER_CORRECTION, GuardrailConfig
 from app.pipelines.guardrail.correction import correct_labels
 from app.pipelines.guardrail.evaluation.reference import slice_truth
-from app.pipelines.guardrail.pipeline import GuardrailPipeline
+from app.pipelines.guardrail.pipeline import GuardrailPipeline, confident
 from app.pipelines.guardrail.run import reference_points
 from app.pipelines.guardrail.slices import SliceSet
 from app.pipelines.guardrail.training.dataset import simulated_survey
@@ -33,6 +35,7 @@ THRESHOLDS = tuple(round(0.3 + 0.05 * k, 2) for k in range(11))  # 0.3 .. 0.8
 # max_isolated 0 pulled far points into the beam units (held-out beam section 0.7 -> 5.1 cm)
 MAX_GAPS = tuple(range(1, 7))
 MAX_ISOLATED = tuple(range(1, 5))
+KEEP_CONFIDENT = (None, 0.8, 0.85, 0.9, 0.95)  # None: the paper's, every lone slice goes
 
 
 @dataclass
@@ -61,25 +64,37 @@ def validation_slices(
     return out
 
 
-def corrected_f1(parts: list[ValidationSlices], threshold: float, gap: int, isolated: int):
+def corrected_f1(
+    parts: list[ValidationSlices], threshold: float, gap: int, isolated: int, keep: float | None
+):
     truth = np.concatenate([p.truth for p in parts])
     labels = np.concatenate(
         [
-            correct_labels(p.slices, p.probability >= threshold, max_gap=gap, max_isolated=isolated)
+            correct_labels(
+                p.slices,
+                p.probability >= threshold,
+                max_gap=gap,
+                max_isolated=isolated,
+                keep=confident(p.probability, keep),
+            )
             for p in parts
-        ]
+        ]  # fmt: skip
     ).astype(bool)
     return binary_scores(truth, labels)
 
 
 def choose_correction(parts: list[ValidationSlices], seeds: list[int]) -> dict:
     """The settings with the best slice F over all validation slices (ties: the first in grid
-    order, lowest threshold, gap and isolated run first), with the paper's for comparison."""
+    order, lowest threshold, gap and isolated run first, then the paper's lone-slice rule), with
+    the paper's for comparison."""
     best, best_f = dict(PAPER_CORRECTION), -1.0
-    for threshold, gap, isolated in itertools.product(THRESHOLDS, MAX_GAPS, MAX_ISOLATED):
-        f = corrected_f1(parts, threshold, gap, isolated).f1
+    grid = itertools.product(THRESHOLDS, MAX_GAPS, MAX_ISOLATED, KEEP_CONFIDENT)
+    for threshold, gap, isolated, keep in grid:
+        f = corrected_f1(parts, threshold, gap, isolated, keep).f1
         if f > best_f + 1e-9:
-            best, best_f = {"threshold": threshold, "max_gap": gap, "max_isolated": isolated}, f
+            best = {"threshold": threshold, "max_gap": gap, "max_isolated": isolated,
+                    "keep_confident": keep}  # fmt: skip
+            best_f = f
     paper = corrected_f1(parts, *PAPER_CORRECTION.values())  # type: ignore[arg-type]
     slices = int(sum(len(p.truth) for p in parts))
     return {

@@ -4,10 +4,10 @@ each slice gets its reference label (most of its points on a guardrail) for free
 One set of simulated surveys per sensor kind (`TRAINING_DATA`), never mixed: `profile`
 (VQ-250-like profile scanner, seeds 401-412) and `rotating` (HDL-64E-class scanners drawn from
 the seed, `vary_scanner`: 32 / 64 beams, azimuth steps, mounting heights, noise, dropouts;
-seeds 701-709 and 781-782, 30 m each (sized so training fits 30 minutes on 2 cores),
-highway-heavy presets so beam and pipe guardrails and the median barrier appear as a rotating
-scanner sees them, a few rings at grazing angles). Each kind has its own held-out seeds
-(bench/guardrail.py only).
+seeds 701-709 and 780-782, 30 m each (sized so training fits 30 minutes on 2 cores),
+highway-heavy presets (highway, interchange) so beam and pipe guardrails, exit ramps and
+median barriers appear as a rotating scanner sees them, a few rings at grazing angles). Each
+kind has its own held-out seeds (bench/guardrail.py only).
 
 Surveys and their slice samples are cached under `$MMSCLEAN_DATA_DIR/cache/guardrail-train`:
 the crop embeddings are the expensive part and never change for a given survey.
@@ -78,11 +78,13 @@ PROFILE_DATA = SimulatedData(
     "profile", "profile", False, ("urban", "highway", "mixed"),
     tuple(range(401, 410)), (410, 411, 412), (501, 502, 503), 100.0,
 )  # fmt: skip
-# highway-heavy: half the drives are highways (beam guardrails on both edges and the median),
-# the rest carry pipe and beam guardrails among urban objects (the negatives real streets have)
+# highway-heavy: half the drives are highways (beam guardrails on both edges and the median)
+# or interchanges (an exit ramp whose guardrails turn away, a concrete median barrier that is
+# not a guardrail), the rest carry pipe and beam guardrails among urban objects (the negatives
+# real streets have)
 ROTATING_DATA = SimulatedData(
-    "rotating", "hdl64", True, ("highway", "highway", "mixed", "urban"),
-    tuple(range(701, 710)), (781, 782), (791, 792, 793), 30.0,
+    "rotating", "hdl64", True, ("highway", "interchange", "mixed", "urban"),
+    tuple(range(701, 710)), (780, 781, 782), (791, 792, 793), 30.0,
 )  # fmt: skip
 TRAINING_DATA: dict[str, SimulatedData] = {"profile": PROFILE_DATA, "rotating": ROTATING_DATA}
 
