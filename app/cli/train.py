@@ -151,7 +151,7 @@ def train_guardrail(
         typer.Option(
             "--correction-only",
             help="keep the classifier at --out and only choose its adjacency correction "
-            "(threshold, max gap, max isolated) on the validation surveys again",
+            "(threshold, max gap, max isolated, keep confident) on the validation surveys again",
         ),
     ] = False,
 ) -> None:
@@ -183,7 +183,8 @@ def train_guardrail(
         chosen = card["correction"]
         console.print(
             f"{out}: correction threshold {chosen['threshold']}, max gap {chosen['max_gap']}, "
-            f"max isolated {chosen['max_isolated']}: validation slice F "
+            f"max isolated {chosen['max_isolated']}, confident lone slices kept from "
+            f"{chosen.get('keep_confident') or 'never'}: validation slice F "
             f"{chosen['validation_slice_f']:.1f} (the paper's settings "
             f"{chosen['paper_validation_slice_f']:.1f})"
         )

@@ -82,10 +82,25 @@ class CropEncoder:
 
 
 class SliceHead(nn.Module):
-    """MLP over [image embedding, standardised geometric features] -> 2 class scores."""
+    """MLP over [image embedding, standardised geometric features] -> 2 class scores.
 
-    def __init__(self, inputs: Inputs, n_geometry: int, hidden: int = 128, dropout: float = 0.3):
+    Dropout on the inputs only where an image embedding is among them (1,280 redundant
+    values): on the 21 geometric features alone it hid the few that tell a concrete barrier
+    from a W-beam (height at the bottom, vertical extent), and the geometry head underfit
+    (rotating scanners: training slice F 88.4 with it, 98.2 without; validation 80.8 -> 90.4).
+    """
+
+    def __init__(
+        self,
+        inputs: Inputs,
+        n_geometry: int,
+        hidden: int = 128,
+        dropout: float = 0.3,
+        input_dropout: float | None = None,  # None: `dropout` with an image, else none
+    ):
         super().__init__()
+        if input_dropout is None:
+            input_dropout = dropout if "image" in inputs else 0.0
         self.inputs = inputs
         self.n_geometry = n_geometry
         width = (EMBEDDING if "image" in inputs else 0) + (
@@ -94,7 +109,7 @@ class SliceHead(nn.Module):
         self.register_buffer("geometry_mean", torch.zeros(n_geometry))
         self.register_buffer("geometry_std", torch.ones(n_geometry))
         self.mlp = nn.Sequential(
-            nn.Dropout(dropout),
+            nn.Dropout(input_dropout),
             nn.Linear(width, hidden),
             nn.ReLU(),
             nn.Dropout(dropout),

@@ -68,7 +68,7 @@ def test_rotating_training_data_is_a_varied_hdl64_with_camera(rotating_survey: P
 def test_profile_training_data_is_as_before() -> None:
     assert training_data() is PROFILE_DATA and PROFILE_DATA.scanner == "profile"
     assert PROFILE_DATA.name(401, 100.0) == "sim-mixed-100m-profile-seed401"
-    assert PROFILE_DATA.samples_name(401, 100.0) == "samples-mixed-100m-seed401.npz"
+    assert PROFILE_DATA.samples_name(401, 100.0) == "slices-mixed-100m-seed401.npz"
     seeds = (TRAIN_SEEDS, VALIDATION_SEEDS, HELD_OUT_SEEDS)
     assert seeds == (tuple(range(401, 410)), (410, 411, 412), (501, 502, 503))
     with pytest.raises(ValueError, match="no simulated guardrail training data"):
@@ -77,7 +77,10 @@ def test_profile_training_data_is_as_before() -> None:
 
 def test_rotating_data_is_highway_heavy_and_its_own() -> None:
     presets = [ROTATING_DATA.preset_of(s) for s in ROTATING_DATA.train_seeds]
-    assert presets.count("highway") >= len(presets) / 2 and {"urban", "mixed"} <= set(presets)
+    highways = presets.count("highway") + presets.count("interchange")
+    assert highways >= len(presets) / 2 and {"urban", "mixed", "interchange"} <= set(presets)
+    held_out = {ROTATING_DATA.preset_of(s) for s in ROTATING_DATA.held_out_seeds}
+    assert {"highway", "interchange"} <= held_out
     assert "highway" in {ROTATING_DATA.preset_of(s) for s in ROTATING_DATA.held_out_seeds}
     profile = {*PROFILE_DATA.train_seeds, *PROFILE_DATA.validation_seeds}
     assert not profile & {*ROTATING_DATA.train_seeds, *ROTATING_DATA.validation_seeds}
@@ -119,7 +122,10 @@ def test_the_card_records_the_kind_its_scanner_and_default_head(monkeypatch, tmp
         label = (np.arange(40) % 4 == 0).astype(np.int64)
         geometry = rng.normal(0, 1, (40, 3)).astype(np.float32) + label[:, None]
         embedding = rng.normal(0, 1, (40, EMBEDDING)).astype(np.float32)
-        return SliceSamples(embedding, geometry, label, np.zeros(40, np.int64), ["a", "b", "c"])
+        crop = np.arange(40) < 30  # ten slices no camera shows
+        return SliceSamples(
+            embedding, geometry, label, np.zeros(40, np.int64), ["a", "b", "c"], crop
+        )
 
     monkeypatch.setattr("app.pipelines.guardrail.training.train.build_samples", samples)
     validated = []
@@ -138,6 +144,10 @@ def test_the_card_records_the_kind_its_scanner_and_default_head(monkeypatch, tmp
     assert card["sensor_kind"] == "rotating" and card["held_out_seeds"] == [791, 792, 793]
     assert card["training"]["scanner"] == "hdl64" and card["training"]["vary_scanner"]
     assert card["default_head"] == "geometry" and card["training"]["class_balance"] == 0.0
+    # the geometry head learns from every slice, the image heads from those with a crop
+    assert (card["training"]["slices"], card["training"]["slices_with_crop"]) == (40, 30)
+    scores = card["validation"]["scores"]
+    assert scores["geometry"]["support"] == 10 and scores["image"]["support"] == 8
     assert card_sensor_kind(read_classifier_card(tmp_path / "r.pt")) == SensorKind.ROTATING
     # the correction is chosen on the validation surveys, after training, into the card
     assert validated == [(list(data.validation_seeds), data.length, "rotating")]

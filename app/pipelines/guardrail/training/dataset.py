@@ -31,20 +31,27 @@ from app.pipelines.guardrail.segmentation import prepare_slices
 
 @dataclass
 class SliceSamples:
-    embedding: np.ndarray  # (N, 1280) float32
+    embedding: np.ndarray  # (N, 1280) float32 (zeros where no camera crop shows the slice)
     geometry: np.ndarray  # (N, G) float32
     label: np.ndarray  # (N,) int64: 1 guardrail, 0 other
     group: np.ndarray  # (N,) int64 survey id
     geometry_names: list[str]
+    has_crop: np.ndarray | None = None  # (N,) bool: a camera crop shows it; None: every one
 
     def subset(self, keep: np.ndarray) -> SliceSamples:
+        crop = None if self.has_crop is None else self.has_crop[keep]
         return SliceSamples(
             self.embedding[keep],
             self.geometry[keep],
             self.label[keep],
             self.group[keep],
             self.geometry_names,
+            crop,
         )
+
+    def with_crop(self) -> SliceSamples:
+        """The slices a camera crop shows: all the image heads can learn from."""
+        return self if self.has_crop is None else self.subset(self.has_crop)
 
 
 @dataclass(frozen=True)
@@ -70,8 +77,10 @@ class SimulatedData:
         return f"sim-{self.preset_of(seed)}-{length:g}m-{scanner}-seed{seed}"
 
     def samples_name(self, seed: int, length: float) -> str:
+        """The cached slice samples' file: every slice, with or without a crop ("slices-";
+        the older "samples-" files held only the slices with a crop)."""
         scanner = "" if self.sensor_kind == "profile" else f"-{self.scanner}-varied"
-        return f"samples-{self.preset_of(seed)}-{length:g}m{scanner}-seed{seed}.npz"
+        return f"slices-{self.preset_of(seed)}-{length:g}m{scanner}-seed{seed}.npz"
 
 
 PROFILE_DATA = SimulatedData(
@@ -84,7 +93,7 @@ PROFILE_DATA = SimulatedData(
 # real streets have)
 ROTATING_DATA = SimulatedData(
     "rotating", "hdl64", True, ("highway", "interchange", "mixed", "urban"),
-    tuple(range(701, 710)), (780, 781, 782), (791, 792, 793), 30.0,
+    tuple(range(701, 721)), (780, 781, 782), (791, 792, 793), 30.0,
 )  # fmt: skip
 TRAINING_DATA: dict[str, SimulatedData] = {"profile": PROFILE_DATA, "rotating": ROTATING_DATA}
 
@@ -137,20 +146,22 @@ def survey_samples(
     if target.is_file():
         z = np.load(target, allow_pickle=False)
         return SliceSamples(
-            z["embedding"], z["geometry"], z["label"], z["group"], [str(n) for n in z["names"]]
-        )
+            z["embedding"], z["geometry"], z["label"], z["group"], [str(n) for n in z["names"]],
+            z["has_crop"],
+        )  # fmt: skip
     folder = simulated_survey(seed, length, cache, sensor)
     survey = open_survey(folder, "sim")
     stage = prepare_slices(survey, encoder)
     label = slice_truth(stage, point_reference(survey, stage.points, "guardrail"))
-    # slices no image shows whole cannot teach the image heads: leave them out
-    keep = stage.has_crop
+    # every slice: the geometry head classifies the slices no camera shows (on a rotating
+    # scanner most of them), so it learns from them too; the image heads take `with_crop()`
     samples = SliceSamples(
-        stage.embedding[keep],
-        stage.geometry[keep],
-        label[keep],
-        np.full(int(keep.sum()), seed, dtype=np.int64),
+        stage.embedding.astype(np.float32),
+        stage.geometry.astype(np.float32),
+        label,
+        np.full(len(label), seed, dtype=np.int64),
         stage.geometry_names,
+        stage.has_crop.astype(bool),
     )
     partial = target.with_suffix(".partial.npz")
     np.savez_compressed(
@@ -160,6 +171,7 @@ def survey_samples(
         label=samples.label,
         group=samples.group,
         names=np.array(samples.geometry_names),
+        has_crop=samples.has_crop,
     )
     os.replace(partial, target)
     return samples
@@ -184,4 +196,6 @@ def build_samples(
         np.concatenate([p.label for p in parts]),
         np.concatenate([p.group for p in parts]),
         parts[0].geometry_names,
-    )
+        np.concatenate([np.ones(len(p.label), bool) if p.has_crop is None else p.has_crop
+                        for p in parts]),
+    )  # fmt: skip

@@ -116,8 +116,13 @@ def train_guardrail_model(
     built = time.perf_counter() - started
     heads, scores = {}, {}
     for inputs in HEAD_INPUTS:
-        heads[inputs] = fit_head(train, inputs=inputs, epochs=epochs, balance=balance)
-        scores[inputs] = slice_scores(heads[inputs], valid)
+        # the image heads see the slices a camera shows; the geometry head every slice, as it
+        # classifies every slice no camera shows (most of a rotating scanner's)
+        fit_on, score_on = (
+            (train.with_crop(), valid.with_crop()) if "image" in inputs else (train, valid)
+        )
+        heads[inputs] = fit_head(fit_on, inputs=inputs, epochs=epochs, balance=balance)
+        scores[inputs] = slice_scores(heads[inputs], score_on)
     card = {
         "model": "EfficientNet-Lite0 (ImageNet, frozen) + MLP heads; geometric slice features",
         "classes": ["other", "guardrail"],
@@ -130,6 +135,8 @@ def train_guardrail_model(
             "presets": {str(s): data.preset_of(s) for s in seeds},
             "slices": int(len(train.label)),
             "guardrail_slices": int(train.label.sum()),
+            "slices_with_crop": int(len(train.with_crop().label)),
+            "heads_trained_on": "geometry: every slice; image heads: the slices with a crop",
             "epochs": epochs,
             "class_balance": balance,
         },
@@ -137,7 +144,9 @@ def train_guardrail_model(
             "simulation_seeds": validation_seeds,
             "slices": int(len(valid.label)),
             "guardrail_slices": int(valid.label.sum()),
+            "slices_with_crop": int(len(valid.with_crop().label)),
             "scores": scores,
+            "scored_on": "geometry: every slice; image heads: the slices with a crop",
         },
         "held_out_seeds": list(data.held_out_seeds),
         "geometry_features": train.geometry_names,
