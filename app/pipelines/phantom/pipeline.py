@@ -54,6 +54,32 @@ class PhantomPipeline:
         self.dense = dense
 
     def run(self, survey: Survey, progress: Progress | None = None) -> PhantomResult:
+        if progress is not None:
+            progress("accumulate", 0.0)
+        started = time.perf_counter()
+        amap = self.accumulate(survey)
+        return self.run_map(amap, progress, {"accumulate": round(time.perf_counter() - started, 3)})
+
+    def accumulate(self, survey: Survey) -> AccumulatedMap:
+        """The survey's map with what the network reads (scanner passes when it reads time)."""
+        amap = accumulate(survey, with_reference=True, with_passes=self.net.passes)
+        if self.net.passes and amap.passes is None:
+            raise InputError(
+                survey.source,
+                f"has no point times; the phantom model {self.model_path.name} reads scanner "
+                "passes (time as evidence): run it with a model without time",
+            )
+        return amap
+
+    def run_map(
+        self,
+        amap: AccumulatedMap,
+        progress: Progress | None = None,
+        timings: dict[str, float] | None = None,
+    ) -> PhantomResult:
+        """The steps after accumulation, on a map already built (a whole survey's, or one
+        tile's with its halo: `tiled.py`)."""
+
         def report(stage: str, fraction: float) -> None:
             if progress is not None:
                 progress(stage, fraction)
@@ -61,7 +87,7 @@ class PhantomPipeline:
         cfg = self.config
         if cfg.threads:
             torch.set_num_threads(cfg.threads)
-        timings: dict[str, float] = {}
+        timings = {} if timings is None else timings
         clock = time.perf_counter()
 
         def lap(name: str) -> None:
@@ -70,15 +96,6 @@ class PhantomPipeline:
             timings[name] = round(now - clock, 3)
             clock = now
 
-        report("accumulate", 0.0)
-        amap = accumulate(survey, with_reference=True, with_passes=self.net.passes)
-        if self.net.passes and amap.passes is None:
-            raise InputError(
-                survey.source,
-                f"has no point times; the phantom model {self.model_path.name} reads scanner "
-                "passes (time as evidence): run it with a model without time",
-            )
-        lap("accumulate")
         ground = estimate_ground(amap.xyz, cfg.ground_cell, cfg.ground_opening)
         lap("ground")
         pm = build_pillar_map(amap.xyz, ground, cfg, amap.passes)

@@ -1,0 +1,140 @@
+"""Tiles along the trajectory: a survey of any length cut into pieces one worker can hold.
+
+A tile is a stretch `[start, end)` of the trajectory's arc length (its *station*). Every point
+belongs to exactly one tile, the tile of its own station: the arc length at its foot on the
+trajectory polyline (the place the vehicle was when it passed the point). A pipeline reads a
+tile with a *halo*, the context its steps look at (the phantom CNN's window and vote, DUFOMap's
+reach, a guardrail unit), computes there, and keeps only the results of the points the tile
+owns: with a halo at least as wide as that context, tiled and untiled results agree.
+
+The halo is spatial, not a stretch of stations: the points within `halo` metres (horizontally)
+of the tile's own points, found on a grid of `cell`-metre cells (`halo_cells`). Where a drive
+comes back to a place (a loop, the way back), points of the same street belong to tiles far
+apart in station, and each still sees the other's points as context.
+
+Stations are measured in the horizontal plane: the vehicle's height changes little along a
+street, and a point's foot must not jump between the sweeps of a steep ramp.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+def arc_length(xyz: np.ndarray) -> np.ndarray:
+    """(M,) horizontal arc length along a polyline (M, 2 or 3), 0 at its first point."""
+    xy = np.asarray(xyz, dtype=np.float64)[:, :2]
+    if len(xy) == 0:
+        return np.zeros(0)
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
+
+
+@dataclass(frozen=True)
+class TileLayout:
+    """Tiles of `length` metres along a trajectory, each read with `halo` metres either side."""
+
+    trajectory: np.ndarray  # (M, 2) float64 horizontal sensor positions, in driving order
+    station: np.ndarray  # (M,) float64 arc length at each position
+    length: float
+    halo: float
+
+    @classmethod
+    def along(cls, trajectory: np.ndarray, length: float, halo: float) -> TileLayout:
+        """The layout of a trajectory (M, 2 or 3); repeated positions (a stop) are merged."""
+        if not length > 0 or not halo >= 0:
+            raise ValueError(f"tile length {length} must be > 0 and halo {halo} >= 0")
+        if len(trajectory) == 0:
+            raise ValueError("a tile layout needs a trajectory of at least one position")
+        xy = np.asarray(trajectory, dtype=np.float64).reshape(len(trajectory), -1)[:, :2]
+        moved = np.r_[True, np.linalg.norm(np.diff(xy, axis=0), axis=1) > 1e-6]
+        xy = xy[moved]
+        return cls(xy, arc_length(xy), float(length), float(halo))
+
+    @property
+    def total(self) -> float:
+        """Metres of trajectory."""
+        return float(self.station[-1])
+
+    @property
+    def count(self) -> int:
+        """Number of tiles (at least one; the last may be shorter)."""
+        return max(int(np.ceil(self.total / self.length - 1e-9)), 1)
+
+    def bounds(self, tile: int) -> tuple[float, float]:
+        """[start, end) stations the tile owns; the first and last tiles own everything before
+        and after the trajectory too."""
+        if not 0 <= tile < self.count:
+            raise IndexError(f"tile {tile} of {self.count}")
+        start = -np.inf if tile == 0 else tile * self.length
+        end = np.inf if tile == self.count - 1 else (tile + 1) * self.length
+        return float(start), float(end)
+
+    def stations(self, xyz: np.ndarray) -> np.ndarray:
+        """(N,) station of each point: the arc length at its foot on the trajectory polyline
+        (the nearer of the two segments at its nearest position; before the first or after
+        the last position the line is extended, so stations run below 0 and past the end)."""
+        p = np.asarray(xyz, dtype=np.float64)[:, :2]
+        if len(self.trajectory) == 1:
+            return np.zeros(len(p))
+        _, nearest = self._tree.query(p)
+        best = np.full(len(p), np.inf)
+        out = np.zeros(len(p))
+        last = len(self.trajectory) - 1
+        for first in (nearest - 1, nearest):  # the segment before and after the nearest position
+            a = np.clip(first, 0, last - 1)
+            seg = self.trajectory[a + 1] - self.trajectory[a]
+            seg_len = np.linalg.norm(seg, axis=1)
+            t = np.einsum("ij,ij->i", p - self.trajectory[a], seg) / np.maximum(seg_len, 1e-12) ** 2
+            lo = np.where(a == 0, -np.inf, 0.0)  # the ends extend the line
+            hi = np.where(a == last - 1, np.inf, 1.0)
+            t = np.clip(t, lo, hi)
+            foot = self.trajectory[a] + t[:, None] * seg
+            d = np.linalg.norm(p - foot, axis=1)
+            better = d < best
+            best[better] = d[better]
+            out[better] = self.station[a[better]] + t[better] * seg_len[better]
+        return out
+
+    @cached_property
+    def _tree(self) -> cKDTree:
+        return cKDTree(self.trajectory)
+
+    def owner(self, station: np.ndarray) -> np.ndarray:
+        """(N,) int64 tile owning each station."""
+        k = np.floor(np.asarray(station, dtype=np.float64) / self.length).astype(np.int64)
+        return np.clip(k, 0, self.count - 1)
+
+
+def cell_keys(xy: np.ndarray, cell: float) -> np.ndarray:
+    """(N,) int64 key of the `cell`-metre grid cell of each horizontal position (N, >= 2)."""
+    ij = np.floor(np.asarray(xy, dtype=np.float64)[:, :2] / cell).astype(np.int64)
+    return _key(ij[:, 0], ij[:, 1])
+
+
+_OFFSET = np.int64(1 << 30)  # cell indices within +-2^30 (10^6 km at 1 m cells)
+_SPAN = np.int64(2) * _OFFSET  # keys stay below 2^62
+
+
+def _key(i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    return (i + _OFFSET) * _SPAN + (j + _OFFSET)
+
+
+def cell_indices(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(i, j) grid indices of cell keys (`cell_keys`)."""
+    key = np.asarray(key, dtype=np.int64)
+    return key // _SPAN - _OFFSET, key % _SPAN - _OFFSET
+
+
+def halo_cells(keys: np.ndarray, halo: float, cell: float) -> np.ndarray:
+    """Sorted unique keys of the cells within `halo` metres of the cells `keys` (themselves
+    included): a square dilation by ceil(halo / cell) cells, a superset of the true halo."""
+    r = int(np.ceil(halo / cell))
+    i, j = cell_indices(np.unique(keys))
+    di, dj = np.meshgrid(np.arange(-r, r + 1), np.arange(-r, r + 1), indexing="ij")
+    ii = (i[:, None] + di.ravel()[None, :]).ravel()
+    jj = (j[:, None] + dj.ravel()[None, :]).ravel()
+    return np.unique(_key(ii, jj))

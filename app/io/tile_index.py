@@ -1,0 +1,86 @@
+"""Which points each tile owns and which frames it must read: one streaming pass over a survey.
+
+`TileIndex.build` reads every frame once, one at a time, and keeps only small sets per tile:
+the grid cells holding the tile's own points, and per frame a coarse footprint (the cells its
+points touch on a grid `FOOTPRINT_CELLS` times coarser). A tile's window is its own cells
+dilated by the halo (`geometry.tiles.halo_cells`); the frames it reads are those whose
+footprint meets the window. Nothing here holds a survey's points: memory grows with the area
+driven, not with the points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from app.geometry.tiles import TileLayout, cell_indices, cell_keys, halo_cells
+from app.io.survey import Survey
+
+FOOTPRINT_CELLS = 8  # a frame's footprint is kept on cells this many times the tile cell
+
+
+@dataclass
+class TileIndex:
+    """The tiles of one survey: per tile its own cells, its window cells and its frames."""
+
+    layout: TileLayout
+    cell: float  # metres: the grid the ownership and the halo are kept on
+    owned_cells: list[np.ndarray]  # per tile, sorted cell keys holding its points
+    window_cells: list[np.ndarray]  # per tile, sorted cell keys within the halo of its own
+    frames: list[np.ndarray]  # per tile, ascending indices of the frames it reads
+    owned_points: np.ndarray  # (T,) int64 points each tile owns
+    frame_sizes: np.ndarray  # (F,) int64 points of each frame
+
+    @property
+    def count(self) -> int:
+        return self.layout.count
+
+    @classmethod
+    def build(cls, survey: Survey, length: float, halo: float, cell: float = 2.0) -> TileIndex:
+        """Stream the survey's frames once. The trajectory is the frames' sensor positions
+        (or a map's recorded trajectory)."""
+        poses = survey.poses()
+        if len(poses) == 0:
+            raise ValueError(f"{survey.source}: no frames to cut into tiles")
+        layout = TileLayout.along(poses[:, :3, 3], length, halo)
+        coarse = cell * FOOTPRINT_CELLS
+        owned: list[list[np.ndarray]] = [[] for _ in range(layout.count)]
+        counts = np.zeros(layout.count, dtype=np.int64)
+        footprints, sizes = [], []
+        for frame in survey.frames:
+            xyz = frame.world_points().xyz
+            sizes.append(len(xyz))
+            keys = cell_keys(xyz, cell)
+            tile = layout.owner(layout.stations(xyz))
+            pairs = np.unique(np.stack([tile, keys], axis=1), axis=0)
+            for t in np.unique(pairs[:, 0]):
+                owned[int(t)].append(pairs[pairs[:, 0] == t, 1])
+            counts += np.bincount(tile, minlength=layout.count)
+            footprints.append(np.unique(cell_keys(xyz, coarse)))
+        owned_cells = [
+            np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64) for parts in owned
+        ]
+        window_cells = [halo_cells(c, halo, cell) for c in owned_cells]
+        frame_of = np.repeat(np.arange(len(footprints)), [len(fp) for fp in footprints])
+        footprint = np.concatenate(footprints)
+        frames = []
+        for window in window_cells:  # the coarse cells holding a window cell's centre
+            i, j = cell_indices(window)
+            centres = np.column_stack([(i + 0.5) * cell, (j + 0.5) * cell])
+            touched = np.isin(footprint, np.unique(cell_keys(centres, coarse)))
+            frames.append(np.unique(frame_of[touched]))
+        sizes = np.asarray(sizes, dtype=np.int64)
+        return cls(layout, cell, owned_cells, window_cells, frames, counts, sizes)
+
+    def tile_survey(self, survey: Survey, tile: int) -> Survey:
+        """The survey with only the frames tile `tile` reads (same order)."""
+        return replace(survey, frames=[survey.frames[int(k)] for k in self.frames[tile]])
+
+    def in_window(self, xyz: np.ndarray, tile: int) -> np.ndarray:
+        """(N,) bool: the point lies in a cell of the tile's window."""
+        return np.isin(cell_keys(xyz, self.cell), self.window_cells[tile])
+
+    def owned(self, xyz: np.ndarray, tile: int) -> np.ndarray:
+        """(N,) bool: tile `tile` owns the point (its station falls in the tile)."""
+        return self.layout.owner(self.layout.stations(xyz)) == tile

@@ -1,0 +1,46 @@
+"""Tiles along the trajectory: stations, ownership, and the spatial halo."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.geometry.tiles import TileLayout, cell_indices, cell_keys, halo_cells
+
+
+def _bend() -> np.ndarray:
+    """100 m east, then a right angle and 50 m north, sampled every metre (with a stop)."""
+    east = np.column_stack([np.arange(0.0, 100.0), np.zeros(100)])
+    north = np.column_stack([np.full(51, 100.0), np.arange(0.0, 51.0)])
+    return np.vstack([east, east[-1:], north])  # the repeated position is a stop
+
+
+def test_stations_are_the_arc_length_at_the_foot_of_each_point() -> None:
+    layout = TileLayout.along(_bend(), length=40.0, halo=5.0)
+    assert layout.total == pytest.approx(150.0) and layout.count == 4
+    points = np.array([[10.3, 4.0], [10.3, -7.0], [103.0, 20.5], [-3.0, 1.0], [100.0, 60.0]])
+    np.testing.assert_allclose(layout.stations(points), [10.3, 10.3, 120.5, -3.0, 160.0])
+    owner = layout.owner(layout.stations(points))
+    assert owner.tolist() == [0, 0, 3, 0, 3]  # before the start and past the end: end tiles
+    assert layout.bounds(0) == (-np.inf, 40.0) and layout.bounds(1) == (40.0, 80.0)
+    with pytest.raises(IndexError):
+        layout.bounds(4)
+
+
+def test_bad_layouts_are_refused() -> None:
+    with pytest.raises(ValueError, match="tile length"):
+        TileLayout.along(_bend(), length=0.0, halo=1.0)
+    with pytest.raises(ValueError, match="at least one position"):
+        TileLayout.along(np.zeros((0, 3)), length=10.0, halo=1.0)
+
+
+def test_cell_keys_round_trip_and_the_halo_covers_its_radius() -> None:
+    xy = np.array([[0.5, 0.5], [-0.5, 3.9], [4_500_000.2, -5_300_000.7]])  # UTM-sized too
+    i, j = cell_indices(cell_keys(xy, 2.0))
+    assert i.tolist() == [0, -1, 2_250_000] and j.tolist() == [0, 1, -2_650_001]
+    own = cell_keys(np.array([[0.5, 0.5]]), 2.0)
+    halo = halo_cells(own, 3.0, 2.0)  # ceil(3 / 2) = 2 cells each way: 5 x 5
+    assert len(halo) == 25
+    rng = np.random.default_rng(0)
+    near = rng.uniform(-3.0, 3.0, (1000, 2)) + [1.0, 1.0]  # within 3 m of the cell
+    assert np.isin(cell_keys(near, 2.0), halo).all()
