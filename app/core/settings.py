@@ -70,6 +70,15 @@ class Settings(BaseSettings):
         description="a job whose estimated memory is larger is refused when queued; "
         "default: half the machine's physical memory",
     )
+    dask_scheduler: str | None = Field(
+        None,
+        pattern=r"^(tcp|tls)://[A-Za-z0-9.\-\[\]:]+:[0-9]{1,5}$",
+        description="address of an existing Dask scheduler (tcp://host:8786) that runs the "
+        "tiles; empty = a local cluster of `workers` processes started on demand",
+    )
+    tile_worker_memory_mb: int = Field(
+        2048, ge=256, le=1_048_576, description="memory limit of each local tile worker"
+    )
     retrain_every: int = Field(
         2000, ge=0, description="newly reviewed pillar labels that queue retraining; 0 = off"
     )
@@ -78,7 +87,7 @@ class Settings(BaseSettings):
         description="survey loaded into an empty database on first start; empty = none",
     )
 
-    @field_validator("sample_dir", mode="before")
+    @field_validator("sample_dir", "dask_scheduler", mode="before")
     @classmethod
     def _empty_means_none(cls, value: object) -> object:
         return None if value == "" else value

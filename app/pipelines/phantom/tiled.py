@@ -11,13 +11,16 @@ pillar window (+-1.1 m) and its 31 x 31 pillar context (+-3.1 m), the 5 x 5 refi
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 
 from app.io.survey import Survey
 from app.io.tile_index import TileIndex
+from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.network import CONTEXT_SPAN
 from app.pipelines.phantom.pipeline import PhantomPipeline
 
@@ -60,27 +63,74 @@ def run_tile(pipeline: PhantomPipeline, survey: Survey, index: TileIndex, tile: 
     )
 
 
+@dataclass(frozen=True)
+class PhantomTileSpec:
+    """What a worker process needs to run a phantom tile: names, not objects (a cluster's
+    workers open the survey and load the model themselves; the data must be readable there)."""
+
+    survey_source: str
+    survey_format: str
+    model_path: str
+    config: str  # PhantomConfig as JSON
+    dense: bool = True
+
+    @classmethod
+    def of(cls, pipeline: PhantomPipeline, survey: Survey) -> PhantomTileSpec:
+        return cls(
+            str(survey.source), survey.format, str(pipeline.model_path),
+            pipeline.config.model_dump_json(), pipeline.dense,
+        )  # fmt: skip
+
+
+@lru_cache(maxsize=2)
+def _worker_pipeline(model_path: str, config: str, dense: bool) -> PhantomPipeline:
+    """One loaded network per worker process and model (tiles of a job share it)."""
+    return PhantomPipeline(PhantomConfig.model_validate_json(config), Path(model_path), dense)
+
+
+def phantom_tile(spec: PhantomTileSpec, index: TileIndex, tile: int) -> TileLabels:
+    """A tile as a worker runs it: open the survey, load the model (once), run the tile."""
+    from app.io import open_survey
+
+    pipeline = _worker_pipeline(spec.model_path, spec.config, spec.dense)
+    survey = open_survey(Path(spec.survey_source), spec.survey_format)
+    return run_tile(pipeline, survey, index, tile)
+
+
+# runs `phantom_tile(spec, index, tile)` for the tiles given and yields the results as they
+# finish, in any order: in this process by default, on a Dask cluster from `app.jobs.cluster`
+TileMap = Callable[[Callable[..., TileLabels], PhantomTileSpec, TileIndex, list[int]],
+                   Iterable[TileLabels]]  # fmt: skip
+
+
+def in_process(fn, spec: PhantomTileSpec, index: TileIndex, tiles: list[int]):
+    """The tiles one after the other in this process."""
+    for tile in tiles:
+        yield fn(spec, index, tile)
+
+
 def run_phantom_tiled(
     pipeline: PhantomPipeline,
     survey: Survey,
     length: float = TILE_LENGTH,
     halo: float | None = None,
     progress: Callable[[str, float], None] | None = None,
+    map_tiles: TileMap = in_process,
 ) -> tuple[dict[str, np.ndarray], TileIndex]:
-    """Per-frame point labels of the whole survey, computed tile by tile (in order here; the
-    tiles are independent, so a cluster can run them side by side)."""
+    """Per-frame point labels of the whole survey, computed tile by tile; the tiles are
+    independent, so `map_tiles` may run them side by side on a cluster."""
     halo = phantom_halo(pipeline) if halo is None else halo
     index = TileIndex.build(survey, length, halo, INDEX_CELL)
     labels = [np.zeros(int(n), dtype=np.uint8) for n in index.frame_sizes]
+    spec = PhantomTileSpec.of(pipeline, survey)
     written = 0
-    for tile in range(index.count):
-        if progress is not None:
-            progress(f"tile {tile + 1} of {index.count}", tile / index.count)
-        part = run_tile(pipeline, survey, index, tile)
+    for done, part in enumerate(map_tiles(phantom_tile, spec, index, list(range(index.count)))):
         for f in np.unique(part.frame):
             mine = part.frame == f
             labels[int(f)][part.index[mine]] = part.labels[mine]
         written += len(part.labels)
+        if progress is not None:
+            progress(f"{done + 1} of {index.count} tiles", (done + 1) / index.count)
     if written != int(index.frame_sizes.sum()):
         raise RuntimeError(
             f"tiles labelled {written} of {int(index.frame_sizes.sum())} points: a tile lost "
