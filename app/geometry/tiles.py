@@ -19,45 +19,41 @@ street, and a point's foot must not jump between the sweeps of a steep ramp.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
-from scipy.spatial import cKDTree
+
+from app.geometry.trajectory import StationIndex
 
 
-def arc_length(xyz: np.ndarray) -> np.ndarray:
-    """(M,) horizontal arc length along a polyline (M, 2 or 3), 0 at its first point."""
-    xy = np.asarray(xyz, dtype=np.float64)[:, :2]
-    if len(xy) == 0:
-        return np.zeros(0)
-    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
+def _flat(xy: np.ndarray) -> np.ndarray:
+    """(N, 3) float64 with z = 0 from positions (N, 2 or more): stations are horizontal."""
+    xy = np.asarray(xy, dtype=np.float64).reshape(len(xy), -1)[:, :2]
+    return np.column_stack([xy, np.zeros(len(xy))])
 
 
 @dataclass(frozen=True)
 class TileLayout:
-    """Tiles of `length` metres along a trajectory, each read with `halo` metres either side."""
+    """Tiles of `length` metres along a trajectory, each read with `halo` metres around."""
 
-    trajectory: np.ndarray  # (M, 2) float64 horizontal sensor positions, in driving order
-    station: np.ndarray  # (M,) float64 arc length at each position
+    stations_of: StationIndex | None  # the trajectory's station index; None: one position
     length: float
     halo: float
 
     @classmethod
     def along(cls, trajectory: np.ndarray, length: float, halo: float) -> TileLayout:
-        """The layout of a trajectory (M, 2 or 3); repeated positions (a stop) are merged."""
+        """The layout of a trajectory (M, 2 or 3) in driving order."""
         if not length > 0 or not halo >= 0:
             raise ValueError(f"tile length {length} must be > 0 and halo {halo} >= 0")
         if len(trajectory) == 0:
             raise ValueError("a tile layout needs a trajectory of at least one position")
-        xy = np.asarray(trajectory, dtype=np.float64).reshape(len(trajectory), -1)[:, :2]
-        moved = np.r_[True, np.linalg.norm(np.diff(xy, axis=0), axis=1) > 1e-6]
-        xy = xy[moved]
-        return cls(xy, arc_length(xy), float(length), float(halo))
+        positions = _flat(trajectory)
+        index = StationIndex(positions) if len(positions) > 1 else None
+        return cls(index, float(length), float(halo))
 
     @property
     def total(self) -> float:
         """Metres of trajectory."""
-        return float(self.station[-1])
+        return 0.0 if self.stations_of is None else self.stations_of.length
 
     @property
     def count(self) -> int:
@@ -74,34 +70,12 @@ class TileLayout:
         return float(start), float(end)
 
     def stations(self, xyz: np.ndarray) -> np.ndarray:
-        """(N,) station of each point: the arc length at its foot on the trajectory polyline
-        (the nearer of the two segments at its nearest position; before the first or after
-        the last position the line is extended, so stations run below 0 and past the end)."""
-        p = np.asarray(xyz, dtype=np.float64)[:, :2]
-        if len(self.trajectory) == 1:
-            return np.zeros(len(p))
-        _, nearest = self._tree.query(p)
-        best = np.full(len(p), np.inf)
-        out = np.zeros(len(p))
-        last = len(self.trajectory) - 1
-        for first in (nearest - 1, nearest):  # the segment before and after the nearest position
-            a = np.clip(first, 0, last - 1)
-            seg = self.trajectory[a + 1] - self.trajectory[a]
-            seg_len = np.linalg.norm(seg, axis=1)
-            t = np.einsum("ij,ij->i", p - self.trajectory[a], seg) / np.maximum(seg_len, 1e-12) ** 2
-            lo = np.where(a == 0, -np.inf, 0.0)  # the ends extend the line
-            hi = np.where(a == last - 1, np.inf, 1.0)
-            t = np.clip(t, lo, hi)
-            foot = self.trajectory[a] + t[:, None] * seg
-            d = np.linalg.norm(p - foot, axis=1)
-            better = d < best
-            best[better] = d[better]
-            out[better] = self.station[a[better]] + t[better] * seg_len[better]
-        return out
-
-    @cached_property
-    def _tree(self) -> cKDTree:
-        return cKDTree(self.trajectory)
+        """(N,) station of each point (N, 2 or 3): the horizontal arc length at its foot on the
+        trajectory (`geometry.trajectory.StationIndex`; before the start or past the end the
+        stations run below 0 or past the total)."""
+        if self.stations_of is None:
+            return np.zeros(len(xyz))
+        return self.stations_of.query(_flat(xyz))[0]
 
     def owner(self, station: np.ndarray) -> np.ndarray:
         """(N,) int64 tile owning each station."""
