@@ -284,9 +284,9 @@ def check_guardrail_config(config: dict[str, Any], _settings: Settings) -> None:
 
 def _slice_samples(
     features: Path, reviewed: np.ndarray, survey_id: int
-) -> tuple[SliceSamples, np.ndarray, np.ndarray]:
-    """The reviewed slices' classifier inputs from a run's saved features, with whether a
-    camera crop showed each and its station (slices missing from the run are left out)."""
+) -> tuple[SliceSamples, np.ndarray]:
+    """The reviewed slices' classifier inputs from a run's saved features (with whether a
+    camera crop showed each) and their stations (slices missing from the run are left out)."""
     with np.load(features) as f:
         at = match_slices(
             reviewed[:, 0].astype(np.int64), reviewed[:, 1].astype(np.int64),
@@ -301,23 +301,18 @@ def _slice_samples(
                 label=reviewed[found, 3].astype(np.int64),
                 group=np.full(int(found.sum()), survey_id, dtype=np.int64),
                 geometry_names=[str(n) for n in f["geometry_names"]],
+                has_crop=f["has_crop"][rows].astype(bool),
             ),
-            f["has_crop"][rows],
             reviewed[found, 2],
         )
 
 
-def pipeline_scores(
-    heads: dict[str, SliceHead],
-    samples: SliceSamples,
-    has_crop: np.ndarray,
-    head: str = "image+geometry",
-):
+def pipeline_scores(heads: dict[str, SliceHead], samples: SliceSamples, head: str):
     """Guardrail-slice scores as the pipeline predicts with `head` (the model's default): that
     head where a camera crop shows the slice (or the head needs none), the geometry head
     elsewhere."""
     guess = np.zeros(len(samples.label), dtype=bool)
-    with_head = has_crop if "image" in head else np.ones(len(samples.label), dtype=bool)
+    with_head = samples.crop if "image" in head else np.ones(len(samples.label), dtype=bool)
     for name, where in ((head, with_head), ("geometry", ~with_head)):
         if where.any():
             probability = predict(heads[name], samples.embedding[where], samples.geometry[where])
@@ -357,18 +352,18 @@ def train_guardrail(context: JobContext, config: dict[str, Any]) -> dict[str, An
         if features is None or not features.is_file():
             context.log.warning("survey %d: no slice features of its last run; skipped", survey_id)
             continue
-        samples, has_crop, station = _slice_samples(features, rows, survey_id)
+        samples, station = _slice_samples(features, rows, survey_id)
         held = held_out_blocks(station[:, None], cfg.block_size, cfg.holdout, cfg.seed)
-        train_parts.append((samples.subset(~held), has_crop[~held]))
-        val_parts.append((samples.subset(held), has_crop[held]))
+        train_parts.append(samples.subset(~held))
+        val_parts.append(samples.subset(held))
     if not train_parts:
         raise ConfigError("labels", "no reviewed slice has the features of its run; rerun it")
-    train_set, train_crop = _concatenate(train_parts)
-    val_set, val_crop = _concatenate(val_parts)
+    train_set = SliceSamples.concatenate(train_parts)
+    val_set = SliceSamples.concatenate(val_parts)
     new_heads = {}
     for i, (name, head) in enumerate(heads.items()):
         context.progress(0.2 + 0.7 * i / len(heads), f"fine-tuning the {name} head")
-        subset = train_set.subset(train_crop) if "image" in name else train_set
+        subset = train_set.with_crop() if "image" in name else train_set
         if len(subset.label) == 0:
             new_heads[name] = head
             continue
@@ -377,8 +372,8 @@ def train_guardrail(context: JobContext, config: dict[str, Any]) -> dict[str, An
             balance=float(base_card.get("training", {}).get("class_balance", 1.0)),
         )  # fmt: skip
     default_head = base_card.get("default_head", "image+geometry")
-    new_scores = pipeline_scores(new_heads, val_set, val_crop, default_head)
-    base_scores = pipeline_scores(heads, val_set, val_crop, default_head)
+    new_scores = pipeline_scores(new_heads, val_set, default_head)
+    base_scores = pipeline_scores(heads, val_set, default_head)
     promote = (new_scores["f1"], new_scores["accuracy"]) >= (
         base_scores["f1"],
         base_scores["accuracy"],
@@ -424,17 +419,3 @@ def train_guardrail(context: JobContext, config: dict[str, Any]) -> dict[str, An
         "validation_f1": new_scores["f1"],
         "baseline_f1": base_scores["f1"],
     }
-
-
-def _concatenate(parts: list[tuple[SliceSamples, np.ndarray]]) -> tuple[SliceSamples, np.ndarray]:
-    samples = [p[0] for p in parts]
-    return (
-        SliceSamples(
-            embedding=np.concatenate([s.embedding for s in samples]),
-            geometry=np.concatenate([s.geometry for s in samples]),
-            label=np.concatenate([s.label for s in samples]),
-            group=np.concatenate([s.group for s in samples]),
-            geometry_names=samples[0].geometry_names,
-        ),
-        np.concatenate([p[1] for p in parts]),
-    )

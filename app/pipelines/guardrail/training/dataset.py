@@ -4,7 +4,7 @@ each slice gets its reference label (most of its points on a guardrail) for free
 One set of simulated surveys per sensor kind (`TRAINING_DATA`), never mixed: `profile`
 (VQ-250-like profile scanner, seeds 401-412) and `rotating` (HDL-64E-class scanners drawn from
 the seed, `vary_scanner`: 32 / 64 beams, azimuth steps, mounting heights, noise, dropouts;
-seeds 701-709 and 780-782, 30 m each (sized so training fits 30 minutes on 2 cores),
+seeds 701-720 and 780-782, 30 m each (sized so training fits 30 minutes on 2 cores),
 highway-heavy presets (highway, interchange) so beam and pipe guardrails, exit ramps and
 median barriers appear as a rotating scanner sees them, a few rings at grazing angles). Each
 kind has its own held-out seeds (bench/guardrail.py only).
@@ -52,6 +52,23 @@ class SliceSamples:
     def with_crop(self) -> SliceSamples:
         """The slices a camera crop shows: all the image heads can learn from."""
         return self if self.has_crop is None else self.subset(self.has_crop)
+
+    @property
+    def crop(self) -> np.ndarray:
+        """(N,) bool: a camera crop shows the slice (every one when not recorded)."""
+        return np.ones(len(self.label), bool) if self.has_crop is None else self.has_crop
+
+    @staticmethod
+    def concatenate(parts: list[SliceSamples]) -> SliceSamples:
+        """The samples of several surveys as one set (the names of the first)."""
+        return SliceSamples(
+            np.concatenate([p.embedding for p in parts]),
+            np.concatenate([p.geometry for p in parts]),
+            np.concatenate([p.label for p in parts]),
+            np.concatenate([p.group for p in parts]),
+            parts[0].geometry_names,
+            np.concatenate([p.crop for p in parts]),
+        )
 
 
 @dataclass(frozen=True)
@@ -190,12 +207,4 @@ def build_samples(
         if progress:
             progress(f"survey {seed}", i / max(len(seeds), 1))
         parts.append(survey_samples(seed, length, encoder, sensor=sensor))
-    return SliceSamples(
-        np.concatenate([p.embedding for p in parts]),
-        np.concatenate([p.geometry for p in parts]),
-        np.concatenate([p.label for p in parts]),
-        np.concatenate([p.group for p in parts]),
-        parts[0].geometry_names,
-        np.concatenate([np.ones(len(p.label), bool) if p.has_crop is None else p.has_crop
-                        for p in parts]),
-    )  # fmt: skip
+    return SliceSamples.concatenate(parts)
