@@ -23,7 +23,7 @@ it at grazing angles: the rail falls apart into many small components with stati
 the rings holding no slice, and a true guardrail slice is often alone in its chain (held-out
 32-beam highway: 26 of the 34 true slices the paper's rule dropped had no neighbour in their
 component). Slices in `keep` (the caller's: a classifier probability of at least
-`keep_confident`, or a person's guardrail label) are never dropped as isolated.
+`keep_confident`, `pipeline.confident`) are never dropped as isolated.
 """
 
 from __future__ import annotations

@@ -6,9 +6,9 @@ scanners a guardrail is a few rings at grazing angles, and the geometry head's f
 in short runs on fences and kerbs, which a higher threshold removes better than the lone-slice
 rule, and its true slices are often alone in their chain, which only `keep_confident` saves
 (correction.py). So the threshold, `max_gap`, `max_isolated` and `keep_confident` are chosen
-per classifier on the slices of
-its validation surveys (never its held-out ones) and kept in its card (`correction`); a run uses
-them unless its config sets them (`GuardrailConfig.with_correction`).
+per classifier on the slices of its validation surveys (never its held-out ones) and kept in
+its card (`correction`); a run uses them unless its config sets them
+(`GuardrailConfig.with_correction`).
 """
 
 from __future__ import annotations
