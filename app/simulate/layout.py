@@ -442,10 +442,29 @@ def survey_drive(b: SceneBuilder, lateral: float, speed: float, length: float) -
     return Drive(speed, duration), motion
 
 
-def interchange(b: SceneBuilder, cs: CrossSection, s0: float, s1: float, length: float) -> None:
-    """The static parts of the `interchange` preset (module doc)."""
+def verge(cs: CrossSection) -> CrossSection:
+    """Where a highway's trees, lamps and signs stand: beyond its shoulders."""
+    return CrossSection(cs.outer_edge, cs.outer_edge + 2.0, 30.0, 40.0, ())
+
+
+def carriageway(b: SceneBuilder, cs: CrossSection, s0: float, s1: float) -> None:
+    """A highway's pavement, shoulders, verges and lane markings."""
     ground_strips(b, cs, s0, s1, sidewalk=False)
     lane_markings(b, cs, s0, s1, dashed=[3.875, -3.875])
+
+
+def open_highway(b: SceneBuilder, cs: CrossSection, s0: float, s1: float) -> None:
+    """The static parts of the `highway` preset (module doc)."""
+    carriageway(b, cs, s0, s1)
+    for lateral in (-(cs.outer_edge + 0.3), cs.outer_edge + 0.3):
+        add_guardrail(b, "beam", lateral, s0, s1, dz=0.0)
+    add_guardrail(b, "beam", -0.3, s0, s1, dz=0.0)
+    street_furniture(b, verge(cs), s0, s1, dz=-0.1)
+
+
+def interchange(b: SceneBuilder, cs: CrossSection, s0: float, s1: float, length: float) -> None:
+    """The static parts of the `interchange` preset (module doc)."""
+    carriageway(b, cs, s0, s1)
     add_guardrail(b, "beam", cs.outer_edge + 0.3, s0, s1, dz=0.0)
     if b.rng.random() < 2.0 / 3.0:
         barrier = objects.median_barrier(b.centerline.line(0.0, s0, s1, step=0.25), b.rng)
@@ -453,8 +472,7 @@ def interchange(b: SceneBuilder, cs: CrossSection, s0: float, s1: float, length:
     else:
         add_guardrail(b, "beam", -0.3, s0, s1, dz=0.0)
     ramp = exit_ramp(b, cs, s0, s1, length)
-    verge = CrossSection(cs.outer_edge, cs.outer_edge + 2.0, 30.0, 40.0, ())
-    street_furniture(b, verge, s0, s1, dz=-0.1, sides=(1.0,))
+    street_furniture(b, verge(cs), s0, s1, dz=-0.1, sides=(1.0,))
     beyond = cs.outer_edge + ramp.width + ramp.shift + 1.5  # past the ramp's guardrail
     street_furniture(b, CrossSection(beyond - 2.0, beyond, beyond + 15.0, 40.0, ()), s0, s1,
                      dz=-0.1, sides=(-1.0,))  # fmt: skip
@@ -476,20 +494,12 @@ def build_scene(preset: str, length: float, rng: np.random.Generator) -> Scene:
     b = SceneBuilder(centerline, rng)
     s0, s1 = -SCENE_MARGIN, length + SCENE_MARGIN
     light = None
-    if preset == "interchange":
+    if highway:
         cs = HIGHWAY
-        interchange(b, cs, s0, s1, length)
-        drive, vehicle = survey_drive(b, cs.lane_centres[1], rng.uniform(20.0, 25.0), length)
-        highway_traffic(b, drive, cs)
-    elif highway:
-        cs = HIGHWAY
-        ground_strips(b, cs, s0, s1, sidewalk=False)
-        lane_markings(b, cs, s0, s1, dashed=[3.875, -3.875])
-        for lateral in (-(cs.outer_edge + 0.3), cs.outer_edge + 0.3):
-            add_guardrail(b, "beam", lateral, s0, s1, dz=0.0)
-        add_guardrail(b, "beam", -0.3, s0, s1, dz=0.0)
-        street_furniture(b, CrossSection(cs.outer_edge, cs.outer_edge + 2.0, 30.0, 40.0, ()),
-                         s0, s1, dz=-0.1)  # fmt: skip
+        if preset == "interchange":
+            interchange(b, cs, s0, s1, length)
+        else:
+            open_highway(b, cs, s0, s1)
         drive, vehicle = survey_drive(b, cs.lane_centres[1], rng.uniform(20.0, 25.0), length)
         highway_traffic(b, drive, cs)
     else:
