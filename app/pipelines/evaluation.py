@@ -106,7 +106,10 @@ def _phantom(survey: Survey, labels: list[np.ndarray]) -> dict:
     from app.io.accumulate import accumulate
     from app.metrics.classification import confusion_matrix, scores_from_confusion
     from app.pipelines.phantom.config import PhantomConfig
-    from app.pipelines.phantom.evaluation.classification_metrics import PAPER_OVERALL_EXCLUDES
+    from app.pipelines.phantom.evaluation.classification_metrics import (
+        PAPER_OVERALL_EXCLUDES,
+        phantom_point_scores,
+    )
     from app.pipelines.phantom.evaluation.reference import (
         reference_pillar_labels,
         static_and_moving,
@@ -133,8 +136,8 @@ def _phantom(survey: Survey, labels: list[np.ndarray]) -> dict:
         "point": scores_from_confusion(
             confusion, names, macro_exclude=PAPER_OVERALL_EXCLUDES
         ).as_dict(),
-        "phantom_points": binary_scores(
-            moving & in_layer, (predicted == PillarClass.phantom) & in_layer
+        "phantom_points": phantom_point_scores(
+            semantic, moving, in_layer, predicted == PillarClass.phantom
         ).as_dict(),
     }
 

@@ -11,13 +11,31 @@ from __future__ import annotations
 import numpy as np
 
 from app.core.labels import PillarClass
-from app.metrics.classification import binary_scores, confusion_matrix, scores_from_confusion
-from app.pipelines.phantom.evaluation.reference import reference_pillar_labels, static_and_moving
+from app.metrics.classification import (
+    ClassScores,
+    binary_scores,
+    confusion_matrix,
+    scores_from_confusion,
+)
+from app.pipelines.phantom.evaluation.reference import (
+    reference_pillar_labels,
+    scored_points,
+    static_and_moving,
+)
 from app.pipelines.phantom.network import CLASS_NAMES
 from app.pipelines.phantom.pipeline import PhantomResult
 from app.pipelines.phantom.point_labels import point_labels
 
 PAPER_OVERALL_EXCLUDES = ("ground",)
+
+
+def phantom_point_scores(
+    semantic: np.ndarray, moving: np.ndarray, in_layer: np.ndarray, flags: np.ndarray
+) -> ClassScores:
+    """Point-level phantom detection: a removed point should belong to a moving object. Scored
+    over the pillar layer's points with a reference label (`scored_points`)."""
+    scored = in_layer & scored_points(semantic)
+    return binary_scores(moving & scored, flags & scored)
 
 
 def evaluate(result: PhantomResult, baselines: dict[str, np.ndarray] | None = None) -> dict:
@@ -39,11 +57,10 @@ def evaluate(result: PhantomResult, baselines: dict[str, np.ndarray] | None = No
     out["point"] = scores_from_confusion(
         confusion, names, macro_exclude=PAPER_OVERALL_EXCLUDES
     ).as_dict()
-    # point-level phantom detection: a removed point should belong to a moving object
-    truth = moving & in_layer
     phantom = {"mmsclean": result.point_labels == PillarClass.phantom}
     phantom.update(baselines or {})
     out["phantom_points"] = {
-        name: binary_scores(truth, flags & in_layer).as_dict() for name, flags in phantom.items()
+        name: phantom_point_scores(semantic, moving, in_layer, flags).as_dict()
+        for name, flags in phantom.items()
     }
     return out

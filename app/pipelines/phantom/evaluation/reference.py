@@ -4,7 +4,8 @@ Simulated surveys and SemanticKITTI both carry SemanticKITTI class ids; moving o
 flagged (simulator) or have the moving ids 252-259 (SemanticKITTI), which map back to their static
 class. The pillar rule is the shared one (`app.core.labels`, also the simulator's): moving points
 the majority of a pillar's non-ground points -> phantom; otherwise high vs short object by vote;
-fewer than 3 non-ground points -> ground. Unlabeled (0) and outlier (1) points do not vote.
+fewer than 3 non-ground points -> ground. Unlabelled (0) and outlier (1) points do not vote, and
+point-level scores leave them out.
 """
 
 from __future__ import annotations
@@ -27,10 +28,20 @@ def static_and_moving(reference: dict[str, np.ndarray]) -> tuple[np.ndarray, np.
     return static, moving
 
 
+NOT_SCORED = (Semantic.UNLABELED, 1)  # unlabelled, outlier: SemanticKITTI ignores them
+
+
+def scored_points(semantic: np.ndarray) -> np.ndarray:
+    """(N,) bool: points with a reference label. SemanticKITTI's evaluation ignores unlabelled
+    and outlier points (and so does the clutter benchmark); on 05 the phantom calls on them lie
+    10-16 m from any mover, which no reference says is static."""
+    return ~np.isin(semantic, NOT_SCORED)
+
+
 def reference_pillar_labels(pm: PillarMap, semantic: np.ndarray, moving: np.ndarray) -> np.ndarray:
     """(P,) uint8 reference class of each occupied pillar of `pm`."""
     inside = pm.point_pillar >= 0
-    voting = inside & ~np.isin(semantic, [Semantic.UNLABELED, 1])
+    voting = inside & scored_points(semantic)
     group = pm.point_pillar[inside]
     labels = classify_pillar_groups(group, semantic[inside], moving[inside], voting[inside])
     out = np.zeros(len(pm.pillars), dtype=np.uint8)
