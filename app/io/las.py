@@ -12,6 +12,7 @@ file is written next to its destination as `<name>.partial` and renamed when com
 
 from __future__ import annotations
 
+import copy
 import datetime
 from functools import partial
 from pathlib import Path
@@ -301,3 +302,34 @@ def _column(
             path, f"{name} values {arr.min()}..{arr.max()} do not fit {np.dtype(dtype).name}"
         )
     return arr.astype(dtype)
+
+
+MERGE_CHUNK = 1_000_000  # points per chunk when files are concatenated
+
+
+def concatenate_las(parts: list[Path], path: str | Path) -> int:
+    """Stream the points of `parts` (written by `write_laz` with one scale and offset, as a
+    tiled run's parts are) into one file, chunk by chunk: memory stays at one chunk whatever
+    the survey's length. Returns the number of points written."""
+    path = Path(path)
+    if not parts:
+        raise ValueError(f"{path}: no parts to concatenate")
+    with laspy.open(parts[0]) as first:
+        header = copy.deepcopy(first.header)  # the writer recounts points and bounds
+    written = 0
+
+    def write(f) -> None:
+        nonlocal written
+        with laspy.open(f, mode="w", header=header, do_compress=path.suffix.lower() == ".laz",
+                        closefd=False) as writer:  # fmt: skip
+            for part in parts:
+                with laspy.open(part) as reader:
+                    if not (np.array_equal(reader.header.scales, header.scales)
+                            and np.array_equal(reader.header.offsets, header.offsets)):  # fmt: skip
+                        raise ValueError(f"{part}: scale or offset differs from {parts[0]}")
+                    for chunk in reader.chunk_iterator(MERGE_CHUNK):
+                        writer.write_points(chunk)
+                        written += len(chunk)
+
+    write_atomically(path, write)
+    return written

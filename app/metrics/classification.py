@@ -222,9 +222,21 @@ def binary_scores(reference_positive: np.ndarray, predicted_positive: np.ndarray
             f"reference_positive and predicted_positive must be (N,) arrays of one length, "
             f"got {reference_positive.shape} and {predicted_positive.shape}"
         )
-    tp = int(np.count_nonzero(reference_positive & predicted_positive))
-    support = int(np.count_nonzero(reference_positive))
-    n_predicted = int(np.count_nonzero(predicted_positive))
+    return binary_from_counts(*binary_counts(reference_positive, predicted_positive))
+
+
+def binary_counts(reference_positive: np.ndarray, predicted_positive: np.ndarray) -> list[int]:
+    """[true positives, reference positives, predicted positives]: additive over parts of a
+    sample (tiles of a survey), unlike the scores."""
+    return [
+        int(np.count_nonzero(reference_positive & predicted_positive)),
+        int(np.count_nonzero(reference_positive)),
+        int(np.count_nonzero(predicted_positive)),
+    ]
+
+
+def binary_from_counts(tp: int, support: int, n_predicted: int) -> ClassScores:
+    """`binary_scores` from counts summed over parts (`binary_counts`)."""
     precision = float(_ratio(tp, n_predicted))
     recall = float(_ratio(tp, support))
-    return ClassScores(precision, recall, float(_f1(precision, recall)), support)
+    return ClassScores(precision, recall, float(_f1(precision, recall)), int(support))

@@ -12,11 +12,9 @@ import numpy as np
 
 
 def write_frame_labels(out: Path, labels: dict[str, np.ndarray]) -> None:
-    folder = Path(out) / "labels"
-    folder.mkdir(parents=True, exist_ok=True)
+    (Path(out) / "labels").mkdir(parents=True, exist_ok=True)
     for frame_id, values in labels.items():
-        target = folder / f"{frame_id}.npy"
-        partial = folder / f"{frame_id}.partial.npy"
+        target, partial = _label_paths(out, frame_id)
         np.save(partial, np.asarray(values, dtype=np.uint8))
         os.replace(partial, target)
 
@@ -43,3 +41,34 @@ def _plain(value: object) -> object:
     if isinstance(value, Path):
         return str(value)
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def _label_paths(out: Path, frame_id: str) -> tuple[Path, Path]:
+    folder = Path(out) / "labels"
+    return folder / f"{frame_id}.npy", folder / f"{frame_id}.partial.npy"
+
+
+def start_frame_labels(out: Path, sizes: dict[str, int]) -> None:
+    """Zeroed label files on disk for labels that arrive in parts (a tiled run's tiles): filled
+    by `fill_frame_labels`, renamed to their names by `commit_frame_labels`. Nothing of them is
+    held in memory."""
+    for frame_id, size in sizes.items():
+        partial = _label_paths(out, frame_id)[1]
+        partial.parent.mkdir(parents=True, exist_ok=True)
+        if not size:  # an empty file cannot be mapped
+            np.save(partial, np.zeros(0, dtype=np.uint8))
+            continue
+        np.lib.format.open_memmap(partial, mode="w+", dtype=np.uint8, shape=(int(size),)).flush()
+
+
+def fill_frame_labels(out: Path, frame_id: str, index: np.ndarray, values: np.ndarray) -> None:
+    labels = np.lib.format.open_memmap(_label_paths(out, frame_id)[1], mode="r+")
+    labels[index] = values
+    labels.flush()
+    del labels
+
+
+def commit_frame_labels(out: Path, frame_ids: list[str]) -> None:
+    for frame_id in frame_ids:
+        target, partial = _label_paths(out, frame_id)
+        os.replace(partial, target)

@@ -20,22 +20,26 @@ ROOT = Path(__file__).resolve().parents[2]
 def test_a_local_cluster_runs_the_tiles(tmp_path: Path) -> None:
     survey = open_survey(ROOT / "data_samples" / "urban-60m", "sim")
     pipeline = PhantomPipeline(model_path=ROOT / "models" / "phantom" / "phantom_cnn.pt")
-    here, index = run_phantom_tiled(pipeline, survey, length=25.0)
+    here = run_phantom_tiled(pipeline, survey, tmp_path / "here", length=25.0)
     settings = Settings(data_dir=tmp_path, workers=2, sample_dir="")
     try:
         client = tile_client(settings)
         assert len(client.scheduler_info()["workers"]) == 2
         seen = []
-        there, _ = run_phantom_tiled(
-            pipeline, survey, length=25.0, map_tiles=tile_map(client),
+        run_phantom_tiled(
+            pipeline, survey, tmp_path / "there", length=25.0, map_tiles=tile_map(client),
             progress=lambda stage, fraction: seen.append(fraction),
         )  # fmt: skip
         assert tile_client(settings) is client  # one cluster per process
     finally:
         close_clients()
-    assert index.count == 3 and seen[-1] == 1.0 and len(seen) == 3
+    assert here.index.count == 3 and seen == [0.0, 1 / 3, 2 / 3, 1.0]
     for frame in survey.frames:
-        assert np.array_equal(here[frame.frame_id], there[frame.frame_id])
+        name = f"{frame.frame_id}.npy"
+        assert np.array_equal(
+            np.load(tmp_path / "here" / "labels" / name),
+            np.load(tmp_path / "there" / "labels" / name),
+        )
 
 
 def test_a_scheduler_address_is_checked() -> None:

@@ -5,15 +5,16 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from app.core.labels import PillarClass
 from app.core.progress import Progress
 from app.core.sensors import SensorKind
 from app.io.survey import Survey
-from app.pipelines.outputs import write_frame_labels, write_report
+from app.pipelines.outputs import write_report
 from app.pipelines.phantom.config import PhantomConfig
+from app.pipelines.phantom.evaluation.classification_metrics import metrics_from_counts
 from app.pipelines.phantom.model import SHIPPED, read_card
-from app.pipelines.phantom.outputs import write_confusion_plots, write_maps
+from app.pipelines.phantom.outputs import write_confusion_plots
 from app.pipelines.phantom.pipeline import PhantomPipeline
+from app.pipelines.phantom.tiled import TILE_LENGTH, TileMap, in_process, run_phantom_tiled
 from app.pipelines.sensor_models import ModelChoice, choose_model
 
 
@@ -28,19 +29,24 @@ def run_phantom_to_folder(
     progress: Progress | None = None,
     sensor: SensorKind | None = None,
     model: ModelChoice | None = None,
+    tile_length: float = TILE_LENGTH,
+    map_tiles: TileMap = in_process,
 ) -> dict:
     """`model` as a job chose it; else `model_path` forced by hand; else the shipped model of
-    the survey's sensor kind (`sensor` declared, else detected): `sensor_models`."""
+    the survey's sensor kind (`sensor` declared, else detected): `sensor_models`. The survey
+    runs tile by tile (`tiled`): `map_tiles` may spread the tiles over a cluster, and tiles an
+    earlier attempt in `out` finished are kept."""
     started = time.perf_counter()
     config = (config or PhantomConfig()).model_copy(update={"refine": refine})
     if model is None:
         model = choose_model("phantom", SHIPPED, survey, read_card, model_path, sensor)
     pipeline = PhantomPipeline(config, model.path, dense)
-    result = pipeline.run(survey, progress)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    write_frame_labels(out, result.frame_labels())
-    files = write_maps(out, result)
+    run = run_phantom_tiled(
+        pipeline, survey, out, tile_length, progress=progress, map_tiles=map_tiles,
+        baselines=baselines,
+    )  # fmt: skip
     report: dict = {
         "pipeline": "phantom",
         "survey": {"name": survey.name, "format": survey.format, "source": str(survey.source)},
@@ -52,33 +58,20 @@ def run_phantom_to_folder(
             **model.report(),
         },
         "path": "dense" if dense else "per-window",
-        "counts": {
-            "frames": len(result.map.frame_ids),
-            "points": int(len(result.point_labels)),
-            "points_in_layer": int(result.pillar_map.in_layer.sum()),
-            "pillars": int(len(result.pillar_map.pillars)),
-            "pillars_classified": int(result.classified.sum()),
-            "pillars_per_class": {
-                name.name.lower(): int((result.pillar_labels == name).sum()) for name in PillarClass
-            },
-            "phantom_points": int((result.point_labels == PillarClass.phantom).sum()),
+        "tiles": {
+            "count": run.index.count,
+            "length_m": run.index.layout.length,
+            "halo_m": run.index.layout.halo,
+            "run": run.tiles_run,
+            "kept_from_earlier_attempt": run.index.count - run.tiles_run,
         },
-        "timings": dict(result.timings),
-        "files": files,
+        "counts": {"frames": len(survey.frames), **run.counts},
+        "timings": dict(run.timings),  # summed over the tiles
+        "files": dict(run.files),
     }
-    if "semantic" in result.map.reference:  # SemanticKITTI ids (simulator, SemanticKITTI)
-        from app.pipelines.phantom.evaluation.classification_metrics import evaluate
-
-        flags = {}
-        if baselines:
-            from app.pipelines.phantom.evaluation.baselines import avg_distances, num_neighbors
-
-            t0 = time.perf_counter()
-            flags["num_neighbors"] = num_neighbors(result.map.xyz)
-            flags["avg_distances"] = avg_distances(result.map.xyz)
-            report["timings"]["baselines"] = round(time.perf_counter() - t0, 3)
-        report["metrics"] = evaluate(result, flags)
-        files.update(write_confusion_plots(out, report["metrics"]))
+    if run.metric_counts is not None:  # SemanticKITTI ids (simulator, SemanticKITTI)
+        report["metrics"] = metrics_from_counts(run.metric_counts)
+        report["files"].update(write_confusion_plots(out, report["metrics"]))
     report["timings"]["total"] = round(time.perf_counter() - started, 3)
     write_report(out, report)
     return report

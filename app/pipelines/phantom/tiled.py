@@ -11,6 +11,7 @@ pillar window (+-1.1 m) and its 31 x 31 pillar context (+-3.1 m), the 5 x 5 refi
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from functools import lru_cache
@@ -21,8 +22,10 @@ import numpy as np
 from app.io.survey import Survey
 from app.io.tile_index import TileIndex
 from app.pipelines.phantom.config import PhantomConfig
+from app.pipelines.phantom.evaluation.classification_metrics import metric_counts
 from app.pipelines.phantom.network import CONTEXT_SPAN
 from app.pipelines.phantom.pipeline import PhantomPipeline
+from app.pipelines.phantom.tile_outputs import TileResult, assemble, finished_tiles, write_tile
 
 TILE_LENGTH = 100.0  # metres of trajectory per tile
 INDEX_CELL = 2.0  # metres: the grid a tile's own points and its halo are kept on
@@ -38,48 +41,86 @@ def phantom_halo(pipeline: PhantomPipeline, index_cell: float = INDEX_CELL) -> f
     return float(np.ceil(pillars * cfg.cell_size + ground + index_cell))
 
 
-@dataclass
-class TileLabels:
-    """The labels of the points one tile owns, by (frame of the survey, point of the frame)."""
-
-    tile: int
-    frame: np.ndarray  # (n,) int64 frame index in the survey
-    index: np.ndarray  # (n,) int64 point index in its frame
-    labels: np.ndarray  # (n,) uint8 pillar class
-
-
-def run_tile(pipeline: PhantomPipeline, survey: Survey, index: TileIndex, tile: int) -> TileLabels:
-    """One tile: its frames accumulated, cut to its window, classified; its own points' labels."""
+def run_tile(
+    pipeline: PhantomPipeline, survey: Survey, index: TileIndex, tile: int, baselines: bool = False
+) -> TileResult:
+    """One tile: its frames accumulated, cut to its window, classified; the results for the
+    points and pillars it owns (and their share of the metrics when the survey has reference
+    labels)."""
+    started = time.perf_counter()
     amap = pipeline.accumulate(index.tile_survey(survey, tile))
     part = amap.select(index.in_window(amap.xyz, tile))
     if len(part.xyz) == 0:
         empty = np.zeros(0, dtype=np.int64)
-        return TileLabels(tile, empty, empty, np.zeros(0, dtype=np.uint8))
-    result = pipeline.run_map(part)
+        return TileResult(tile, empty, empty, np.zeros((0, 3)), np.zeros(0, np.uint8), 0)
+    result = pipeline.run_map(part, timings={"accumulate": round(time.perf_counter() - started, 3)})
     own = index.owned(part.xyz, tile)
-    frames = index.frames[tile][part.source_frame[own].astype(np.int64)]
-    return TileLabels(
-        tile, frames, part.source_index[own].astype(np.int64), result.point_labels[own]
+    pm = result.pillar_map
+    centres = np.column_stack([(pm.pillars + 0.5) * pm.config.cell_size, np.zeros(len(pm.pillars))])
+    own_pillars = index.owned(centres, tile)
+    counts = None
+    if "semantic" in part.reference:
+        flags = baseline_flags(part.xyz) if baselines else None
+        counts = metric_counts(result, own, own_pillars, flags)
+    pillars = {
+        "pillars": pm.pillars[own_pillars],
+        "probabilities": result.probabilities[own_pillars],
+        "classified": result.classified[own_pillars],
+        "raw_labels": result.raw_labels[own_pillars],
+        "labels": result.pillar_labels[own_pillars],
+        "cell_size": np.array([pm.config.cell_size]),
+    }
+    return TileResult(
+        tile,
+        frame=index.frames[tile][part.source_frame[own].astype(np.int64)],
+        index=part.source_index[own].astype(np.int64),
+        xyz=part.xyz[own],
+        labels=result.point_labels[own],
+        in_layer=int((pm.point_pillar[own] >= 0).sum()),
+        pillars=pillars,
+        metric_counts=counts,
+        timings=result.timings,
     )
+
+
+def baseline_flags(xyz: np.ndarray) -> dict[str, np.ndarray]:
+    """The paper's two baselines' phantom flags (Table II) on a tile's window."""
+    from app.pipelines.phantom.evaluation.baselines import avg_distances, num_neighbors
+
+    return {"num_neighbors": num_neighbors(xyz), "avg_distances": avg_distances(xyz)}
 
 
 @dataclass(frozen=True)
 class PhantomTileSpec:
     """What a worker process needs to run a phantom tile: names, not objects (a cluster's
-    workers open the survey and load the model themselves; the data must be readable there)."""
+    workers open the survey and load the model themselves; the data and the output folder must
+    be readable and writable there)."""
 
     survey_source: str
     survey_format: str
     model_path: str
     config: str  # PhantomConfig as JSON
+    out: str  # the run's output folder: tiles are written under it
+    offset: tuple[float, float, float]  # the LAZ parts' shared offset
     dense: bool = True
+    baselines: bool = False
 
-    @classmethod
-    def of(cls, pipeline: PhantomPipeline, survey: Survey) -> PhantomTileSpec:
-        return cls(
-            str(survey.source), survey.format, str(pipeline.model_path),
-            pipeline.config.model_dump_json(), pipeline.dense,
-        )  # fmt: skip
+    def plan(self, index: TileIndex) -> dict:
+        """What a tile's results depend on: a resumed run reuses tiles of the same plan only."""
+        layout = index.layout
+        return {
+            "survey": [self.survey_source, self.survey_format],
+            "model": [self.model_path, _file_stamp(Path(self.model_path))],
+            "config": self.config, "dense": self.dense, "baselines": self.baselines,
+            "offset": list(self.offset),
+            "tiles": [index.count, layout.length, layout.halo, index.cell],
+            "frame_sizes": [len(index.frame_sizes), int(index.frame_sizes.sum())],
+        }  # fmt: skip
+
+
+def _file_stamp(path: Path) -> list[int]:
+    stat = path.stat()
+    return [stat.st_size, stat.st_mtime_ns]
 
 
 @lru_cache(maxsize=2)
@@ -88,19 +129,20 @@ def _worker_pipeline(model_path: str, config: str, dense: bool) -> PhantomPipeli
     return PhantomPipeline(PhantomConfig.model_validate_json(config), Path(model_path), dense)
 
 
-def phantom_tile(spec: PhantomTileSpec, index: TileIndex, tile: int) -> TileLabels:
-    """A tile as a worker runs it: open the survey, load the model (once), run the tile."""
+def phantom_tile(spec: PhantomTileSpec, index: TileIndex, tile: int) -> dict:
+    """A tile as a worker runs it: open the survey, load the model (once), run the tile, write
+    its files under the run's folder; returns its summary (small: it travels back)."""
     from app.io import open_survey
 
     pipeline = _worker_pipeline(spec.model_path, spec.config, spec.dense)
     survey = open_survey(Path(spec.survey_source), spec.survey_format)
-    return run_tile(pipeline, survey, index, tile)
+    result = run_tile(pipeline, survey, index, tile, spec.baselines)
+    return write_tile(Path(spec.out), result, np.asarray(spec.offset))
 
 
-# runs `phantom_tile(spec, index, tile)` for the tiles given and yields the results as they
+# runs `phantom_tile(spec, index, tile)` for the tiles given and yields the summaries as they
 # finish, in any order: in this process by default, on a Dask cluster from `app.jobs.cluster`
-TileMap = Callable[[Callable[..., TileLabels], PhantomTileSpec, TileIndex, list[int]],
-                   Iterable[TileLabels]]  # fmt: skip
+TileMap = Callable[[Callable[..., dict], PhantomTileSpec, TileIndex, list[int]], Iterable[dict]]
 
 
 def in_process(fn, spec: PhantomTileSpec, index: TileIndex, tiles: list[int]):
@@ -109,31 +151,60 @@ def in_process(fn, spec: PhantomTileSpec, index: TileIndex, tiles: list[int]):
         yield fn(spec, index, tile)
 
 
+@dataclass
+class TiledRun:
+    """A tiled run's outcome: the assembled files and totals (`tile_outputs.assemble`), the
+    tile index, and how many tiles this attempt ran (the rest came from an earlier one)."""
+
+    files: dict[str, str]
+    counts: dict
+    metric_counts: dict | None
+    timings: dict[str, float]
+    index: TileIndex
+    tiles_run: int
+
+
 def run_phantom_tiled(
     pipeline: PhantomPipeline,
     survey: Survey,
+    out: Path,
     length: float = TILE_LENGTH,
     halo: float | None = None,
     progress: Callable[[str, float], None] | None = None,
     map_tiles: TileMap = in_process,
-) -> tuple[dict[str, np.ndarray], TileIndex]:
-    """Per-frame point labels of the whole survey, computed tile by tile; the tiles are
-    independent, so `map_tiles` may run them side by side on a cluster."""
+    baselines: bool = False,
+    index: TileIndex | None = None,
+) -> TiledRun:
+    """The survey tile by tile into `out`: each tile's files as it finishes, then the
+    contract's files assembled from them. Tiles an earlier attempt finished with the same plan
+    are not run again. The tiles are independent, so `map_tiles` may run them side by side on
+    a cluster."""
     halo = phantom_halo(pipeline) if halo is None else halo
-    index = TileIndex.build(survey, length, halo, INDEX_CELL)
-    labels = [np.zeros(int(n), dtype=np.uint8) for n in index.frame_sizes]
-    spec = PhantomTileSpec.of(pipeline, survey)
-    written = 0
-    for done, part in enumerate(map_tiles(phantom_tile, spec, index, list(range(index.count)))):
-        for f in np.unique(part.frame):
-            mine = part.frame == f
-            labels[int(f)][part.index[mine]] = part.labels[mine]
-        written += len(part.labels)
+    if index is None:
+        index = TileIndex.build(survey, length, halo, INDEX_CELL)
+    trajectory = survey.poses()[:, :3, 3]
+    spec = PhantomTileSpec(
+        str(survey.source), survey.format, str(pipeline.model_path),
+        pipeline.config.model_dump_json(), str(out),
+        tuple(np.floor(trajectory.min(axis=0)).tolist()), pipeline.dense, baselines,
+    )  # fmt: skip
+    done = finished_tiles(out, spec.plan(index))
+    missing = [t for t in range(index.count) if t not in done]
+
+    def report(stage: str) -> None:
         if progress is not None:
-            progress(f"{done + 1} of {index.count} tiles", (done + 1) / index.count)
-    if written != int(index.frame_sizes.sum()):
+            progress(stage, len(done) / index.count)
+
+    report(f"{len(done)} of {index.count} tiles")
+    for summary in map_tiles(phantom_tile, spec, index, missing):
+        done[int(summary["tile"])] = summary
+        report(f"{len(done)} of {index.count} tiles")
+    owned = sum(s["points"] for s in done.values())
+    if owned != int(index.frame_sizes.sum()):
         raise RuntimeError(
-            f"tiles labelled {written} of {int(index.frame_sizes.sum())} points: a tile lost "
+            f"tiles labelled {owned} of {int(index.frame_sizes.sum())} points: a tile lost "
             "points it owns"
         )
-    return {f.frame_id: lab for f, lab in zip(survey.frames, labels, strict=True)}, index
+    frame_ids = [f.frame_id for f in survey.frames]
+    assembled = assemble(out, frame_ids, index.frame_sizes, list(done.values()))
+    return TiledRun(**assembled, index=index, tiles_run=len(missing))

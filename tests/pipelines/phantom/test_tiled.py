@@ -5,11 +5,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import laspy
 import numpy as np
 
 from app.io import open_survey
 from app.io.survey import Frame, PointCloud, Survey
 from app.io.tile_index import TileIndex
+from app.pipelines.phantom.evaluation.classification_metrics import (
+    metric_counts,
+    metrics_from_counts,
+)
 from app.pipelines.phantom.pipeline import PhantomPipeline
 from app.pipelines.phantom.tiled import phantom_halo, run_phantom_tiled
 
@@ -17,20 +22,63 @@ SAMPLE = Path(__file__).resolve().parents[3] / "data_samples" / "urban-60m"
 PROFILE_MODEL = Path(__file__).resolve().parents[3] / "models" / "phantom" / "phantom_cnn.pt"
 
 
-def test_tiled_labels_agree_with_the_whole_map() -> None:
-    """The sample survey's first 36 frames (about 35 m) in 12 m tiles with the pipeline's halo:
-    every point labelled once, the labels those of the untiled run (issue: >= 99.9 %)."""
+def _first_frames(n: int) -> Survey:
     survey = open_survey(SAMPLE, "sim")
-    survey.frames = survey.frames[:36]
+    survey.frames = survey.frames[:n]
+    return survey
+
+
+def _labels(out: Path, survey: Survey) -> np.ndarray:
+    return np.concatenate([np.load(out / "labels" / f"{f.frame_id}.npy") for f in survey.frames])
+
+
+def test_tiled_results_agree_with_the_whole_map(tmp_path: Path) -> None:
+    """The sample survey's first 36 frames (about 35 m) in 12 m tiles with the pipeline's halo:
+    every point labelled once, the labels, the metrics and the pillars those of the untiled run
+    (issue: >= 99.9 %), the cleaned and removed maps all the points."""
+    survey = _first_frames(36)
     pipeline = PhantomPipeline(model_path=PROFILE_MODEL)
-    whole = pipeline.run(survey).frame_labels()
-    tiled, index = run_phantom_tiled(pipeline, survey, length=12.0)
+    whole = pipeline.run(survey)
+    run = run_phantom_tiled(pipeline, survey, tmp_path, length=12.0)
+    index = run.index
     assert index.count == 3 and index.layout.halo == phantom_halo(pipeline) == 11.0
-    a = np.concatenate([whole[f.frame_id] for f in survey.frames])
-    b = np.concatenate([tiled[f.frame_id] for f in survey.frames])
-    assert len(a) == len(b) == int(index.owned_points.sum())
+    assert run.tiles_run == 3
+    a = np.concatenate([whole.frame_labels()[f.frame_id] for f in survey.frames])
+    b = _labels(tmp_path, survey)
+    assert len(a) == len(b) == int(index.owned_points.sum()) == run.counts["points"]
     assert (a == b).mean() >= 0.999
     assert (b == 3).sum() > 1000  # the sample's phantoms are there
+    assert run.counts["phantom_points"] == int((b == 3).sum())
+    cleaned = laspy.read(tmp_path / "cleaned.laz")
+    removed = laspy.read(tmp_path / "removed.laz")
+    assert len(cleaned.points) + len(removed.points) == len(b)
+    assert (np.asarray(removed["mmsclean_label"]) == 3).all()
+    frame = np.asarray(removed["source_frame"]).astype(np.int64)
+    index_in_frame = np.asarray(removed["source_index"]).astype(np.int64)
+    offsets = np.r_[0, np.cumsum(index.frame_sizes)[:-1]]
+    assert (b[offsets[frame] + index_in_frame] == 3).all()  # each removed point is a phantom
+    expected = metrics_from_counts(metric_counts(whole))
+    got = metrics_from_counts(run.metric_counts)
+    for key in ("point", "pillar"):
+        assert abs(got[key]["macro"]["f1"] - expected[key]["macro"]["f1"]) < 0.5
+    with np.load(tmp_path / "pillars.npz") as pillars:
+        assert len(pillars["labels"]) == run.counts["pillars"]
+        assert abs(len(pillars["labels"]) - len(whole.pillar_labels)) <= 0.001 * len(b)
+
+
+def test_a_resumed_run_reruns_only_the_missing_tiles(tmp_path: Path) -> None:
+    """A tile whose summary is missing (its worker died before it) is run again, the others are
+    kept; a different plan (here the tile length) runs every tile afresh."""
+    survey = _first_frames(24)
+    pipeline = PhantomPipeline(model_path=PROFILE_MODEL)
+    first = run_phantom_tiled(pipeline, survey, tmp_path, length=12.0)
+    before = _labels(tmp_path, survey)
+    (tmp_path / "tiles" / "00001.json").unlink()
+    again = run_phantom_tiled(pipeline, survey, tmp_path, length=12.0)
+    assert first.index.count == 2 and again.tiles_run == 1
+    assert np.array_equal(_labels(tmp_path, survey), before)
+    other = run_phantom_tiled(pipeline, survey, tmp_path, length=30.0)
+    assert other.index.count == 1 and other.tiles_run == 1
 
 
 def _there_and_back() -> Survey:

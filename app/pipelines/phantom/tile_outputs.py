@@ -1,0 +1,172 @@
+"""A tiled phantom run's files: each tile's results kept under OUT/tiles/ the moment it
+finishes, and the contract's files assembled from them without holding the survey.
+
+Per tile (written by whichever worker ran it; the folder must be shared with a cluster's
+workers): `NNNNN.npz` (its own points' frame, index and label; its own pillars' grid cells,
+posteriors and labels), `NNNNN.cleaned.laz` / `NNNNN.removed.laz`, and last `NNNNN.json`,
+its summary. A tile is done when its summary exists: a resumed run reruns only the others, as
+long as `plan.json` (survey, model, configuration, tiles) is the same; a changed plan starts
+the tiles afresh. Assembly: labels per frame filled on disk (`outputs.start_frame_labels`),
+the LAZ parts streamed into one file each (`io.las.concatenate_las`), the pillars joined.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from app.core.labels import PillarClass
+from app.io.asprs import PHANTOM_LABEL_TO_ASPRS, to_asprs
+from app.io.las import concatenate_las, write_laz
+from app.pipelines.outputs import (
+    commit_frame_labels,
+    fill_frame_labels,
+    start_frame_labels,
+    write_json,
+)
+from app.pipelines.phantom.evaluation.classification_metrics import add_counts
+from app.pipelines.phantom.point_labels import kept
+
+TILES = "tiles"
+PLAN = "plan.json"
+MAPS = ("cleaned", "removed")
+
+
+@dataclass
+class TileResult:
+    """What one tile found for the points and pillars it owns."""
+
+    tile: int
+    frame: np.ndarray  # (n,) int64 frame index in the survey
+    index: np.ndarray  # (n,) int64 point index in its frame
+    xyz: np.ndarray  # (n, 3) float64
+    labels: np.ndarray  # (n,) uint8 pillar class
+    in_layer: int  # of the n points, in the pillar layer
+    pillars: dict[str, np.ndarray] = field(default_factory=dict)  # the pillars.npz columns
+    metric_counts: dict | None = None  # additive metrics (reference labels present)
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+def tile_name(tile: int) -> str:
+    return f"{tile:05d}"
+
+
+def write_tile(out: Path, result: TileResult, offset: np.ndarray) -> dict:
+    """The tile's files, its summary last (what marks it done); returns the summary."""
+    folder = Path(out) / TILES
+    folder.mkdir(parents=True, exist_ok=True)
+    name = tile_name(result.tile)
+    partial = folder / f"{name}.partial.npz"
+    np.savez(
+        partial,
+        frame=result.frame,
+        index=result.index,
+        labels=result.labels,
+        **{f"pillar_{k}": v for k, v in result.pillars.items()},
+    )
+    partial.replace(folder / f"{name}.npz")
+    keep = kept(result.labels)
+    maps = {}
+    for kind, which in zip(MAPS, (keep, ~keep), strict=True):
+        if which.any():
+            write_laz(
+                folder / f"{name}.{kind}.laz",
+                result.xyz[which],
+                mmsclean_label=result.labels[which],
+                classification=to_asprs(result.labels[which], PHANTOM_LABEL_TO_ASPRS),
+                source_frame=result.frame[which],
+                source_index=result.index[which],
+                offset=offset,
+            )
+            maps[kind] = f"{name}.{kind}.laz"
+    labels = result.labels
+    pillar_labels = result.pillars.get("labels", np.zeros(0, dtype=np.uint8))
+    summary = {
+        "tile": result.tile,
+        "points": int(len(labels)),
+        "points_in_layer": result.in_layer,
+        "pillars": int(len(pillar_labels)),
+        "pillars_classified": int(result.pillars.get("classified", np.zeros(0, bool)).sum()),
+        "pillars_per_class": {c.name.lower(): int((pillar_labels == c).sum()) for c in PillarClass},
+        "phantom_points": int((labels == PillarClass.phantom).sum()),
+        "maps": maps,
+        "metric_counts": result.metric_counts,
+        "timings": result.timings,
+    }
+    write_json(folder / f"{name}.json", summary)
+    return summary
+
+
+def finished_tiles(out: Path, plan: dict) -> dict[int, dict]:
+    """Summaries of the tiles an earlier attempt with the same plan finished; a different plan
+    (or none) clears the tiles folder and records this one."""
+    folder = Path(out) / TILES
+    plan_path = folder / PLAN
+    recorded = json.loads(plan_path.read_text()) if plan_path.is_file() else None
+    if recorded != json.loads(json.dumps(plan)):
+        shutil.rmtree(folder, ignore_errors=True)
+        folder.mkdir(parents=True)
+        write_json(plan_path, plan)
+        return {}
+    done = {}
+    for path in sorted(folder.glob("[0-9]" * 5 + ".json")):
+        summary = json.loads(path.read_text())
+        done[int(summary["tile"])] = summary
+    return done
+
+
+def assemble(
+    out: Path, frame_ids: list[str], frame_sizes: np.ndarray, summaries: list[dict]
+) -> dict:
+    """The contract's files from the tiles' (labels, cleaned / removed LAZ, pillars.npz) and
+    the run's counts; returns {"files", "counts", "metric_counts", "timings"}."""
+    out = Path(out)
+    folder = out / TILES
+    summaries = sorted(summaries, key=lambda s: s["tile"])
+    start_frame_labels(out, dict(zip(frame_ids, frame_sizes.tolist(), strict=True)))
+    columns: dict[str, list[np.ndarray]] = {}
+    for summary in summaries:
+        with np.load(folder / f"{tile_name(summary['tile'])}.npz") as data:
+            frame, index, labels = data["frame"], data["index"], data["labels"]
+            order = np.argsort(frame, kind="stable")
+            frame, index, labels = frame[order], index[order], labels[order]
+            starts = np.flatnonzero(np.r_[True, frame[1:] != frame[:-1]])
+            for a, b in zip(starts, np.r_[starts[1:], len(frame)], strict=True):
+                fill_frame_labels(out, frame_ids[int(frame[a])], index[a:b], labels[a:b])
+            for key in data.files:
+                if key.startswith("pillar_"):
+                    columns.setdefault(key.removeprefix("pillar_"), []).append(data[key])
+    commit_frame_labels(out, frame_ids)
+    files = {}
+    for kind in MAPS:
+        parts = [folder / s["maps"][kind] for s in summaries if kind in s["maps"]]
+        if parts:
+            concatenate_las(parts, out / f"{kind}.laz")
+            files[kind] = f"{kind}.laz"
+    pillars = {k: np.concatenate(v) for k, v in columns.items()}
+    cell_size = float(pillars.pop("cell_size")[0]) if "cell_size" in pillars else 0.0
+    np.savez_compressed(out / "pillars.npz", cell_size=cell_size, **pillars)
+    files["pillars"] = "pillars.npz"
+    return {"files": files, **_totals(summaries)}
+
+
+def _totals(summaries: list[dict]) -> dict:
+    counts = {"points": 0, "points_in_layer": 0, "pillars": 0, "pillars_classified": 0,
+              "phantom_points": 0}  # fmt: skip
+    per_class = {c.name.lower(): 0 for c in PillarClass}
+    metric_counts, timings = None, {}
+    for s in summaries:
+        for key in counts:
+            counts[key] += s[key]
+        for key, n in s["pillars_per_class"].items():
+            per_class[key] += n
+        if s["metric_counts"] is not None:
+            metric_counts = add_counts(metric_counts, s["metric_counts"])
+        for step, seconds in s["timings"].items():
+            timings[step] = round(timings.get(step, 0.0) + seconds, 3)
+    counts["pillars_per_class"] = per_class
+    return {"counts": counts, "metric_counts": metric_counts, "timings": timings}
