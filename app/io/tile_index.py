@@ -31,6 +31,7 @@ class TileIndex:
     frames: list[np.ndarray]  # per tile, ascending indices of the frames it reads
     owned_points: np.ndarray  # (T,) int64 points each tile owns
     frame_sizes: np.ndarray  # (F,) int64 points of each frame
+    low: np.ndarray  # (3,) float64 the smallest coordinates of any point (an offset for outputs)
 
     @property
     def count(self) -> int:
@@ -48,9 +49,12 @@ class TileIndex:
         owned: list[list[np.ndarray]] = [[] for _ in range(layout.count)]
         counts = np.zeros(layout.count, dtype=np.int64)
         footprints, sizes = [], []
+        low = np.full(3, np.inf)
         for frame in survey.frames:
             xyz = frame.world_points().xyz
             sizes.append(len(xyz))
+            if len(xyz):
+                low = np.minimum(low, xyz.min(axis=0))
             keys = cell_keys(xyz, cell)
             tile = layout.owner(layout.stations(xyz))
             pairs = np.unique(np.stack([tile, keys], axis=1), axis=0)
@@ -71,7 +75,8 @@ class TileIndex:
             touched = np.isin(footprint, np.unique(cell_keys(centres, coarse)))
             frames.append(np.unique(frame_of[touched]))
         sizes = np.asarray(sizes, dtype=np.int64)
-        return cls(layout, cell, owned_cells, window_cells, frames, counts, sizes)
+        low = np.where(np.isfinite(low), low, 0.0)
+        return cls(layout, cell, owned_cells, window_cells, frames, counts, sizes, low)
 
     def tile_survey(self, survey: Survey, tile: int) -> Survey:
         """The survey with only the frames tile `tile` reads (same order)."""

@@ -1,11 +1,15 @@
 """Tiles on Dask distributed: the engine that spreads a survey's tiles over processes or hosts.
 
-By default a `LocalCluster` of `settings.workers` processes (one thread each, a memory limit
-each) is started on first use and kept for the process's life: nothing to install or start.
-With `MMSCLEAN_DASK_SCHEDULER=tcp://host:8786` the tiles go to that cluster instead; its workers
-must read the survey's files at the same paths (a shared volume) and run this package.
+Embedded by default: a `LocalCluster` of `settings.workers` processes (one thread each,
+`tile_worker_memory_mb` each, bound to loopback). The server's worker pool starts one when it
+starts and hands its address to the job workers (`embedded_cluster`), so the jobs of a server
+share one set of tile workers; the command line starts one on first use. With
+`MMSCLEAN_DASK_SCHEDULER=tcp://host:8786` the tiles go to that cluster instead; its workers must
+read the survey's files and write the job folders at the same paths (a shared volume) and run
+this package.
 
-A pipeline's tiled runner takes a `map_tiles` (`tile_map`): it submits one task per tile and
+A pipeline's tiled runner takes a `map_tiles` (`tile_map`): it connects on the first call (a
+survey of one tile runs in the job's own process and never does), submits one task per tile and
 yields each tile's result as it finishes; a worker lost mid-tile has its tile rescheduled by
 Dask.
 """
@@ -34,17 +38,47 @@ def tile_client(settings: Settings) -> Client:
         if settings.dask_scheduler:
             client = Client(settings.dask_scheduler, timeout="10s")
         else:
-            cluster = LocalCluster(
-                n_workers=settings.workers,
-                threads_per_worker=1,
-                processes=True,
-                memory_limit=f"{settings.tile_worker_memory_mb}MiB",
-                dashboard_address=None,
-                host="127.0.0.1",
-            )
-            client = Client(cluster)
+            client = Client(embedded_cluster(settings))
         _clients[key] = client
         return client
+
+
+def embedded_cluster(settings: Settings) -> LocalCluster:
+    """A local cluster of `settings.workers` tile worker processes."""
+    return _in_own_thread(
+        lambda: LocalCluster(
+            n_workers=settings.workers,
+            threads_per_worker=1,
+            processes=True,
+            memory_limit=f"{settings.tile_worker_memory_mb}MiB",
+            dashboard_address="127.0.0.1:0",  # loopback only: an admin tunnels to it
+            host="127.0.0.1",
+        )
+    )
+
+
+def close_cluster(cluster: LocalCluster) -> None:
+    _in_own_thread(cluster.close)
+
+
+def _in_own_thread(fn: Callable[[], Any]) -> Any:
+    """fn() on a thread of its own: the server starts and stops its cluster from inside its
+    event loop, where Dask's synchronous calls refuse to run."""
+    outcome: list[Any] = []
+    failed: list[BaseException] = []
+
+    def call() -> None:
+        try:
+            outcome.append(fn())
+        except BaseException as exc:  # handed to the caller's thread
+            failed.append(exc)
+
+    thread = threading.Thread(target=call, name="mmsclean-tile-cluster")
+    thread.start()
+    thread.join()
+    if failed:
+        raise failed[0]
+    return outcome[0]
 
 
 def close_clients() -> None:
@@ -58,11 +92,13 @@ def close_clients() -> None:
         _clients.clear()
 
 
-def tile_map(client: Client) -> Callable[..., Iterator[Any]]:
+def tile_map(settings: Settings) -> Callable[..., Iterator[Any]]:
     """A `map_tiles` for the tiled runners: `fn(spec, index, tile)` for every tile on the
-    cluster, results in the order they finish. The tile index travels once per worker."""
+    settings' cluster (`tile_client`, connected on the first call), results in the order they
+    finish. The tile index travels once per worker."""
 
     def map_tiles(fn: Callable[..., Any], spec: Any, index: Any, tiles: list[int]):
+        client = tile_client(settings)
         shared = client.scatter(index, broadcast=True)
         futures = [client.submit(fn, spec, shared, tile, pure=False) for tile in tiles]
         try:

@@ -20,22 +20,24 @@ from app.core.bounds import RecordId
 from app.core.errors import ConfigError
 from app.core.settings import Settings
 from app.io import open_survey
-from app.jobs.memory import MemoryEstimate, per_point_estimate
+from app.jobs.cluster import tile_map
+from app.jobs.memory import MemoryEstimate, points_mb, survey_text
 from app.jobs.model_choice import model_for_job
 from app.jobs.registry import JobContext, task
 from app.jobs.task_config import validated
 from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.model import SHIPPED, read_card
 from app.pipelines.phantom.run import run_phantom_to_folder
+from app.pipelines.phantom.tiled import TILE_LENGTH, phantom_halo
 from app.pipelines.sensor_models import ModelChoice
 from app.store.model_labels import store_model_labels
 from app.store.models import ModelVersion, Pipeline, Survey
 from app.store.pillar_labels import STORE_GRID
-from app.store.surveys import get_survey
+from app.store.surveys import get_survey, survey_footprint
 
 KIND = "run:phantom"
-# overall progress reached at the start and end of each pipeline stage; the rest is ingestion
-STAGES = {"accumulate": (0.02, 0.15), "classify": (0.15, 0.8), "done": (0.85, 0.85)}
+# overall progress at the start and end of the tiles; the rest is assembling and ingestion
+TILES_PROGRESS = (0.02, 0.85)
 INGEST_AT = 0.9
 PHANTOM_BYTES_PER_POINT = 200.0  # map xyz, ground, pillar keys, sort buffers, labels
 
@@ -61,9 +63,22 @@ def check_config(config: dict[str, Any], settings: Settings) -> None:
 
 
 def estimate_memory(session: Session, survey: int | None, config: dict[str, Any]) -> MemoryEstimate:
-    """run:phantom's memory: the accumulated map and its pillar arrays (the grid is tiled, and
-    a job sets no resolution, so it grows with the survey alone)."""
-    return per_point_estimate(session, survey, PHANTOM_BYTES_PER_POINT, " of the accumulated map")
+    """run:phantom's memory: one tile's accumulated map and pillar arrays (tiles run one at a
+    time per worker). A tile holds its share of the survey's points by trajectory length: the
+    length is taken as the trajectory's bounding-box diagonal, shorter than a winding drive, so
+    the share comes out generous."""
+    if survey is None:
+        return MemoryEstimate("no survey")
+    footprint = survey_footprint(session, survey)
+    low, high = np.asarray(footprint.trajectory_min), np.asarray(footprint.trajectory_max)
+    reach = TILE_LENGTH + 2 * phantom_halo(PhantomConfig())
+    share = min(1.0, reach / max(float(np.linalg.norm(high - low)), 1.0))
+    return MemoryEstimate(survey_text(footprint)).add(
+        "survey_id",
+        points_mb(footprint, PHANTOM_BYTES_PER_POINT * share),
+        f"{PHANTOM_BYTES_PER_POINT:.0f} bytes per point of a {reach:.0f} m tile "
+        f"({share:.0%} of the survey)",
+    )
 
 
 def model_version_for(
@@ -73,15 +88,12 @@ def model_version_for(
     return model_for_job(session, Pipeline.phantom, survey, model_id, SHIPPED, read_card)
 
 
-def stage_progress(context: JobContext):
-    """The pipeline's `progress(stage, fraction)` as the job's overall fraction."""
+def tile_progress(context: JobContext):
+    """The tiled run's `progress(message, fraction of the tiles)` as the job's fraction."""
+    start, end = TILES_PROGRESS
 
-    def progress(stage: str, fraction: float) -> None:
-        start, end = STAGES.get(stage, (None, None))
-        if start is None:
-            context.progress(STAGES["done"][0], stage)
-        else:
-            context.progress(start + (end - start) * fraction, stage)
+    def progress(message: str, fraction: float) -> None:
+        context.progress(start + (end - start) * fraction, message)
 
     return progress
 
@@ -127,9 +139,15 @@ def run_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
         PhantomConfig(threads=threads),
         dense=options.dense,
         refine=options.refine,
-        progress=stage_progress(context),
+        progress=tile_progress(context),
         model=choice,
+        map_tiles=tile_map(context.settings),
     )
+    tiles = report["tiles"]
+    context.log.info(
+        "%d tiles of %.0f m: %d run, %d kept from an earlier attempt",
+        tiles["count"], tiles["length_m"], tiles["run"], tiles["kept_from_earlier_attempt"],
+    )  # fmt: skip
     context.progress(INGEST_AT, "storing model pre-labels")  # last chance to cancel
     cells, labels, confidence = model_label_rows(context.workdir / report["files"]["pillars"])
     written = store_model_labels(

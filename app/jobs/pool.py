@@ -10,6 +10,10 @@ partial outputs are removed, it ends `cancelled`, and a fresh worker takes the n
 grace is counted on the supervisor's own clock from the first sight of the request, not from
 the job row's `updated_at`: every later write to the row (a second cancel click) used to
 restart it, so a runaway job could outlive any number of cancels.
+
+The pool also owns the tile workers (`app.jobs.cluster`): unless a Dask scheduler is configured,
+it starts one local cluster of `settings.workers` processes and gives its address to the job
+workers, so every job's tiles share them; it closes the cluster when it stops.
 """
 
 from __future__ import annotations
@@ -23,9 +27,11 @@ from dataclasses import dataclass
 from multiprocessing.process import BaseProcess
 from pathlib import Path
 
+from dask.distributed import LocalCluster
 from sqlalchemy.engine import Engine
 
 from app.core.settings import Settings
+from app.jobs.cluster import close_cluster, embedded_cluster
 from app.jobs.worker import discard_outputs, worker_main
 from app.store.db import make_engine
 from app.store.jobs import cancel_requests, finish, mark_interrupted
@@ -59,6 +65,8 @@ class WorkerPool:
         self._stopping = threading.Event()
         self._thread: threading.Thread | None = None
         self._cancel_seen: dict[int, float] = {}  # job id -> when the supervisor first saw it
+        self._cluster: LocalCluster | None = None  # the embedded tile workers
+        self._worker_settings = settings  # what job workers get: with the cluster's address
 
     @property
     def engine(self) -> Engine:
@@ -80,6 +88,14 @@ class WorkerPool:
         if interrupted:
             log.warning("%d job(s) were running when the server stopped: interrupted", interrupted)
         self.settings.jobs_dir.mkdir(parents=True, exist_ok=True)
+        if self.settings.dask_scheduler is None:
+            self._cluster = embedded_cluster(self.settings)
+            address = self._cluster.scheduler_address
+            self._worker_settings = self.settings.model_copy(update={"dask_scheduler": address})
+            log.info(
+                "tile workers: %d local processes at %s, Dask dashboard %s (loopback only)",
+                self.settings.workers, address, self._cluster.dashboard_link,
+            )  # fmt: skip
         self._stopping.clear()
         with self._lock:
             self._slots = [_Slot() for _ in range(self.settings.workers)]
@@ -118,6 +134,9 @@ class WorkerPool:
             )
             if stopped:
                 log.warning("%d running job(s) interrupted by the shutdown", stopped)
+        if self._cluster is not None:
+            close_cluster(self._cluster)
+            self._cluster, self._worker_settings = None, self.settings
         if self._own_engine and self._engine is not None:
             self._engine.dispose()
             self._engine = None
@@ -127,7 +146,7 @@ class WorkerPool:
     def _spawn(self, slot: _Slot) -> None:
         process = self._context.Process(
             target=worker_main,
-            args=(self.settings, os.getpid()),
+            args=(self._worker_settings, os.getpid()),
             name="mmsclean-job-worker",
         )
         process.start()

@@ -27,7 +27,7 @@ def test_a_local_cluster_runs_the_tiles(tmp_path: Path) -> None:
         assert len(client.scheduler_info()["workers"]) == 2
         seen = []
         run_phantom_tiled(
-            pipeline, survey, tmp_path / "there", length=25.0, map_tiles=tile_map(client),
+            pipeline, survey, tmp_path / "there", length=25.0, map_tiles=tile_map(settings),
             progress=lambda stage, fraction: seen.append(fraction),
         )  # fmt: skip
         assert tile_client(settings) is client  # one cluster per process

@@ -102,6 +102,7 @@ def test_a_fine_free_space_map_is_refused_with_its_estimate(
 def test_each_refusal_names_what_grows(engine: Engine, limited: Settings) -> None:
     survey = add_survey(engine, 1_234_476)
     huge = add_survey(engine, 60_000_000, frames=600, length=1200.0)
+    dense = add_survey(engine, 60_000_000, frames=600, length=12.0)  # all in one tile
     for kind, config, where, field in (
         (
             "run:clutter",
@@ -110,10 +111,12 @@ def test_each_refusal_names_what_grows(engine: Engine, limited: Settings) -> Non
             "config.ground_cell",
         ),
         ("run:clutter", {"use_free_space": False, "use_camera": False}, huge, "survey_id"),
-        ("run:phantom", {}, huge, "survey_id"),
+        ("run:phantom", {}, dense, "survey_id"),
         ("run:guardrail", {}, huge, "survey_id"),
         ("train:phantom", {"per_class": 1_000_000}, None, "config.per_class"),
     ):
         error = refused(engine, limited, kind, config, where)
         assert error.field == field, (kind, config, str(error))
+    with Session(engine) as session:  # tile by tile, a long survey needs one tile's memory
+        assert enqueue(session, "run:phantom", {}, huge, None, limited).id
         assert "MMSCLEAN_JOB_MEMORY_MB" in str(error)

@@ -16,12 +16,13 @@ from sqlmodel import Session, select
 from app.core.errors import ConfigError
 from app.core.settings import Settings
 from app.jobs.phantom_tasks import (
-    STAGES,
+    INGEST_AT,
+    TILES_PROGRESS,
     model_label_rows,
     model_version_for,
     parse_config,
     run_phantom,
-    stage_progress,
+    tile_progress,
 )
 from app.pipelines.phantom.model import DEFAULT_MODEL, PAPER_MODEL
 from app.store.model_labels import store_model_labels
@@ -171,21 +172,18 @@ def test_jobs_name_models_by_id_never_by_path(settings: Settings) -> None:
         parse_config({"model_path": "x.pt"}, settings)
 
 
-def test_stage_progress_rises_through_the_pipeline() -> None:
+def test_tile_progress_rises_through_the_tiles() -> None:
     seen: list[float] = []
 
     class Context:
         def progress(self, fraction: float, message: str = "") -> None:
             seen.append(fraction)
 
-    report = stage_progress(Context())
-    report("accumulate", 0.0)
+    report = tile_progress(Context())
     for f in np.linspace(0, 1, 11):
-        report("classify", f)
-    report("done", 1.0)
-    report("something new", 0.5)
+        report(f"tile {int(f * 4) + 1} of 4", f)
     assert seen == sorted(seen)
-    assert seen[0] == STAGES["accumulate"][0] and seen[-1] == STAGES["done"][0] < 1
+    assert seen[0] == TILES_PROGRESS[0] and seen[-1] == TILES_PROGRESS[1] < INGEST_AT < 1
 
 
 def test_a_run_needs_a_survey(engine: Engine, settings: Settings, tmp_path: Path) -> None:

@@ -14,11 +14,12 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import lru_cache, partial
 from pathlib import Path
 
 import numpy as np
 
+from app.core.progress import Progress
 from app.io.survey import Survey
 from app.io.tile_index import TileIndex
 from app.pipelines.phantom.config import PhantomConfig
@@ -29,31 +30,40 @@ from app.pipelines.phantom.tile_outputs import TileResult, assemble, finished_ti
 
 TILE_LENGTH = 100.0  # metres of trajectory per tile
 INDEX_CELL = 2.0  # metres: the grid a tile's own points and its halo are kept on
+# share of a tile's time at the start and end of each step (for progress within a tile)
+TILE_STEPS = {"accumulate": (0.0, 0.15), "classify": (0.15, 0.95), "done": (1.0, 1.0)}
 
 
-def phantom_halo(pipeline: PhantomPipeline, index_cell: float = INDEX_CELL) -> float:
+def phantom_halo(cfg: PhantomConfig, index_cell: float = INDEX_CELL) -> float:
     """Metres of context a phantom tile needs: the context branch's and the vote's reach in
     pillars, the ground opening's (it erodes then dilates: twice its half-width), one ground
     cell and one index cell, rounded up to whole metres."""
-    cfg = pipeline.config
     pillars = CONTEXT_SPAN // 2 + cfg.refine_window // 2 + 1
     ground = (cfg.ground_opening - 1) * cfg.ground_cell + cfg.ground_cell
     return float(np.ceil(pillars * cfg.cell_size + ground + index_cell))
 
 
 def run_tile(
-    pipeline: PhantomPipeline, survey: Survey, index: TileIndex, tile: int, baselines: bool = False
+    pipeline: PhantomPipeline,
+    survey: Survey,
+    index: TileIndex,
+    tile: int,
+    baselines: bool = False,
+    progress: Progress | None = None,
 ) -> TileResult:
     """One tile: its frames accumulated, cut to its window, classified; the results for the
     points and pillars it owns (and their share of the metrics when the survey has reference
-    labels)."""
+    labels). `progress` gets the pipeline's steps (`PhantomPipeline.run`)."""
     started = time.perf_counter()
+    if progress is not None:
+        progress("accumulate", 0.0)
     amap = pipeline.accumulate(index.tile_survey(survey, tile))
     part = amap.select(index.in_window(amap.xyz, tile))
     if len(part.xyz) == 0:
         empty = np.zeros(0, dtype=np.int64)
         return TileResult(tile, empty, empty, np.zeros((0, 3)), np.zeros(0, np.uint8), 0)
-    result = pipeline.run_map(part, timings={"accumulate": round(time.perf_counter() - started, 3)})
+    timings = {"accumulate": round(time.perf_counter() - started, 3)}
+    result = pipeline.run_map(part, progress, timings)
     own = index.owned(part.xyz, tile)
     pm = result.pillar_map
     centres = np.column_stack([(pm.pillars + 0.5) * pm.config.cell_size, np.zeros(len(pm.pillars))])
@@ -129,14 +139,16 @@ def _worker_pipeline(model_path: str, config: str, dense: bool) -> PhantomPipeli
     return PhantomPipeline(PhantomConfig.model_validate_json(config), Path(model_path), dense)
 
 
-def phantom_tile(spec: PhantomTileSpec, index: TileIndex, tile: int) -> dict:
+def phantom_tile(
+    spec: PhantomTileSpec, index: TileIndex, tile: int, progress: Progress | None = None
+) -> dict:
     """A tile as a worker runs it: open the survey, load the model (once), run the tile, write
     its files under the run's folder; returns its summary (small: it travels back)."""
     from app.io import open_survey
 
     pipeline = _worker_pipeline(spec.model_path, spec.config, spec.dense)
     survey = open_survey(Path(spec.survey_source), spec.survey_format)
-    result = run_tile(pipeline, survey, index, tile, spec.baselines)
+    result = run_tile(pipeline, survey, index, tile, spec.baselines, progress)
     return write_tile(Path(spec.out), result, np.asarray(spec.offset))
 
 
@@ -179,24 +191,31 @@ def run_phantom_tiled(
     contract's files assembled from them. Tiles an earlier attempt finished with the same plan
     are not run again. The tiles are independent, so `map_tiles` may run them side by side on
     a cluster."""
-    halo = phantom_halo(pipeline) if halo is None else halo
+    halo = phantom_halo(pipeline.config) if halo is None else halo
     if index is None:
         index = TileIndex.build(survey, length, halo, INDEX_CELL)
-    trajectory = survey.poses()[:, :3, 3]
     spec = PhantomTileSpec(
         str(survey.source), survey.format, str(pipeline.model_path),
         pipeline.config.model_dump_json(), str(out),
-        tuple(np.floor(trajectory.min(axis=0)).tolist()), pipeline.dense, baselines,
+        tuple(np.floor(index.low).tolist()), pipeline.dense, baselines,
     )  # fmt: skip
     done = finished_tiles(out, spec.plan(index))
     missing = [t for t in range(index.count) if t not in done]
 
-    def report(stage: str) -> None:
+    def report(stage: str, within: float = 0.0) -> None:
         if progress is not None:
-            progress(stage, len(done) / index.count)
+            progress(stage, (len(done) + within) / index.count)
 
+    def steps(stage: str, fraction: float) -> None:  # a tile's own steps, run in this process
+        start, end = TILE_STEPS.get(stage, (1.0, 1.0))
+        report(f"tile {len(done) + 1} of {index.count}: {stage}", start + (end - start) * fraction)
+
+    # a cluster's tiles report when they finish; tiles run here report their steps as well
+    fn = partial(phantom_tile, progress=steps) if map_tiles is in_process else phantom_tile
+    if len(missing) <= 1:  # one tile fits a worker's memory anyway: no round trip to a cluster
+        fn, map_tiles = partial(phantom_tile, progress=steps), in_process
     report(f"{len(done)} of {index.count} tiles")
-    for summary in map_tiles(phantom_tile, spec, index, missing):
+    for summary in map_tiles(fn, spec, index, missing):
         done[int(summary["tile"])] = summary
         report(f"{len(done)} of {index.count} tiles")
     owned = sum(s["points"] for s in done.values())

@@ -41,7 +41,7 @@ def test_tiled_results_agree_with_the_whole_map(tmp_path: Path) -> None:
     whole = pipeline.run(survey)
     run = run_phantom_tiled(pipeline, survey, tmp_path, length=12.0)
     index = run.index
-    assert index.count == 3 and index.layout.halo == phantom_halo(pipeline) == 11.0
+    assert index.count == 3 and index.layout.halo == phantom_halo(pipeline.config) == 11.0
     assert run.tiles_run == 3
     a = np.concatenate([whole.frame_labels()[f.frame_id] for f in survey.frames])
     b = _labels(tmp_path, survey)
