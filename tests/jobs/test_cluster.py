@@ -1,8 +1,14 @@
-"""Tiles on a real Dask cluster: a local cluster of two worker processes runs the phantom
-pipeline's tiles, and the labels are those of the tiles run in this process."""
+"""Tiles on a real Dask cluster: a local cluster of two worker processes, and a real scheduler
+with two real workers started as a team would, run the phantom pipeline's tiles; the labels are
+those of the tiles run in this process, even when a worker is killed mid-run."""
 
 from __future__ import annotations
 
+import contextlib
+import os
+import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +19,7 @@ from app.io import open_survey
 from app.jobs.cluster import close_clients, tile_client, tile_map
 from app.pipelines.phantom.pipeline import PhantomPipeline
 from app.pipelines.phantom.tiled import run_phantom_tiled
+from tests.api.server import free_port
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -47,3 +54,76 @@ def test_a_scheduler_address_is_checked() -> None:
     assert Settings(dask_scheduler="").dask_scheduler is None
     with pytest.raises(ValueError, match="dask_scheduler"):
         Settings(dask_scheduler="file:///etc/passwd")
+
+
+@pytest.fixture
+def dask_cluster(tmp_path: Path):
+    """A real `dask scheduler` and two `dask worker` processes, as a team's cluster runs them
+    (the workers import this package from the repository, like the docker image's)."""
+    port = free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    dask = str(Path(sys.executable).with_name("dask"))
+    logs = tmp_path / "dask-logs"
+    logs.mkdir()
+    commands = {
+        "scheduler": ["scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"],
+        **{f"w{k}": ["worker", address, "--nworkers", "1", "--nthreads", "1", "--no-dashboard",
+                     "--name", f"w{k}", "--memory-limit", "2GiB"] for k in range(2)},
+    }  # fmt: skip
+    files = contextlib.ExitStack()
+    processes = [
+        subprocess.Popen(
+            [dask, *args], env=env, cwd=ROOT, stdout=subprocess.DEVNULL,
+            stderr=files.enter_context((logs / name).open("w")),
+        )
+        for name, args in commands.items()
+    ]  # fmt: skip
+    try:
+        yield address
+    finally:
+        close_clients()
+        for process in processes:
+            process.terminate()
+        for process in processes:
+            try:
+                process.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                process.kill()
+        files.close()
+
+
+def test_a_worker_killed_mid_run_does_not_fail_it(dask_cluster: str, tmp_path: Path) -> None:
+    """Tiles of the sample survey on a real scheduler with two real workers; when the first
+    tile is done, the worker busy with another tile is killed (SIGKILL). Dask runs its tile
+    again elsewhere; the run finishes with the labels of a run in this process."""
+    survey = open_survey(ROOT / "data_samples" / "urban-60m", "sim")
+    pipeline = PhantomPipeline(model_path=ROOT / "models" / "phantom" / "phantom_cnn.pt")
+    settings = Settings(data_dir=tmp_path, dask_scheduler=dask_cluster, sample_dir="")
+    client = tile_client(settings)
+    client.wait_for_workers(2, timeout=60)
+    killed: list[int] = []
+
+    def kill_a_busy_worker(stage: str, fraction: float) -> None:
+        if killed or fraction == 0.0:
+            return
+        busy = [address for address, tasks in client.processing().items() if tasks]
+        if busy:
+            pids = client.run(os.getpid, workers=busy[:1])
+            pid = next(iter(pids.values()))
+            os.kill(pid, signal.SIGKILL)
+            killed.append(pid)
+
+    there = run_phantom_tiled(
+        pipeline, survey, tmp_path / "there", length=12.0, map_tiles=tile_map(settings),
+        progress=kill_a_busy_worker,
+    )  # fmt: skip
+    assert killed, "no worker was busy when the first tile finished"
+    here = run_phantom_tiled(pipeline, survey, tmp_path / "here", length=12.0)
+    assert there.index.count == here.index.count >= 4 and there.tiles_run == there.index.count
+    for frame in survey.frames:
+        name = f"{frame.frame_id}.npy"
+        assert np.array_equal(
+            np.load(tmp_path / "here" / "labels" / name),
+            np.load(tmp_path / "there" / "labels" / name),
+        )
