@@ -71,3 +71,21 @@ def test_real_rotating_data_trains_only_a_rotating_model(real_data: Path, tmp_pa
     assert_one_line_error(result, "--semantickitti", "--sensor rotating")
     bad = mmsclean("train", "phantom", "--sensor", "lidar", "-o", str(tmp_path / "m.pt"))
     assert_one_line_error(bad, "--sensor")
+
+
+def test_a_rerun_into_the_same_folder_keeps_the_finished_tiles(
+    untimed_map: Path, tmp_path: Path
+) -> None:
+    """`run phantom` writes its tiles as they finish; run again into the same folder (after an
+    interruption), it reruns only the tiles without results: here none."""
+    out = tmp_path / "run"
+    args = ("run", "phantom", str(untimed_map), "-f", "las", "-o", str(out), "--sensor", "profile")
+    assert mmsclean(*args).returncode == 0
+    first = json.loads((out / "report.json").read_text())["tiles"]
+    again = mmsclean(*args)
+    assert again.returncode == 0, again.stderr
+    tiles = json.loads((out / "report.json").read_text())["tiles"]
+    assert first["run"] == tiles["count"] >= 1 and tiles["run"] == 0
+    assert tiles["kept_from_earlier_attempt"] == tiles["count"]
+    bad = mmsclean(*args, "--scheduler", "file:///etc/passwd")
+    assert_one_line_error(bad, "--scheduler", "not a Dask scheduler address")

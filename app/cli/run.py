@@ -48,6 +48,25 @@ REPORT_LINES = {
 }
 
 
+def cluster_settings(scheduler: str | None):
+    """The settings with `--scheduler` in place of MMSCLEAN_DASK_SCHEDULER (checked alike)."""
+    from pydantic import ValidationError
+
+    from app.core.errors import ConfigError
+    from app.core.settings import Settings, get_settings
+
+    settings = get_settings()
+    if scheduler is None:
+        return settings
+    try:
+        return Settings.model_validate({**settings.model_dump(), "dask_scheduler": scheduler})
+    except ValidationError:
+        raise ConfigError(
+            "--scheduler",
+            f"{scheduler!r} is not a Dask scheduler address (tcp://host:8786 or tls://host:8786)",
+        ) from None
+
+
 @run_app.command("clutter")
 def run_clutter(
     source: SurveyFolder,
@@ -113,23 +132,40 @@ def run_phantom(
         bool, typer.Option(help="also score the paper's two baselines (needs reference labels)")
     ] = False,
     sensor: SensorOption = None,
+    tile_length: Annotated[
+        float, typer.Option(min=20.0, max=1000.0, help="metres of trajectory per tile")
+    ] = 100.0,
+    scheduler: Annotated[
+        str | None,
+        typer.Option(
+            help="Dask scheduler that runs the tiles (tcp://host:8786; default "
+            "MMSCLEAN_DASK_SCHEDULER, else MMSCLEAN_WORKERS local processes)"
+        ),
+    ] = None,
 ) -> None:
-    """Phantom removal (Nagy & Benedek): pillar 3D CNN on the accumulated map."""
+    """Phantom removal (Nagy & Benedek): pillar 3D CNN on the accumulated map, tile by tile.
+    Rerun into the same folder, it keeps the tiles an interrupted run finished."""
     from app.io import open_survey
+    from app.jobs.cluster import close_clients, tile_map
     from app.pipelines.phantom.run import run_phantom_to_folder
 
     survey = open_survey(source, fmt)
-    with stage_progress("phantom") as progress:
-        report = run_phantom_to_folder(
-            survey,
-            out,
-            model_path=model,
-            dense=not windows,
-            refine=refine,
-            baselines=baselines,
-            progress=progress,
-            sensor=sensor_kind(sensor),
-        )
+    try:
+        with stage_progress("phantom") as progress:
+            report = run_phantom_to_folder(
+                survey,
+                out,
+                model_path=model,
+                dense=not windows,
+                refine=refine,
+                baselines=baselines,
+                progress=progress,
+                sensor=sensor_kind(sensor),
+                tile_length=tile_length,
+                map_tiles=tile_map(cluster_settings(scheduler)),
+            )
+    finally:
+        close_clients()
     print_report("phantom", report, out=out)
 
 
