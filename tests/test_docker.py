@@ -44,3 +44,25 @@ def test_dockerfile_command_exists() -> None:
     assert "/data" in dockerfile_instruction("VOLUME")
     for path in re.findall(r"^COPY\s+(\S+)", (ROOT / "Dockerfile").read_text(), flags=re.MULTILINE):
         assert (ROOT / path).exists(), f"Dockerfile copies {path}, which is not in the repository"
+
+
+def test_compose_runs_tiles_on_a_scheduler_and_scalable_workers() -> None:
+    """The app sends tiles to the scheduler service; every service of the image mounts the data
+    volume where the app keeps it (workers read surveys and write tiles there); the worker
+    service has no fixed name or port, so `--scale worker=N` works; the dashboard is published
+    on the host's loopback only."""
+    compose = yaml.safe_load((ROOT / "docker-compose.yml").read_text())
+    services = compose["services"]
+    assert services["app"]["environment"]["MMSCLEAN_DASK_SCHEDULER"] == "tcp://scheduler:8786"
+    scheduler, worker = services["scheduler"], services["worker"]
+    assert scheduler["command"][:2] == ["dask", "scheduler"] and "8786" in scheduler["command"]
+    assert worker["command"][:3] == ["dask", "worker", "tcp://scheduler:8786"]
+    assert "container_name" not in worker and "ports" not in worker
+    assert all(p.startswith("127.0.0.1:") for p in scheduler["ports"])
+    data_dir = services["app"]["environment"]["MMSCLEAN_DATA_DIR"]
+    for name in ("app", "scheduler", "worker"):
+        assert services[name]["environment"]["MMSCLEAN_DATA_DIR"] == data_dir
+        assert any(
+            v.split(":")[:2] == ["mmsclean-data", data_dir] for v in services[name]["volumes"]
+        )
+        assert services[name]["image"] == services["app"]["image"]
