@@ -9,6 +9,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -127,3 +128,38 @@ def test_a_worker_killed_mid_run_does_not_fail_it(dask_cluster: str, tmp_path: P
             np.load(tmp_path / "here" / "labels" / name),
             np.load(tmp_path / "there" / "labels" / name),
         )
+
+
+def test_a_cancelled_run_cancels_its_tiles_on_the_cluster(tmp_path: Path) -> None:
+    """A job's cancel is raised from its progress callback: the tiles still queued or running
+    on the cluster are cancelled, and the scheduler is left with nothing of the run."""
+    survey = open_survey(ROOT / "data_samples" / "urban-60m", "sim")
+    pipeline = PhantomPipeline(model_path=ROOT / "models" / "phantom" / "phantom_cnn.pt")
+    settings = Settings(data_dir=tmp_path, workers=2, sample_dir="")
+
+    class CancelRequestError(Exception):
+        pass
+
+    def cancel_after_the_first_tile(stage: str, fraction: float) -> None:
+        if fraction > 0:
+            raise CancelRequestError
+
+    try:
+        client = tile_client(settings)
+        with pytest.raises(CancelRequestError):
+            run_phantom_tiled(
+                pipeline, survey, tmp_path / "run", length=12.0, map_tiles=tile_map(settings),
+                progress=cancel_after_the_first_tile,
+            )  # fmt: skip
+        deadline = time.monotonic() + 30
+        left = -1
+        while time.monotonic() < deadline:
+            left = client.run_on_scheduler(lambda dask_scheduler: len(dask_scheduler.tasks))
+            if left == 0:
+                break
+            time.sleep(0.2)
+        assert left == 0
+        done = list((tmp_path / "run" / "tiles").glob("[0-9]" * 5 + ".json"))
+        assert 1 <= len(done) < 5
+    finally:
+        close_clients()

@@ -12,7 +12,8 @@ pillar window (+-1.1 m) and its 31 x 31 pillar context (+-3.1 m), the 5 x 5 refi
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Generator
+from contextlib import closing
 from dataclasses import dataclass
 from functools import lru_cache, partial
 from pathlib import Path
@@ -154,7 +155,7 @@ def phantom_tile(
 
 # runs `phantom_tile(spec, index, tile)` for the tiles given and yields the summaries as they
 # finish, in any order: in this process by default, on a Dask cluster from `app.jobs.cluster`
-TileMap = Callable[[Callable[..., dict], PhantomTileSpec, TileIndex, list[int]], Iterable[dict]]
+TileMap = Callable[[Callable[..., dict], PhantomTileSpec, TileIndex, list[int]], Generator[dict]]
 
 
 def in_process(fn, spec: PhantomTileSpec, index: TileIndex, tiles: list[int]):
@@ -215,9 +216,12 @@ def run_phantom_tiled(
     if len(missing) <= 1:  # one tile fits a worker's memory anyway: no round trip to a cluster
         fn, map_tiles = partial(phantom_tile, progress=steps), in_process
     report(f"{len(done)} of {index.count} tiles")
-    for summary in map_tiles(fn, spec, index, missing):
-        done[int(summary["tile"])] = summary
-        report(f"{len(done)} of {index.count} tiles")
+    # closed on the way out, a cancel (raised by `progress`) included: a cluster's map then
+    # cancels the tiles still queued or running
+    with closing(map_tiles(fn, spec, index, missing)) as finished:
+        for summary in finished:
+            done[int(summary["tile"])] = summary
+            report(f"{len(done)} of {index.count} tiles")
     owned = sum(s["points"] for s in done.values())
     if owned != int(index.frame_sizes.sum()):
         raise RuntimeError(
