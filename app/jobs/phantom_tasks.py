@@ -52,6 +52,9 @@ class PhantomJobConfig(BaseModel):
     )
     dense: bool = True  # dense tiled inference (False: the paper's per-window path)
     refine: bool = True  # Algorithm 1 neighbourhood vote
+    tile_length: float = Field(
+        TILE_LENGTH, ge=20.0, le=1000.0, description="metres of trajectory per tile"
+    )
 
 
 def parse_config(config: dict[str, Any], settings: Settings | None = None) -> PhantomJobConfig:
@@ -71,10 +74,12 @@ def estimate_memory(session: Session, survey: int | None, config: dict[str, Any]
         return MemoryEstimate("no survey")
     footprint = survey_footprint(session, survey)
     low, high = np.asarray(footprint.trajectory_min), np.asarray(footprint.trajectory_max)
-    reach = TILE_LENGTH + 2 * phantom_halo(PhantomConfig())
+    reach = parse_config(config).tile_length + 2 * phantom_halo(PhantomConfig())
     share = min(1.0, reach / max(float(np.linalg.norm(high - low)), 1.0))
+    # shorter tiles need less while the survey spans several; a survey within one tile cannot
+    field = "config.tile_length" if share < 1.0 else "survey_id"
     return MemoryEstimate(survey_text(footprint)).add(
-        "survey_id",
+        field,
         points_mb(footprint, PHANTOM_BYTES_PER_POINT * share),
         f"{PHANTOM_BYTES_PER_POINT:.0f} bytes per point of a {reach:.0f} m tile "
         f"({share:.0%} of the survey)",
@@ -141,6 +146,7 @@ def run_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
         refine=options.refine,
         progress=tile_progress(context),
         model=choice,
+        tile_length=options.tile_length,
         map_tiles=tile_map(context.settings),
     )
     tiles = report["tiles"]

@@ -242,3 +242,26 @@ def test_roles(sample_server: Server, admin: httpx.Client) -> None:
     assert watch(admin, job_id)[0]["status"] == "cancelled"
     annotator.close()
     other.close()
+
+
+def test_a_phantom_job_runs_its_tiles_on_the_servers_cluster(
+    sample_server: Server, admin: httpx.Client
+) -> None:
+    """20 m tiles of the 60 m sample: the tiles go to the pool's local Dask cluster, progress
+    says tiles done / tiles, and the result's files are assembled from them."""
+    survey_id = sample_survey_id(sample_server)
+    created = admin.post(
+        "/jobs", json={"kind": "run:phantom", "survey_id": survey_id, "config": {"tile_length": 20}}
+    )
+    assert created.status_code == 201, created.text
+    job, seen = watch(admin, created.json()["id"])
+    assert job["status"] == "succeeded", job["message"]
+    assert seen == sorted(seen)
+    log = admin.get(f"/jobs/{job['id']}/log").text
+    assert "3 tiles of 20 m: 3 run, 0 kept from an earlier attempt" in log
+    report = admin.get(f"/jobs/{job['id']}/files/report.json").json()
+    assert report["tiles"]["count"] == 3 and report["counts"]["phantom_points"] > 1000
+    too_long = admin.post(
+        "/jobs", json={"kind": "run:phantom", "survey_id": survey_id, "config": {"tile_length": 5}}
+    )
+    assert too_long.status_code == 422 and "config.tile_length" in too_long.text

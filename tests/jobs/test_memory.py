@@ -112,6 +112,7 @@ def test_each_refusal_names_what_grows(engine: Engine, limited: Settings) -> Non
         ),
         ("run:clutter", {"use_free_space": False, "use_camera": False}, huge, "survey_id"),
         ("run:phantom", {}, dense, "survey_id"),
+        ("run:phantom", {"tile_length": 1000.0}, huge, "config.tile_length"),
         ("run:guardrail", {}, huge, "survey_id"),
         ("train:phantom", {"per_class": 1_000_000}, None, "config.per_class"),
     ):
