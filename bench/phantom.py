@@ -161,7 +161,7 @@ def main() -> int:
     print(table)
     print(notes)
     if not args.no_record:
-        append_results(title, f"{COMMAND} {args.part}", table, notes)
+        append_results(title, f"{COMMAND} {' '.join(sys.argv[1:])}", table, notes)
     return 0
 
 
