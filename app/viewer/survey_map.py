@@ -11,9 +11,12 @@ world coordinates loses centimetres). Alongside the points the map keeps what se
 - the local ground height (5th-percentile grid of the overview), which the brush intersects the
   click ray with.
 
-Building reads every frame (seconds for millions of points), so the arrays are saved as one .npz
-per survey under `<cache_dir>/viewer/`, named after everything that could change them; a second
-open only loads arrays.
+Building reads every frame twice, one at a time (`build_map`: it never holds the survey's
+points), and writes the arrays into one folder per survey under `<cache_dir>/viewer/`, named
+after everything that could change them. A later open maps the per-point arrays from disk
+instead of loading them: the first scene needs only the overview's points, a tile in focus only
+its slice, so opening a survey of tens of millions of points takes about as long as a small one
+and the server's memory stays bounded.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,7 +37,7 @@ from app.io import open_survey
 from app.io.accumulate import accumulate
 from app.store.pillar_labels import STORE_GRID
 
-CACHE_VERSION = 2
+CACHE_VERSION = 3  # 3: a folder of arrays, the per-point ones memory-mapped
 TILE_SIZE = 50.0  # metres: the full-resolution unit
 OVERVIEW_VOXEL = 0.2  # metres: one overview point per voxel
 GROUND_CELL = 1.0  # metres
@@ -60,7 +64,7 @@ class MapSource:
              self.frame_count, stamp, overview_points, TILE_SIZE, OVERVIEW_VOXEL, GROUND_CELL]
         )  # fmt: skip
         digest = hashlib.sha1(key.encode()).hexdigest()[:16]
-        return f"survey-{self.survey_id}-{digest}.npz"
+        return f"survey-{self.survey_id}-{digest}"
 
 
 @dataclass
@@ -74,6 +78,8 @@ class SurveyMap:
     overview: np.ndarray  # (K,) int64 sorted point indices
     ground_origin: np.ndarray  # (2,) local xy of ground cell (0, 0)'s centre
     ground_heights: np.ndarray  # (NX, NY) float32 local z
+    low: np.ndarray  # (3,) float32 smallest local coordinates (zeros for an empty map)
+    high: np.ndarray  # (3,) float32 largest
 
     def __len__(self) -> int:
         return len(self.xyz)
@@ -107,12 +113,7 @@ class SurveyMap:
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """(min, max) local corner; zeros for an empty map."""
-        if not len(self.xyz):
-            return np.zeros(3, dtype=np.float32), np.zeros(3, dtype=np.float32)
-        return self.xyz.min(axis=0), self.xyz.max(axis=0)
-
-    def arrays(self) -> dict[str, np.ndarray]:
-        return {name: getattr(self, name) for name in self.__dataclass_fields__}
+        return self.low, self.high
 
 
 def accumulate_local(source: MapSource) -> tuple[np.ndarray, np.ndarray]:
@@ -122,55 +123,138 @@ def accumulate_local(source: MapSource) -> tuple[np.ndarray, np.ndarray]:
     return amap.xyz, amap.world_xy
 
 
-def build_map(source: MapSource, overview_points: int) -> SurveyMap:
-    xyz, world_xy = accumulate_local(source)
+def _local_frames(source: MapSource):
+    """Per frame: (local float32 xyz, tile id, store cell id from the exact world xy)."""
+    survey = open_survey(source.source_path, source.format)
     origin = np.asarray(source.origin, dtype=np.float64)
-    tile = TILE_GRID.point_cell_ids(xyz[:, :2])
-    order = np.argsort(tile, kind="stable")
-    xyz, tile = xyz[order], tile[order]
-    pillar = STORE_GRID.point_cell_ids(world_xy[order])  # from float64 world xy: exact cells
-    del world_xy
-    cells, cell = np.unique(pillar, return_inverse=True)
-    tile_ids, tile_first = np.unique(tile, return_index=True)
-    tile_start = np.append(tile_first, len(xyz)).astype(np.int64)
-    overview = voxel_downsample(xyz, OVERVIEW_VOXEL) if len(xyz) else np.zeros(0, np.int64)
+    for frame in survey.frames:
+        world = frame.world_points().xyz
+        xyz = (world - origin).astype(np.float32)
+        yield xyz, TILE_GRID.point_cell_ids(xyz[:, :2]), STORE_GRID.point_cell_ids(world[:, :2])
+
+
+class _Union:
+    """The sorted union of many id arrays, compacted as it grows (memory: the distinct ids)."""
+
+    def __init__(self, compact_at: int = 8_000_000):
+        self.parts: list[np.ndarray] = []
+        self.size, self.compact_at = 0, compact_at
+
+    def add(self, ids: np.ndarray) -> None:
+        self.parts.append(np.unique(ids))
+        self.size += len(self.parts[-1])
+        if self.size > self.compact_at:
+            self.parts = [self.result()]
+            self.size = len(self.parts[0])
+            self.compact_at = max(self.compact_at, 2 * self.size)
+
+    def result(self) -> np.ndarray:
+        return np.unique(np.concatenate(self.parts)) if self.parts else np.zeros(0, np.int64)
+
+
+def build_map(source: MapSource, overview_points: int, folder: Path) -> None:
+    """The map's arrays into `folder`, streaming: the frames are read twice, one at a time, and
+    no array of the survey's points is held in memory. Pass 1 counts the points per tile and
+    finds the occupied pillars; pass 2 writes each frame's points into their tiles' slices of
+    memory-mapped files. The overview is thinned tile by tile (a 0.2 m voxel never straddles a
+    50 m tile), then capped; the ground is estimated from the overview."""
+    cells, low, high = _Union(), np.full(3, np.inf), np.full(3, -np.inf)
+    tile_counts: dict[int, int] = {}
+    for xyz, tile, cell in _local_frames(source):
+        ids, counts = np.unique(tile, return_counts=True)
+        for t, c in zip(ids.tolist(), counts.tolist(), strict=True):
+            tile_counts[t] = tile_counts.get(t, 0) + c
+        cells.add(cell)
+        if len(xyz):
+            low, high = np.minimum(low, xyz.min(axis=0)), np.maximum(high, xyz.max(axis=0))
+    tile_ids = np.array(sorted(tile_counts), dtype=np.int64)
+    sizes = np.array([tile_counts[t] for t in tile_ids.tolist()], dtype=np.int64)
+    tile_start = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    n = int(tile_start[-1])
+    cell_table = cells.result().astype(np.int64)
+    xyz_out = _open_array(folder / "xyz.npy", (n, 3), np.float32)
+    cell_out = _open_array(folder / "cell.npy", (n,), np.int32)
+    filled = tile_start[:-1].copy()
+    for xyz, tile, cell in _local_frames(source):
+        order = np.argsort(tile, kind="stable")
+        k = np.searchsorted(tile_ids, tile[order])
+        ranks = np.arange(len(order)) - np.searchsorted(k, k)  # position within its tile run
+        slots = filled[k] + ranks
+        xyz_out[slots] = xyz[order]
+        cell_out[slots] = np.searchsorted(cell_table, cell[order]).astype(np.int32)
+        filled += np.bincount(k, minlength=len(tile_ids))
+    overview = [
+        tile_start[j] + voxel_downsample(np.asarray(xyz_out[tile_start[j] : tile_start[j + 1]]),
+                                         OVERVIEW_VOXEL)
+        for j in range(len(tile_ids))
+    ]  # fmt: skip
+    overview = np.concatenate(overview) if overview else np.zeros(0, np.int64)
     if len(overview) > overview_points:
         rng = np.random.default_rng(0)
         overview = np.sort(rng.choice(overview, overview_points, replace=False))
-    if len(xyz):  # from the overview: one point per 0.2 m voxel keeps every 1 m cell's floor
-        ground = estimate_ground(xyz[overview].astype(np.float64), cell=GROUND_CELL)
+    if n:  # from the overview: one point per 0.2 m voxel keeps every 1 m cell's floor
+        ground = estimate_ground(np.asarray(xyz_out[overview], np.float64), cell=GROUND_CELL)
         ground_origin, heights = ground.origin, ground.heights.astype(np.float32)
     else:
         ground_origin, heights = np.zeros(2), np.zeros((1, 1), dtype=np.float32)
-    return SurveyMap(
-        origin=origin,
-        xyz=xyz,
-        cell=cell.reshape(-1).astype(np.int32),
-        cells=cells.astype(np.int64),
-        tile_ids=tile_ids.astype(np.int64),
+        low, high = np.zeros(3), np.zeros(3)
+    xyz_out.flush()
+    cell_out.flush()
+    del xyz_out, cell_out
+    np.savez(
+        folder / "index.npz",
+        origin=np.asarray(source.origin, dtype=np.float64),
+        cells=cell_table,
+        tile_ids=tile_ids,
         tile_start=tile_start,
         overview=overview.astype(np.int64),
         ground_origin=np.asarray(ground_origin, dtype=np.float64),
         ground_heights=heights,
+        low=low.astype(np.float32),
+        high=high.astype(np.float32),
+    )
+
+
+def _open_array(path: Path, shape: tuple[int, ...], dtype) -> np.ndarray:
+    if not shape[0]:  # an empty file cannot be mapped
+        np.save(path, np.zeros(shape, dtype=dtype))
+        return np.zeros(shape, dtype=dtype)
+    return np.lib.format.open_memmap(path, mode="w+", dtype=dtype, shape=shape)
+
+
+def _read_map(folder: Path) -> SurveyMap:
+    """The cached map: the per-point arrays memory-mapped (read from disk as tiles are shown,
+    so the server's memory does not grow with the survey), the rest loaded."""
+    with np.load(folder / "index.npz") as index:
+        small = {name: index[name] for name in index.files}
+    n = int(small["tile_start"][-1])
+    mode = "r" if n else None
+    return SurveyMap(
+        xyz=np.load(folder / "xyz.npy", mmap_mode=mode),
+        cell=np.load(folder / "cell.npy", mmap_mode=mode),
+        **small,
     )
 
 
 def load_map(source: MapSource, cache_dir: Path, overview_points: int) -> SurveyMap:
     """The survey's map from the cache, built (and cached) when missing."""
-    folder = cache_dir / "viewer"
-    path = folder / source.cache_name(overview_points)
-    if path.exists():
+    cache = cache_dir / "viewer"
+    folder = cache / source.cache_name(overview_points)
+    if folder.is_dir():
         try:
-            with np.load(path) as data:
-                return SurveyMap(**{name: data[name] for name in SurveyMap.__dataclass_fields__})
+            return _read_map(folder)
         except (OSError, KeyError, ValueError):
-            path.unlink(missing_ok=True)  # a broken cache file is rebuilt
-    survey_map = build_map(source, overview_points)
-    folder.mkdir(parents=True, exist_ok=True)
-    for old in folder.glob(f"survey-{source.survey_id}-*.npz"):
-        old.unlink(missing_ok=True)  # older versions of this survey's map
-    partial = path.with_name(f"{path.name}.{os.getpid()}.partial")
-    with partial.open("wb") as fh:
-        np.savez(fh, **survey_map.arrays())
-    os.replace(partial, path)  # never a half-written cache file under the final name
-    return survey_map
+            shutil.rmtree(folder, ignore_errors=True)  # a broken cache is rebuilt
+    cache.mkdir(parents=True, exist_ok=True)
+    partial = cache / f"{folder.name}.{os.getpid()}.partial"
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir()
+    try:
+        build_map(source, overview_points, partial)
+        for old in cache.glob(f"survey-{source.survey_id}-*"):
+            if old != partial:
+                shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink()
+        os.replace(partial, folder)  # never a half-written cache under the final name
+    finally:
+        shutil.rmtree(partial, ignore_errors=True)
+    return _read_map(folder)

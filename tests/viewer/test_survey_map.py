@@ -10,7 +10,7 @@ import pytest
 from app.store.models import Survey
 from app.store.pillar_labels import STORE_GRID
 from app.viewer import survey_map as survey_map_module
-from app.viewer.survey_map import TILE_GRID, MapSource, load_map
+from app.viewer.survey_map import TILE_GRID, MapSource, accumulate_local, load_map
 from tests.viewer.conftest import street_points
 
 
@@ -63,7 +63,8 @@ def test_second_open_reads_the_cache(
     ply_survey: Survey, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     first = load_map(source_of(ply_survey), tmp_path / "cache", overview_points=10_000)
-    assert len(list((tmp_path / "cache" / "viewer").glob("survey-*.npz"))) == 1
+    assert len(list((tmp_path / "cache" / "viewer").glob("survey-*"))) == 1
+    assert isinstance(first.xyz, np.memmap)  # read from disk as shown, not held
 
     def no_build(*_: object) -> None:
         raise AssertionError("the map was rebuilt although it is cached")
@@ -78,4 +79,20 @@ def test_another_overview_cap_rebuilds_and_replaces(ply_survey: Survey, tmp_path
     load_map(source_of(ply_survey), tmp_path / "cache", overview_points=10_000)
     smaller = load_map(source_of(ply_survey), tmp_path / "cache", overview_points=5_000)
     assert len(smaller.overview) == 5_000
-    assert len(list((tmp_path / "cache" / "viewer").glob("survey-*.npz"))) == 1
+    assert len(list((tmp_path / "cache" / "viewer").glob("survey-*"))) == 1
+
+
+def test_the_streamed_map_is_the_whole_map_sorted_by_tile(tmp_path: Path) -> None:
+    """Built frame by frame into memory-mapped files, the map of the sample survey (1.4 M
+    points in 59 frames) holds what accumulating the whole survey and sorting it by tile
+    (stable: frame order within a tile) gives, with the same pillar of every point."""
+    sample = Path(__file__).resolve().parents[2] / "data_samples" / "urban-60m"
+    source = MapSource(1, str(sample), "sim", (3.0, -41.0, -2.0), 0, 0)
+    m = load_map(source, tmp_path / "cache", overview_points=10_000)
+    local, world_xy = accumulate_local(source)
+    order = np.argsort(TILE_GRID.point_cell_ids(local[:, :2]), kind="stable")
+    np.testing.assert_array_equal(np.asarray(m.xyz), local[order])
+    np.testing.assert_array_equal(m.cells[m.cell], STORE_GRID.point_cell_ids(world_xy[order]))
+    low, high = m.bounds()
+    np.testing.assert_array_equal(low, local.min(axis=0))
+    np.testing.assert_array_equal(high, local.max(axis=0))
