@@ -4,13 +4,17 @@ length. Prints a table and appends it to RESULTS.md.
   phantom   per length (--lengths, km): wall time, time per km, peak resident memory of each
             tile worker and of the run's own process (which assembles the outputs); then 1 vs 2
             tile workers on one survey (--speedup-km), same run: the speed-up
+  viewer    the viewer's map of the longest survey (--lengths' last): building its cache, then in
+            a fresh process what a first scene needs (open the cache, the overview's points and
+            pillars) and a tile in focus, and the memory while every tile is read in turn, as a
+            camera flying along the survey asks for them (server side; no browser)
 
 Each measurement runs in a fresh process (`one`) with a fresh local Dask cluster, so the peaks
 are that run's: a worker's is its whole life (`ru_maxrss`, read on the worker after the run).
 Surveys are synthetic (app.simulate, `--scanner` profile or hdl64, scene mixed, seed 901),
 cached under $MMSCLEAN_DATA_DIR/cache/bench.
 
-Usage: python -m bench.scale phantom [--lengths 0.25,0.5,1,2,4] [--scanner profile]
+Usage: python -m bench.scale phantom|viewer [--lengths 0.25,0.5,1,2,4] [--scanner profile]
        [--workers 2] [--speedup-km 2] [--no-record]
 """
 
@@ -28,6 +32,7 @@ from pathlib import Path
 COMMAND = "MMSCLEAN_DATA_DIR=/tmp/mmsvar .venv/bin/python -m bench.scale"
 SEED = 901
 SCENE = "mixed"
+OVERVIEW_POINTS = 500_000  # the viewer's default cap (Settings.viewer_overview_points)
 
 
 def _peak_rss_mb() -> float:
@@ -66,14 +71,107 @@ def run_one(km: float, scanner: str, workers: int) -> dict:
     }
 
 
-def measure(km: float, scanner: str, workers: int) -> dict:
-    """`run_one` in a fresh process (its own peak memory, its own cluster)."""
-    command = [sys.executable, "-m", "bench.scale", "one", "--km", str(km),
-               "--scanner", scanner, "--workers", str(workers)]  # fmt: skip
+def measure(km: float, scanner: str, workers: int, part: str = "one", cache: str = "") -> dict:
+    """`run_one` (or a viewer step) in a fresh process: its own peak memory, its own cluster."""
+    command = [sys.executable, "-m", "bench.scale", part, "--km", str(km),
+               "--scanner", scanner, "--workers", str(workers), "--cache", cache]  # fmt: skip
     done = subprocess.run(command, capture_output=True, text=True, check=False)
     if done.returncode != 0:
         raise SystemExit(f"{' '.join(command)} failed:\n{done.stderr[-3000:]}")
     return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def _memory_mb() -> tuple[float, float]:
+    """(resident, anonymous resident) MB of this process: mapped file pages count in the first,
+    but the kernel can drop them; the second is what the process holds itself."""
+    fields = dict(
+        line.split(":", 1) for line in Path("/proc/self/status").read_text().splitlines()
+        if ":" in line
+    )  # fmt: skip
+    return (int(fields["VmRSS"].split()[0]) / 1024, int(fields["RssAnon"].split()[0]) / 1024)
+
+
+def viewer_source(km: float, scanner: str):
+    from app.io import open_survey
+    from app.viewer.survey_map import MapSource
+    from bench.phantom import simulated
+
+    path = simulated(SCENE, km * 1000.0, SEED, scanner)
+    origin = tuple(float(v) for v in open_survey(path, "sim").frames[0].pose[:3, 3].round())
+    return MapSource(1, str(path), "sim", origin, 0, 0)
+
+
+def viewer_build(km: float, scanner: str, cache: Path) -> dict:
+    from app.viewer.survey_map import load_map
+
+    started = time.perf_counter()
+    survey_map = load_map(viewer_source(km, scanner), cache, OVERVIEW_POINTS)
+    return {"build_s": round(time.perf_counter() - started, 1), "points": len(survey_map),
+            "tiles": len(survey_map.tile_ids), "build_peak_mb": round(_peak_rss_mb())}  # fmt: skip
+
+
+def viewer_open(km: float, scanner: str, cache: Path) -> dict:
+    """A server's work for one client, from the cache: the first scene, a tile in focus, then
+    every tile in turn (a camera flying along)."""
+    import numpy as np
+
+    from app.viewer.survey_map import load_map
+
+    source = viewer_source(km, scanner)
+    started = time.perf_counter()
+    survey_map = load_map(source, cache, OVERVIEW_POINTS)
+    first = (np.asarray(survey_map.xyz[survey_map.overview]),
+             np.asarray(survey_map.cell[survey_map.overview]))  # fmt: skip
+    first_s = time.perf_counter() - started
+    opened = _memory_mb()
+    densest = int(survey_map.tile_ids[np.argmax(np.diff(survey_map.tile_start))])
+    started = time.perf_counter()
+    points = survey_map.tile_points(densest)
+    focus = (np.asarray(survey_map.xyz[points]), np.asarray(survey_map.cell[points]))
+    focus_s = time.perf_counter() - started
+    peak, peak_anon = opened
+    for tile in survey_map.tile_ids.tolist():
+        points = survey_map.tile_points(int(tile))
+        shown = (np.asarray(survey_map.xyz[points]), np.asarray(survey_map.cell[points]))
+        rss, anon = _memory_mb()
+        peak, peak_anon = max(peak, rss), max(peak_anon, anon)
+        del shown
+    return {
+        "first_scene_s": round(first_s, 2), "overview_points": len(first[0]),
+        "focus_s": round(focus_s, 3), "focus_points": len(focus[0]),
+        "open_rss_mb": round(opened[0]), "open_anon_mb": round(opened[1]),
+        "fly_rss_mb": round(peak), "fly_anon_mb": round(peak_anon),
+    }  # fmt: skip
+
+
+def part_viewer(args) -> tuple[str, str, str]:
+    from bench.common import markdown_table
+
+    km = float(args.lengths.split(",")[-1])
+    with tempfile.TemporaryDirectory() as cache:
+        built = measure(km, args.scanner, 0, "viewer-build", cache)
+        opened = measure(km, args.scanner, 0, "viewer-open", cache)
+    table = markdown_table(
+        ["km", "points", "50 m tiles", "cache build s", "build peak MB", "first scene s",
+         "overview points", "focus tile s", "focus tile points", "RSS after open MB",
+         "RSS flying along MB", "anonymous RSS flying along MB"],
+        [[f"{km:g}", f"{built['points']:,}", str(built["tiles"]), f"{built['build_s']:.1f}",
+          str(built["build_peak_mb"]), f"{opened['first_scene_s']:.2f}",
+          f"{opened['overview_points']:,}", f"{opened['focus_s']:.3f}",
+          f"{opened['focus_points']:,}", str(opened["open_rss_mb"]), str(opened["fly_rss_mb"]),
+          str(opened["fly_anon_mb"])]],
+    )  # fmt: skip
+    notes = (
+        f"Synthetic: the simulated {args.scanner} survey of the phantom rows (scene {SCENE}, "
+        f"seed {SEED}). Server side only, each step in a fresh process: building the viewer's "
+        f"cache (app/viewer/survey_map.py, frames read twice, per-point arrays written to "
+        f"memory-mapped files); then opening it as a new client's first scene does (the cache "
+        f"opened, the overview's points and pillars read: {OVERVIEW_POINTS:,} points at most) "
+        f"and the densest 50 m tile as a tile in focus; then every tile read in turn. RSS counts "
+        f"the mapped file pages read (the kernel drops them under pressure); anonymous RSS is "
+        f"what the process holds. Sending to the browser and drawing are not timed here."
+    )
+    return "Scale: the viewer's map of a long survey", table, notes
 
 
 def part_phantom(args) -> tuple[str, str, str]:
@@ -120,24 +218,30 @@ def part_phantom(args) -> tuple[str, str, str]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("part", choices=["phantom", "one"])
+    parser.add_argument("part", choices=["phantom", "viewer", "one", "viewer-build", "viewer-open"])
     parser.add_argument("--lengths", default="0.25,0.5,1,2,4", help="survey lengths in km")
     parser.add_argument("--scanner", default="profile", choices=["profile", "hdl64"])
     parser.add_argument("--workers", type=int, default=2, help="tile workers")
     parser.add_argument("--speedup-km", type=float, default=2.0)
     parser.add_argument("--km", type=float, default=0.25, help="one: survey length")
+    parser.add_argument("--cache", default="", help="viewer-build, viewer-open: cache folder")
     parser.add_argument("--no-record", action="store_true")
     args = parser.parse_args()
-    if args.part == "one":
-        print(json.dumps(run_one(args.km, args.scanner, args.workers)))
+    steps = {
+        "one": lambda: run_one(args.km, args.scanner, args.workers),
+        "viewer-build": lambda: viewer_build(args.km, args.scanner, Path(args.cache)),
+        "viewer-open": lambda: viewer_open(args.km, args.scanner, Path(args.cache)),
+    }
+    if args.part in steps:
+        print(json.dumps(steps[args.part]()))
         return 0
     from bench.common import append_results
 
-    title, table, notes = part_phantom(args)
+    title, table, notes = (part_phantom if args.part == "phantom" else part_viewer)(args)
     print(table)
     print(notes)
     if not args.no_record:
-        command = f"{COMMAND} phantom --lengths {args.lengths} --scanner {args.scanner}"
+        command = f"{COMMAND} {' '.join(sys.argv[1:])}"
         append_results(title, command, table, notes)
     return 0
 
