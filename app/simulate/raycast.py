@@ -29,6 +29,7 @@ own time (and are dropped when an already found hit is nearer than the sphere).
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -151,16 +152,48 @@ class _Static:
     triangles: int
 
 
+class _SceneCache:
+    """The open3d scenes of bodies cast in their own frames, built when first needed and at
+    most `size` alive: every RaycastingScene holds an Embree device of its own, and a process
+    dies (segfault in open3d) after one to two thousand of them, fewer than the moving and
+    parked cars of a 4 km street. Rays come in time order, so the bodies near the scanner
+    stay in the cache."""
+
+    def __init__(self, size: int = 256):
+        self.size = size
+        self._scenes: OrderedDict[tuple[int, str], o3d.t.geometry.RaycastingScene] = OrderedDict()
+
+    def get(self, key: tuple[int, str], mesh: Mesh) -> o3d.t.geometry.RaycastingScene:
+        scene = self._scenes.pop(key, None)
+        if scene is None:
+            scene = _scene_of(mesh.vertices, mesh.triangles)
+        self._scenes[key] = scene
+        if len(self._scenes) > self.size:
+            self._scenes.popitem(last=False)
+        return scene
+
+
 @dataclass
 class _Moving:
     index: int  # body index
     motion: Motion  # a constant one for static bodies with a halo
     radius: float  # bounding radius + halo margin
     speed: float  # max speed along the sampled path (m/s)
-    scene: o3d.t.geometry.RaycastingScene
+    mesh: Mesh  # in the body's frame
     normals: np.ndarray  # (T, 3) local face normals
-    halo_scene: o3d.t.geometry.RaycastingScene | None
+    halo_mesh: Mesh | None
     halo_normals: np.ndarray | None
+    scenes: _SceneCache
+
+    @property
+    def scene(self) -> o3d.t.geometry.RaycastingScene:
+        return self.scenes.get((self.index, "body"), self.mesh)
+
+    @property
+    def halo_scene(self) -> o3d.t.geometry.RaycastingScene | None:
+        if self.halo_mesh is None:
+            return None
+        return self.scenes.get((self.index, "halo"), self.halo_mesh)
 
 
 class RayCaster:
@@ -179,6 +212,7 @@ class RayCaster:
         self.halo_probability = float(halo_probability)
         self.chunk_size = int(chunk_size)
         self.threads = int(threads)  # open3d threads, 0 = all cores
+        self._scenes = _SceneCache()
         self._static_lidar = self._build_static(scene.bodies, with_halo_bodies=False)
         own = [i for i, b in enumerate(scene.bodies) if b.moving or b.halo_margin > 0]
         built = (self._build_moving(i, scene.bodies[i]) for i in own)
@@ -233,20 +267,20 @@ class RayCaster:
             speed = float((step / dt).max())
         else:
             speed = 0.0
-        halo_scene = halo_normals = None
+        halo = halo_normals = None
         if margin > 0:
             halo = inflate(mesh, margin)
-            halo_scene = _scene_of(halo.vertices, halo.triangles)
             halo_normals = face_normals(halo.vertices, halo.triangles)
         return _Moving(
             index=index,
             motion=motion,
             radius=mesh.bounding_radius() + margin,
             speed=speed,
-            scene=_scene_of(mesh.vertices, mesh.triangles),
+            mesh=mesh,
             normals=face_normals(mesh.vertices, mesh.triangles),
-            halo_scene=halo_scene,
+            halo_mesh=halo,
             halo_normals=halo_normals,
+            scenes=self._scenes,
         )
 
     # -- casting ------------------------------------------------------------------------------
@@ -377,7 +411,7 @@ class RayCaster:
                 normal[j] = np.einsum(
                     "nji,nj->ni", Rt[near], np.take(m.normals, prim[near], axis=0)
                 )
-            if not with_halo or m.halo_scene is None or self.halo_probability <= 0:
+            if not with_halo or m.halo_mesh is None or self.halo_probability <= 0:
                 continue
             miss = ~np.isfinite(dist)
             if not miss.any():

@@ -258,3 +258,31 @@ def test_many_static_rays_on_a_large_mesh():
     hits = caster.cast(o, d, 0.0, 200.0)
     down = d[:, 2] < -0.2
     assert np.all(hits.body[down] == 0)
+
+
+def test_more_bodies_than_live_scenes_cast_alike():
+    """Bodies cast in their own frames get open3d scenes on demand, a bounded number alive
+    (each holds an Embree device; a process crashes after one or two thousand): 40 moving and
+    parked cars with halos cast through a cache of 3 scenes give the hits of an unbounded one."""
+    bodies = [body("road", plane_mesh(-200, 200, -20, 20))]
+    for k in range(20):
+        motion = linear_motion([-190.0 + 19 * k, 3.0, 0.0], [8.0, 0.0, 0.0])
+        bodies.append(body("car", box_mesh((-2, -1, 0), (2, 1, 1.5)), Semantic.CAR, k + 1, motion,
+                           halo=0.2))  # fmt: skip
+        lo = np.array([-190.0 + 19 * k, -6.0, 0.0])
+        bodies.append(body("parked", box_mesh(lo, lo + [4, 2, 1.5]), Semantic.CAR, 100 + k,
+                           halo=0.2))  # fmt: skip
+    rng = np.random.default_rng(3)
+    n = 40_000
+    t = np.sort(rng.uniform(0, 4, n))
+    o = np.column_stack([-200 + 100 * t, np.zeros(n), np.full(n, 1.7)])  # a van driving along
+    d = unit(rng.normal(size=(n, 3)) * [1, 1, 0.15])
+    unbounded = RayCaster(scene_of(bodies))
+    bounded = RayCaster(scene_of(bodies))
+    bounded._scenes.size = 3
+    a = unbounded.cast(o, d, t, 60.0, np.random.default_rng(0))
+    b = bounded.cast(o, d, t, 60.0, np.random.default_rng(0))
+    for name in ("body", "triangle", "distance", "halo"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    assert len(np.unique(a.body[a.body > 0])) > 10 and a.halo.any()
+    assert len(bounded._scenes._scenes) == 3
