@@ -163,3 +163,19 @@ def test_a_cancelled_run_cancels_its_tiles_on_the_cluster(tmp_path: Path) -> Non
         assert 1 <= len(done) < 5
     finally:
         close_clients()
+
+
+def test_the_local_clusters_dashboard_listens_on_loopback_only(tmp_path: Path) -> None:
+    """Admins reach the tile workers' Dask dashboard through a tunnel: it is served (bokeh is
+    installed) and bound to 127.0.0.1, never to the network."""
+    import httpx
+
+    from app.jobs.cluster import close_cluster, embedded_cluster
+
+    cluster = embedded_cluster(Settings(data_dir=tmp_path, workers=1, sample_dir=""))
+    try:
+        link = cluster.dashboard_link
+        assert link.startswith("http://127.0.0.1:")
+        assert httpx.get(link, timeout=30).status_code == 200
+    finally:
+        close_cluster(cluster)
