@@ -1,8 +1,9 @@
 """The phantom pipeline tile by tile: a survey of any length in bounded memory.
 
 Each tile reads the frames that reach its window (its own points plus the halo,
-`io.tile_index`), runs the whole pipeline there (`PhantomPipeline.run_map`) and keeps the labels
-of the points it owns; the frames' label arrays are filled from the tiles. The halo covers
+`io.tile_index`), runs the whole pipeline there (`PhantomPipeline.run_map`) and keeps the results
+of the points and pillars it owns, written as soon as it finishes (`tile_outputs`); the run's
+files are assembled from the tiles' at the end, and a rerun keeps the finished ones. The halo covers
 every step's reach, so the labels agree with a run on the whole map: the network's 11 x 11
 pillar window (+-1.1 m) and its 31 x 31 pillar context (+-3.1 m), the 5 x 5 refinement vote
 (+-0.4 m), the ground model's opening and cells (`PhantomConfig.ground_opening`), and the
