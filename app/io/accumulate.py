@@ -13,6 +13,7 @@ frame by frame (what a viewer sends; float32 of world coordinates loses centimet
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -120,6 +121,57 @@ def accumulate(
     )
 
 
+def accumulate_window(
+    survey: Survey,
+    keep: Callable[[np.ndarray], np.ndarray],
+    with_reference: bool = False,
+    with_passes: bool = False,
+    pass_t0: float | None = None,
+) -> AccumulatedMap:
+    """The points `keep(world xyz)` selects (a tile's window), read frame by frame and, from a
+    map file, chunk by chunk (`Frame.world_chunks`): a window of a survey of any size without
+    holding the rest. `index` says which point of its frame each one is. A map's scanner passes
+    are binned from `pass_t0` (the survey's first time, so that every window bins alike)."""
+    clouds, refs, times, indices, sizes = [], [], [], [], []
+    kinds = survey.reference_label_kinds if with_reference else ()
+    for frame in survey.frames:
+        whole = None  # reference labels of a frame read whole, when its chunks lack them
+        kept = 0
+        for start, cloud in frame.world_chunks():
+            mask = np.asarray(keep(cloud.xyz), dtype=bool)
+            clouds.append(cloud.xyz[mask])
+            indices.append((start + np.flatnonzero(mask)).astype(np.uint32))
+            kept += int(mask.sum())
+            if with_passes and survey.is_map:
+                times.append(None if cloud.time is None else cloud.time[mask])
+            if kinds:
+                if all(k in cloud.extra for k in kinds):
+                    refs.append({k: cloud.extra[k][mask] for k in kinds})
+                else:
+                    whole = whole or _checked_reference(survey, frame, start + len(cloud.xyz))
+                    rows = start + np.flatnonzero(mask)
+                    refs.append({k: v[rows] for k, v in whole.items()})
+        sizes.append(kept)
+    xyz = np.concatenate(clouds) if clouds else np.zeros((0, 3))
+    reference = {}
+    if refs:
+        reference = {k: np.concatenate([r[k] for r in refs]) for k in refs[0]}
+    passes = None
+    if with_passes:
+        if survey.is_map:
+            passes = _binned_passes(times, pass_t0)
+        else:
+            passes = np.repeat(np.arange(len(sizes), dtype=np.int64), sizes)
+    return AccumulatedMap(
+        xyz=xyz,
+        frame_ids=[f.frame_id for f in survey.frames],
+        frame_sizes=sizes,
+        reference=reference,
+        index=np.concatenate(indices) if indices else np.zeros(0, np.uint32),
+        passes=passes,
+    )
+
+
 def _checked_reference(survey: Survey, frame: Frame, points: int) -> dict[str, np.ndarray]:
     """The frame's reference labels, one per point (a label file of another length is an
     error naming the frame, never a silently shifted label)."""
@@ -148,9 +200,19 @@ def scanner_passes(
     """
     if not survey.is_map:
         return np.repeat(np.arange(len(frame_sizes), dtype=np.int64), frame_sizes)
+    return _binned_passes(map_times, None)
+
+
+def _binned_passes(map_times: list[np.ndarray | None], t0: float | None) -> np.ndarray | None:
+    """A map's point times binned into passes of `PASS_SECONDS` from t0 (default: the first
+    time, when the times are usable: not all equal); None without usable times."""
     if not map_times or any(t is None for t in map_times):
         return None
     t = np.concatenate(map_times)
-    if not len(t) or not np.all(np.isfinite(t)) or np.ptp(t) == 0:
+    if not np.all(np.isfinite(t)):
         return None
-    return np.floor((t - t.min()) / PASS_SECONDS).astype(np.int64)
+    if t0 is None:
+        if not len(t) or np.ptp(t) == 0:
+            return None
+        t0 = float(t.min())
+    return np.floor((t - t0) / PASS_SECONDS).astype(np.int64)

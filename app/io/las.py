@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import copy
 import datetime
+from collections.abc import Iterator
 from functools import partial
 from pathlib import Path
 
@@ -70,6 +71,7 @@ def read_las(path: str | Path) -> Survey:
         partial(_load_reference, path, n) if has_classes else None,
         ("classification",) if has_classes else (),
         partial(_first_points, path),
+        partial(_chunks, path, n),
     )
 
 
@@ -150,26 +152,47 @@ def _read_all(path: Path, n: int) -> laspy.LasData:
 
 
 def _load_points(path: Path, n: int) -> PointCloud:
-    las = _read_all(path, n)
-    dims = set(las.point_format.dimension_names)
-    xyz = np.empty((n, 3), dtype=np.float64)
-    xyz[:, 0] = las.x
-    xyz[:, 1] = las.y
-    xyz[:, 2] = las.z
+    return _cloud_of(_read_all(path, n))
+
+
+def _cloud_of(points) -> PointCloud:
+    """A PointCloud from laspy points (a whole file's `LasData` or a chunk's point record)."""
+    dims = set(points.point_format.dimension_names)
+    xyz = np.empty((len(points), 3), dtype=np.float64)
+    xyz[:, 0] = points.x
+    xyz[:, 1] = points.y
+    xyz[:, 2] = points.z
     intensity = (
-        np.asarray(las.intensity).astype(np.float32, copy=False) if "intensity" in dims else None
+        np.asarray(points.intensity).astype(np.float32, copy=False) if "intensity" in dims else None
     )
-    time = np.asarray(las.gps_time, dtype=np.float64) if "gps_time" in dims else None
+    time = np.asarray(points.gps_time, dtype=np.float64) if "gps_time" in dims else None
     extra: dict[str, np.ndarray] = {
-        "classification": np.asarray(las.classification).astype(np.uint8, copy=False)
+        "classification": np.asarray(points.classification).astype(np.uint8, copy=False)
     }
     for name, dtype in EXTRA_DIMS.items():
         if name in dims:
-            extra[name] = np.asarray(las[name]).astype(dtype, copy=False)
+            extra[name] = np.asarray(points[name]).astype(dtype, copy=False)
     for name in _RETURN_DIMS:
         if name in dims:
-            extra[name] = np.asarray(las[name]).astype(np.uint8, copy=False)
+            extra[name] = np.asarray(points[name]).astype(np.uint8, copy=False)
     return PointCloud(xyz, intensity=intensity, time=time, extra=extra)
+
+
+def _chunks(path: Path, n: int) -> Iterator[tuple[int, PointCloud]]:
+    """The file's points `_CHUNK` at a time (index of the first, points): a map of any size in
+    bounded memory. A file with fewer points than its header promises is an error naming it."""
+    start = 0
+    reader = guarded(path, "points", lambda: laspy.open(path))
+    with reader:
+        iterator = reader.chunk_iterator(_CHUNK)
+        while True:
+            points = guarded(path, "points", lambda: next(iterator, None))
+            if points is None or not len(points):
+                break
+            yield start, _cloud_of(points)
+            start += len(points)
+    if start != n:
+        raise InputError(path, f"truncated: header promises {n} points, file has {start}")
 
 
 def _load_reference(path: Path, n: int) -> dict[str, np.ndarray]:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import io
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from functools import partial
 from pathlib import Path
 from typing import TypeVar
@@ -34,10 +34,12 @@ def map_survey(
     load_reference: Callable[[], dict[str, np.ndarray]] | None,
     labels: tuple[str, ...],
     sample_points: Callable[[int], PointCloud] | None = None,
+    load_chunks: Callable[[], Iterator[tuple[int, PointCloud]]] | None = None,
 ) -> Survey:
     """An accumulated map: one frame `map`, identity pose, points already in world coordinates.
 
-    `sample_points(n)` reads the first n points; by default the whole file is read and cut."""
+    `sample_points(n)` reads the first n points; by default the whole file is read and cut.
+    `load_chunks()` yields the points in pieces (`Frame.world_chunks`), where the format can."""
     frame = Frame(
         index=0,
         frame_id=MAP_FRAME_ID,
@@ -46,6 +48,7 @@ def map_survey(
         source_path=path,
         _load_points=load_points,
         _load_reference=load_reference,
+        _load_chunks=load_chunks,
     )
     return Survey(
         name=path.stem,

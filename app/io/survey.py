@@ -86,6 +86,11 @@ class Frame:
     image_paths: dict[str, Path] = field(default_factory=dict)  # camera name -> image file
     _load_points: Callable[[], PointCloud] | None = field(default=None, repr=False)
     _load_reference: Callable[[], dict[str, np.ndarray]] | None = field(default=None, repr=False)
+    # the points in pieces, file order: (index of the first, points), for files too large to
+    # read whole (a LAS map); reference labels travel in `extra` under their kind's name
+    _load_chunks: Callable[[], Iterator[tuple[int, PointCloud]]] | None = field(
+        default=None, repr=False
+    )
 
     def points(self) -> PointCloud:
         """Read this frame's points from disk (sensor frame, file order)."""
@@ -95,6 +100,15 @@ class Frame:
 
     def world_points(self) -> PointCloud:
         return self.points().transformed(self.pose)
+
+    def world_chunks(self) -> Iterator[tuple[int, PointCloud]]:
+        """The frame's points in world coordinates, in pieces in file order (index of the
+        first point, points): a chunk at a time where the reader can, else one piece."""
+        if self._load_chunks is None:
+            yield 0, self.world_points()
+            return
+        for start, cloud in self._load_chunks():
+            yield start, cloud.transformed(self.pose)
 
     def reference_labels(self) -> dict[str, np.ndarray]:
         """Reference per-point labels for evaluation, e.g. {"semantic": ..., "instance": ...}."""

@@ -1,11 +1,11 @@
 """Which points each tile owns and which frames it must read: one streaming pass over a survey.
 
-`TileIndex.build` reads every frame once, one at a time, and keeps only small sets per tile:
-the grid cells holding the tile's own points, and per frame a coarse footprint (the cells its
-points touch on a grid `FOOTPRINT_CELLS` times coarser). A tile's window is its own cells
-dilated by the halo (`geometry.tiles.halo_cells`); the frames it reads are those whose
-footprint meets the window. Nothing here holds a survey's points: memory grows with the area
-driven, not with the points.
+`TileIndex.build` reads every frame once, one at a time (a map file a chunk at a time), and
+keeps only small sets per tile: the grid cells holding the tile's own points, and per frame a
+coarse footprint (the cells its points touch on a grid `FOOTPRINT_CELLS` times coarser). A
+tile's window is its own cells dilated by the halo (`geometry.tiles.halo_cells`); the frames it
+reads are those whose footprint meets the window. Nothing here holds a survey's points: memory
+grows with the area driven, not with the points.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from app.geometry.tiles import TileLayout, cell_indices, cell_keys, halo_cells
+from app.io.map_trajectory import map_trajectory
 from app.io.survey import Survey
 
 FOOTPRINT_CELLS = 8  # a frame's footprint is kept on cells this many times the tile cell
@@ -32,6 +33,7 @@ class TileIndex:
     owned_points: np.ndarray  # (T,) int64 points each tile owns
     frame_sizes: np.ndarray  # (F,) int64 points of each frame
     low: np.ndarray  # (3,) float64 the smallest coordinates of any point (an offset for outputs)
+    time0: float | None = None  # a map's first point time: every tile bins its passes from it
 
     @property
     def count(self) -> int:
@@ -39,29 +41,37 @@ class TileIndex:
 
     @classmethod
     def build(cls, survey: Survey, length: float, halo: float, cell: float = 2.0) -> TileIndex:
-        """Stream the survey's frames once. The trajectory is the frames' sensor positions
-        (or a map's recorded trajectory)."""
+        """Stream the survey's frames once (a map file chunk by chunk). The trajectory is the
+        frames' sensor positions, a map's recorded one, or else the one its points trace
+        (`map_trajectory`, one more pass)."""
         poses = survey.poses()
         if len(poses) == 0:
             raise ValueError(f"{survey.source}: no frames to cut into tiles")
-        layout = TileLayout.along(poses[:, :3, 3], length, halo)
+        path, time0 = poses[:, :3, 3], None
+        if survey.is_map and survey.trajectory is None:
+            path, time0 = map_trajectory(survey)
+        layout = TileLayout.along(path, length, halo)
         coarse = cell * FOOTPRINT_CELLS
         owned: list[list[np.ndarray]] = [[] for _ in range(layout.count)]
         counts = np.zeros(layout.count, dtype=np.int64)
         footprints, sizes = [], []
         low = np.full(3, np.inf)
         for frame in survey.frames:
-            xyz = frame.world_points().xyz
-            sizes.append(len(xyz))
-            if len(xyz):
-                low = np.minimum(low, xyz.min(axis=0))
-            keys = cell_keys(xyz, cell)
-            tile = layout.owner(layout.stations(xyz))
-            pairs = np.unique(np.stack([tile, keys], axis=1), axis=0)
-            for t in np.unique(pairs[:, 0]):
-                owned[int(t)].append(pairs[pairs[:, 0] == t, 1])
-            counts += np.bincount(tile, minlength=layout.count)
-            footprints.append(np.unique(cell_keys(xyz, coarse)))
+            size, footprint = 0, []
+            for _, cloud in frame.world_chunks():
+                xyz = cloud.xyz
+                size += len(xyz)
+                if len(xyz):
+                    low = np.minimum(low, xyz.min(axis=0))
+                keys = cell_keys(xyz, cell)
+                tile = layout.owner(layout.stations(xyz))
+                pairs = np.unique(np.stack([tile, keys], axis=1), axis=0)
+                for t in np.unique(pairs[:, 0]):
+                    owned[int(t)].append(pairs[pairs[:, 0] == t, 1])
+                counts += np.bincount(tile, minlength=layout.count)
+                footprint.append(np.unique(cell_keys(xyz, coarse)))
+            sizes.append(size)
+            footprints.append(np.unique(np.concatenate(footprint)))
         owned_cells = [
             np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64) for parts in owned
         ]
@@ -76,7 +86,7 @@ class TileIndex:
             frames.append(np.unique(frame_of[touched]))
         sizes = np.asarray(sizes, dtype=np.int64)
         low = np.where(np.isfinite(low), low, 0.0)
-        return cls(layout, cell, owned_cells, window_cells, frames, counts, sizes, low)
+        return cls(layout, cell, owned_cells, window_cells, frames, counts, sizes, low, time0)
 
     def tile_survey(self, survey: Survey, tile: int) -> Survey:
         """The survey with only the frames tile `tile` reads (same order)."""

@@ -5,6 +5,7 @@ labels, the paper's metrics."""
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,7 +16,7 @@ from app.core.errors import InputError
 from app.core.labels import PillarClass
 from app.core.progress import Progress
 from app.geometry.ground import estimate_ground
-from app.io.accumulate import AccumulatedMap, accumulate
+from app.io.accumulate import AccumulatedMap, accumulate, accumulate_window
 from app.io.survey import Survey
 from app.pipelines.phantom.classify import classify_dense, classify_windows
 from app.pipelines.phantom.config import PhantomConfig
@@ -60,9 +61,19 @@ class PhantomPipeline:
         amap = self.accumulate(survey)
         return self.run_map(amap, progress, {"accumulate": round(time.perf_counter() - started, 3)})
 
-    def accumulate(self, survey: Survey) -> AccumulatedMap:
-        """The survey's map with what the network reads (scanner passes when it reads time)."""
-        amap = accumulate(survey, with_reference=True, with_passes=self.net.passes)
+    def accumulate(
+        self,
+        survey: Survey,
+        keep: Callable[[np.ndarray], np.ndarray] | None = None,
+        pass_t0: float | None = None,
+    ) -> AccumulatedMap:
+        """The survey's map with what the network reads (scanner passes when it reads time);
+        with `keep`, only the points it selects (a tile's window: `accumulate_window`, a map's
+        passes binned from `pass_t0`)."""
+        if keep is None:
+            amap = accumulate(survey, with_reference=True, with_passes=self.net.passes)
+        else:
+            amap = accumulate_window(survey, keep, True, self.net.passes, pass_t0)
         if self.net.passes and amap.passes is None:
             raise InputError(
                 survey.source,

@@ -59,8 +59,9 @@ def run_tile(
     started = time.perf_counter()
     if progress is not None:
         progress("accumulate", 0.0)
-    amap = pipeline.accumulate(index.tile_survey(survey, tile))
-    part = amap.select(index.in_window(amap.xyz, tile))
+    part = pipeline.accumulate(
+        index.tile_survey(survey, tile), lambda xyz: index.in_window(xyz, tile), index.time0
+    )
     if len(part.xyz) == 0:
         empty = np.zeros(0, dtype=np.int64)
         return TileResult(tile, empty, empty, np.zeros((0, 3)), np.zeros(0, np.uint8), 0)
