@@ -177,6 +177,28 @@ def test_truncated_laz_is_an_input_error(tmp_path: Path):
         read_las(path).frames[0].points()
 
 
+def test_a_map_read_in_chunks_is_the_whole_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    points = _utm_points(5000)
+    path = write_laz(tmp_path / "map.laz", points["xyz"])
+    monkeypatch.setattr(las_module, "_CHUNK", 1234)
+    frame = read_las(path).frames[0]
+    chunks = list(frame.world_chunks())
+    assert [start for start, _ in chunks] == [0, 1234, 2468, 3702, 4936]
+    np.testing.assert_array_equal(
+        np.concatenate([c.xyz for _, c in chunks]), frame.world_points().xyz
+    )
+
+
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+def test_a_truncated_map_read_in_chunks_is_an_input_error(tmp_path: Path, suffix: str) -> None:
+    path = write_laz(tmp_path / f"cut{suffix}", _utm_points(5000)["xyz"])
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    with pytest.raises(InputError, match=f"cut{suffix}"):
+        list(read_las(path).frames[0].world_chunks())
+
+
 def test_points_are_read_only_when_asked(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
     path = write_laz(tmp_path / "lazy.laz", _utm_points(200)["xyz"])
     calls: list[object] = []
