@@ -11,12 +11,12 @@ world coordinates loses centimetres). Alongside the points the map keeps what se
 - the local ground height (5th-percentile grid of the overview), which the brush intersects the
   click ray with.
 
-Building reads every frame twice, one at a time (`build_map`: it never holds the survey's
-points), and writes the arrays into one folder per survey under `<cache_dir>/viewer/`, named
-after everything that could change them. A later open maps the per-point arrays from disk
-instead of loading them: the first scene needs only the overview's points, a tile in focus only
-its slice, so opening a survey of tens of millions of points takes about as long as a small one
-and the server's memory stays bounded.
+Building reads every frame twice, one at a time, a map file a chunk at a time (`build_map`: it
+never holds the survey's points), and writes the arrays into one folder per survey under
+`<cache_dir>/viewer/`, named after everything that could change them. A later open maps the per-
+point arrays from disk instead of loading them: the first scene needs only the overview's
+points, a tile in focus only its slice, so opening a survey of tens of millions of points takes
+about as long as a small one and the server's memory stays bounded.
 """
 
 from __future__ import annotations
@@ -124,13 +124,16 @@ def accumulate_local(source: MapSource) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _local_frames(source: MapSource):
-    """Per frame: (local float32 xyz, tile id, store cell id from the exact world xy)."""
+    """Per frame (a map file: per chunk), in order: (local float32 xyz, tile id, store cell id
+    from the exact world xy)."""
     survey = open_survey(source.source_path, source.format)
     origin = np.asarray(source.origin, dtype=np.float64)
     for frame in survey.frames:
-        world = frame.world_points().xyz
-        xyz = (world - origin).astype(np.float32)
-        yield xyz, TILE_GRID.point_cell_ids(xyz[:, :2]), STORE_GRID.point_cell_ids(world[:, :2])
+        for _, cloud in frame.world_chunks():
+            world = cloud.xyz
+            xyz = (world - origin).astype(np.float32)
+            cells = STORE_GRID.point_cell_ids(world[:, :2])
+            yield xyz, TILE_GRID.point_cell_ids(xyz[:, :2]), cells
 
 
 class _Union:
