@@ -13,8 +13,8 @@ world coordinates loses centimetres). Alongside the points the map keeps what se
 
 Building reads every frame twice, one at a time, a map file a chunk at a time (`build_map`: it
 never holds the survey's points), and writes the arrays into one folder per survey under
-`<cache_dir>/viewer/`, named after everything that could change them. A later open maps the per-
-point arrays from disk instead of loading them: the first scene needs only the overview's
+`<cache_dir>/viewer/`, named after everything that could change them. A later open maps the
+per-point arrays from disk instead of loading them: the first scene needs only the overview's
 points, a tile in focus only its slice, so opening a survey of tens of millions of points takes
 about as long as a small one and the server's memory stays bounded.
 """
