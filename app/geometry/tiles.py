@@ -27,7 +27,8 @@ from app.geometry.trajectory import StationIndex
 
 def _flat(xy: np.ndarray) -> np.ndarray:
     """(N, 3) float64 with z = 0 from positions (N, 2 or more): stations are horizontal."""
-    xy = np.asarray(xy, dtype=np.float64).reshape(len(xy), -1)[:, :2]
+    xy = np.asarray(xy, dtype=np.float64)
+    xy = xy.reshape(len(xy), xy.shape[-1] if xy.ndim > 1 else -1)[:, :2]  # (0, 3) stays 2D
     return np.column_stack([xy, np.zeros(len(xy))])
 
 

@@ -115,3 +115,16 @@ def test_a_tile_reads_every_frame_with_its_points_whichever_pass_measured_them()
     assert {0, 5, 9} <= set(index.frames[2].tolist())  # the way out, at the start
     start_left = survey.frames[5].world_points().xyz[:200]  # the left wall, x 0 .. 20
     assert index.owned(start_left, 2).all() and index.in_window(start_left, 2).all()
+
+
+def test_a_frame_without_points_is_indexed_and_owns_nothing() -> None:
+    """A scanner that returned nothing for a frame (a dropout) leaves an empty frame: it is
+    indexed like the others (a 4 km simulated survey has some)."""
+    survey = _there_and_back()
+    empty = survey.frames[7]
+    survey.frames[7] = Frame(
+        empty.index, empty.frame_id, empty.pose, empty.timestamp, 0,
+        _load_points=lambda: PointCloud(np.zeros((0, 3))),
+    )  # fmt: skip
+    index = TileIndex.build(survey, length=41.0, halo=4.0)
+    assert index.frame_sizes[7] == 0 and int(index.owned_points.sum()) == 60 * 400
