@@ -1,8 +1,9 @@
 """Tiles along the trajectory: a survey of any length cut into pieces one worker can hold.
 
 A tile is a stretch `[start, end)` of the trajectory's arc length (its *station*). Every point
-belongs to exactly one tile, the tile of its own station: the arc length at its foot on the
-trajectory polyline (the place the vehicle was when it passed the point). A pipeline reads a
+belongs to exactly one tile, the tile of its station: the arc length at its foot on the
+trajectory polyline (the place the vehicle was when it passed the point); `io.tile_index` takes
+the station of the centre of the point's grid cell, so that a cell has one owner. A pipeline reads a
 tile with a *halo*, the context its steps look at (the phantom CNN's window and vote, DUFOMap's
 reach, a guardrail unit), computes there, and keeps only the results of the points the tile
 owns: with a halo at least as wide as that context, tiled and untiled results agree.

@@ -1,11 +1,12 @@
 """Which points each tile owns and which frames it must read: one streaming pass over a survey.
 
 `TileIndex.build` reads every frame once, one at a time (a map file a chunk at a time), and
-keeps only small sets per tile: the grid cells holding the tile's own points, and per frame a
-coarse footprint (the cells its points touch on a grid `FOOTPRINT_CELLS` times coarser). A
-tile's window is its own cells dilated by the halo (`geometry.tiles.halo_cells`); the frames it
-reads are those whose footprint meets the window. Nothing here holds a survey's points: memory
-grows with the area driven, not with the points.
+keeps only small sets per tile: the grid cells holding the tile's own points (a cell belongs to
+the tile of its centre's station, and its points with it), and per frame a coarse footprint (the
+cells its points touch on a grid `FOOTPRINT_CELLS` times coarser). A tile's window is its own
+cells dilated by the halo (`geometry.tiles.halo_cells`); the frames it reads are those whose
+footprint meets the window. Nothing here holds a survey's points: memory grows with the area
+driven, not with the points.
 """
 
 from __future__ import annotations
@@ -63,13 +64,14 @@ class TileIndex:
                 size += len(xyz)
                 if len(xyz):
                     low = np.minimum(low, xyz.min(axis=0))
-                keys = cell_keys(xyz, cell)
-                tile = layout.owner(layout.stations(xyz))
-                pairs = np.unique(np.stack([tile, keys], axis=1), axis=0)
-                for t in np.unique(pairs[:, 0]):
-                    owned[int(t)].append(pairs[pairs[:, 0] == t, 1])
-                counts += np.bincount(tile, minlength=layout.count)
-                footprint.append(np.unique(cell_keys(xyz, coarse)))
+                keys, per_key = np.unique(cell_keys(xyz, cell), return_counts=True)
+                tile = _cell_owners(layout, keys, cell)
+                for t in np.unique(tile):
+                    owned[int(t)].append(keys[tile == t])
+                counts += np.bincount(tile, weights=per_key, minlength=layout.count).astype(
+                    np.int64
+                )
+                footprint.append(np.unique(cell_keys(_centres(keys, cell), coarse)))
             sizes.append(size)
             footprints.append(np.unique(np.concatenate(footprint)))
         owned_cells = [
@@ -80,9 +82,7 @@ class TileIndex:
         footprint = np.concatenate(footprints)
         frames = []
         for window in window_cells:  # the coarse cells holding a window cell's centre
-            i, j = cell_indices(window)
-            centres = np.column_stack([(i + 0.5) * cell, (j + 0.5) * cell])
-            touched = np.isin(footprint, np.unique(cell_keys(centres, coarse)))
+            touched = np.isin(footprint, np.unique(cell_keys(_centres(window, cell), coarse)))
             frames.append(np.unique(frame_of[touched]))
         sizes = np.asarray(sizes, dtype=np.int64)
         low = np.where(np.isfinite(low), low, 0.0)
@@ -97,5 +97,17 @@ class TileIndex:
         return np.isin(cell_keys(xyz, self.cell), self.window_cells[tile])
 
     def owned(self, xyz: np.ndarray, tile: int) -> np.ndarray:
-        """(N,) bool: tile `tile` owns the point (its station falls in the tile)."""
-        return self.layout.owner(self.layout.stations(xyz)) == tile
+        """(N,) bool: tile `tile` owns the point (it owns the point's cell)."""
+        return np.isin(cell_keys(xyz, self.cell), self.owned_cells[tile])
+
+
+def _centres(keys: np.ndarray, cell: float) -> np.ndarray:
+    i, j = cell_indices(keys)
+    return np.column_stack([(i + 0.5) * cell, (j + 0.5) * cell])
+
+
+def _cell_owners(layout: TileLayout, keys: np.ndarray, cell: float) -> np.ndarray:
+    """(K,) tile owning each cell: the tile of its centre's station. A cell, not each point,
+    is placed on the trajectory: a whole cell has one owner, and a frame of 100,000 points
+    touches only a few thousand cells."""
+    return layout.owner(layout.stations(_centres(keys, cell)))

@@ -185,21 +185,19 @@ def run_phantom_tiled(
     out: Path,
     length: float = TILE_LENGTH,
     halo: float | None = None,
-    progress: Callable[[str, float], None] | None = None,
+    progress: Progress | None = None,
     map_tiles: TileMap = in_process,
     baselines: bool = False,
-    index: TileIndex | None = None,
 ) -> TiledRun:
     """The survey tile by tile into `out`: each tile's files as it finishes, then the
     contract's files assembled from them. Tiles an earlier attempt finished with the same plan
     are not run again. The tiles are independent, so `map_tiles` may run them side by side on
     a cluster."""
     halo = phantom_halo(pipeline.config) if halo is None else halo
-    if index is None:
-        index = TileIndex.build(survey, length, halo, INDEX_CELL)
-    spec = PhantomTileSpec(
-        str(survey.source), survey.format, str(pipeline.model_path),
-        pipeline.config.model_dump_json(), str(out),
+    index = TileIndex.build(survey, length, halo, INDEX_CELL)
+    spec = PhantomTileSpec(  # absolute paths: a cluster's workers run elsewhere
+        str(Path(survey.source).resolve()), survey.format, str(pipeline.model_path.resolve()),
+        pipeline.config.model_dump_json(), str(Path(out).resolve()),
         tuple(np.floor(index.low).tolist()), pipeline.dense, baselines,
     )  # fmt: skip
     done = finished_tiles(out, spec.plan(index))
