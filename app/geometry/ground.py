@@ -39,10 +39,17 @@ class GroundModel:
         )
 
 
-def estimate_ground(xyz: np.ndarray, cell: float = 1.0, opening: int = 5) -> GroundModel:
-    lo = np.floor(xyz[:, :2].min(axis=0) / cell) * cell
+def estimate_ground(
+    xyz: np.ndarray, cell: float = 1.0, opening: int = 5, margin: int = 0
+) -> GroundModel:
+    """The ground under `xyz`. With `margin` >= `opening` the grid reaches that many empty cells
+    beyond the points on every side, so its edge never meets the opening of a cell with points:
+    the ground at a point then does not depend on how far the map reaches elsewhere (a tile's
+    window of a map gets the ground the whole map gets there). Without, the grid ends at the
+    points' bounding box, where the opening repeats the edge cells."""
+    lo = np.floor(xyz[:, :2].min(axis=0) / cell) * cell - margin * cell
     ij = np.floor((xyz[:, :2] - lo) / cell).astype(np.int64)
-    shape = tuple(ij.max(axis=0) + 1)
+    shape = tuple(ij.max(axis=0) + 1 + margin)
     flat = np.ravel_multi_index((ij[:, 0], ij[:, 1]), shape)
     # 5th percentile per cell: sort by (cell, z) once, pick the rank inside each cell
     order = np.lexsort((xyz[:, 2], flat))

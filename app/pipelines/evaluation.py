@@ -102,7 +102,6 @@ def _clutter(survey: Survey, labels: list[np.ndarray]) -> dict:
 
 def _phantom(survey: Survey, labels: list[np.ndarray]) -> dict:
     from app.core.labels import PillarClass
-    from app.geometry.ground import estimate_ground
     from app.io.accumulate import accumulate
     from app.metrics.classification import confusion_matrix, scores_from_confusion
     from app.pipelines.phantom.config import PhantomConfig
@@ -115,14 +114,14 @@ def _phantom(survey: Survey, labels: list[np.ndarray]) -> dict:
         static_and_moving,
     )
     from app.pipelines.phantom.network import CLASS_NAMES
-    from app.pipelines.phantom.pillars import build_pillar_map
+    from app.pipelines.phantom.pillars import build_pillar_map, phantom_ground
     from app.pipelines.phantom.point_labels import point_labels
 
     amap = accumulate(survey, with_reference=True)
     if "semantic" not in amap.reference:
         raise InputError(survey.source, "has no semantic reference labels (phantom needs them)")
     cfg = PhantomConfig()
-    ground = estimate_ground(amap.xyz, cfg.ground_cell, cfg.ground_opening)
+    ground = phantom_ground(amap.xyz, cfg)
     pm = build_pillar_map(amap.xyz, ground, cfg)
     semantic, moving = static_and_moving(amap.reference)
     reference = point_labels(pm, reference_pillar_labels(pm, semantic, moving))

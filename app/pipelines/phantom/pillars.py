@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from app.geometry.ground import GroundModel
+from app.geometry.ground import GroundModel, estimate_ground
 from app.pipelines.phantom.config import PhantomConfig
 
 _BIAS = 1 << 27  # voxel indices within +-2^27 (13,000 km at 0.1 m): UTM coordinates fit
@@ -85,6 +85,15 @@ class PillarMap:
             raise ValueError(f"{z} voxels per column do not split into {bands} bands")
         block = self.dense_block(px0 * per, py0 * per, nx * per, ny * per)
         return block.reshape(bands, z // bands, nx, per, ny, per).sum(axis=(1, 3, 5))
+
+
+def phantom_ground(xyz: np.ndarray, config: PhantomConfig) -> GroundModel:
+    """The ground the phantom pipeline measures heights from (runs, training, evaluation alike),
+    with a grid margin so that a tile's window gets the ground of the whole map
+    (`estimate_ground`'s `margin`)."""
+    return estimate_ground(
+        xyz, config.ground_cell, config.ground_opening, margin=config.ground_opening
+    )
 
 
 def build_pillar_map(

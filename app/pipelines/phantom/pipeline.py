@@ -15,13 +15,12 @@ import torch
 from app.core.errors import InputError
 from app.core.labels import PillarClass
 from app.core.progress import Progress
-from app.geometry.ground import estimate_ground
 from app.io.accumulate import AccumulatedMap, accumulate, accumulate_window
 from app.io.survey import Survey
 from app.pipelines.phantom.classify import classify_dense, classify_windows
 from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.model import DEFAULT_MODEL, load_model
-from app.pipelines.phantom.pillars import PillarMap, build_pillar_map
+from app.pipelines.phantom.pillars import PillarMap, build_pillar_map, phantom_ground
 from app.pipelines.phantom.point_labels import point_labels
 from app.pipelines.phantom.priors import apply_priors
 from app.pipelines.phantom.refine import refine
@@ -107,7 +106,7 @@ class PhantomPipeline:
             timings[name] = round(now - clock, 3)
             clock = now
 
-        ground = estimate_ground(amap.xyz, cfg.ground_cell, cfg.ground_opening)
+        ground = phantom_ground(amap.xyz, cfg)
         lap("ground")
         pm = build_pillar_map(amap.xyz, ground, cfg, amap.passes)
         lap("pillars")

@@ -15,6 +15,7 @@ from app.pipelines.phantom.evaluation.classification_metrics import (
     metric_counts,
     metrics_from_counts,
 )
+from app.pipelines.phantom.pillars import phantom_ground
 from app.pipelines.phantom.pipeline import PhantomPipeline
 from app.pipelines.phantom.tiled import phantom_halo, run_phantom_tiled
 
@@ -128,3 +129,24 @@ def test_a_frame_without_points_is_indexed_and_owns_nothing() -> None:
     )  # fmt: skip
     index = TileIndex.build(survey, length=41.0, halo=4.0)
     assert index.frame_sizes[7] == 0 and int(index.owned_points.sum()) == 60 * 400
+
+
+def test_a_windows_ground_is_the_whole_maps_ground() -> None:
+    """The ground grid reaches past the points by the opening's width, so its edge never
+    shapes the ground under a point: a tile's window whose points end where the whole map's go
+    on elsewhere (here laterally) gets the same ground under its own points."""
+    survey = _first_frames(36)
+    pipeline = PhantomPipeline(model_path=PROFILE_MODEL)
+    index = TileIndex.build(survey, 12.0, phantom_halo(pipeline.config))
+    whole = pipeline.accumulate(survey)
+    last = index.count - 1
+    part = pipeline.accumulate(
+        index.tile_survey(survey, last), lambda xyz: index.in_window(xyz, last), index.time0
+    )
+    assert part.xyz[:, 1].max() < whole.xyz[:, 1].max() - 5  # the map reaches further
+    own = part.xyz[index.owned(part.xyz, last)]
+    np.testing.assert_allclose(
+        phantom_ground(part.xyz, pipeline.config).height(own),
+        phantom_ground(whole.xyz, pipeline.config).height(own),
+        atol=1e-9,
+    )

@@ -26,14 +26,13 @@ import numpy as np
 import torch
 
 from app.core.labels import PillarClass
-from app.geometry.ground import estimate_ground
 from app.io.accumulate import accumulate
 from app.io.survey import Survey
 from app.pipelines.phantom.classify import band_tensor, window_tensor
 from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.evaluation.reference import reference_pillar_labels, static_and_moving
 from app.pipelines.phantom.network import CLASS_NAMES, CONTEXT_BANDS, CONTEXT_SPAN, COUNT_CLIP
-from app.pipelines.phantom.pillars import PillarMap, build_pillar_map
+from app.pipelines.phantom.pillars import PillarMap, build_pillar_map, phantom_ground
 
 N_CLASSES = len(CLASS_NAMES)
 TILE_PILLARS = 32  # windows are cut tile by tile so each dense block stays small
@@ -198,7 +197,7 @@ def labelled_pillars(
     if passes and lmap.passes is None:
         raise ValueError(f"{lmap.source}: no scanner passes (point times) for a passes network")
     xyz = rotate_about_z(lmap.xyz, angle) if angle else lmap.xyz
-    ground = estimate_ground(xyz, config.ground_cell, config.ground_opening)
+    ground = phantom_ground(xyz, config)
     pm = build_pillar_map(xyz, ground, config, lmap.passes if passes else None)
     return pm, reference_pillar_labels(pm, lmap.semantic, lmap.moving)
 

@@ -21,12 +21,11 @@ import numpy as np
 import torch
 
 from app.core.progress import Progress
-from app.geometry.ground import estimate_ground
 from app.metrics.classification import Scores
 from app.pipelines.phantom.classify import band_tensor
 from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.network import PillarCNN
-from app.pipelines.phantom.pillars import build_pillar_map
+from app.pipelines.phantom.pillars import build_pillar_map, phantom_ground
 from app.pipelines.phantom.training.dataset import (
     Samples,
     balanced,
@@ -86,7 +85,7 @@ def labelled_samples(
         angle = 0.0 if r == 0 else float(rng.uniform(0.0, 2.0 * np.pi))
         xyz = rotate_about_z(lmap.xyz, angle, pivot) if angle else lmap.xyz
         turned = rotate_about_z(centres, angle, pivot) if angle else centres
-        ground = estimate_ground(xyz, config.ground_cell, config.ground_opening)
+        ground = phantom_ground(xyz, config)
         pm = build_pillar_map(xyz, ground, config, lmap.passes)
         index = _lookup(pm.pillars, np.floor(turned[:, :2] / cs).astype(np.int64))
         keep = index >= 0
