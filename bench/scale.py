@@ -10,7 +10,7 @@ length. Prints a table and appends it to RESULTS.md.
             camera flying along the survey asks for them (server side; no browser)
 
 Each measurement runs in a fresh process (`one`) with a fresh local Dask cluster, so the peaks
-are that run's: a worker's is its whole life (`ru_maxrss`, read on the worker after the run).
+are that run's: a worker's is its whole life (`ru_maxrss` after each tile, in the tile's summary).
 Surveys are synthetic (app.simulate, `--scanner` profile or hdl64, scene mixed, seed 901),
 cached under $MMSCLEAN_DATA_DIR/cache/bench.
 
@@ -56,7 +56,6 @@ def run_one(km: float, scanner: str, workers: int) -> dict:
         started = time.perf_counter()
         report = run_phantom_to_folder(survey, Path(out), map_tiles=tile_map(settings))
         wall = time.perf_counter() - started
-        workers_peak = client.run(_peak_rss_mb)
         close_clients()
     tiles = report["tiles"]
     return {
@@ -66,7 +65,7 @@ def run_one(km: float, scanner: str, workers: int) -> dict:
         "points": report["counts"]["points"],
         "tiles": tiles["count"],
         "wall_s": round(wall, 1),
-        "worker_peak_mb": round(max(workers_peak.values()), 0),
+        "worker_peak_mb": round(tiles["worker_peak_mb"]),
         "run_peak_mb": round(_peak_rss_mb(), 0),
     }
 

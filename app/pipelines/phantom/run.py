@@ -64,6 +64,7 @@ def run_phantom_to_folder(
             "halo_m": run.index.layout.halo,
             "run": run.tiles_run,
             "kept_from_earlier_attempt": run.index.count - run.tiles_run,
+            "worker_peak_mb": run.worker_peak_mb,
         },
         "counts": {"frames": len(survey.frames), **run.counts},
         "timings": dict(run.timings),  # summed over the tiles

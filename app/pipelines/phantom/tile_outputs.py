@@ -49,6 +49,7 @@ class TileResult:
     pillars: dict[str, np.ndarray] = field(default_factory=dict)  # the pillars.npz columns
     metric_counts: dict | None = None  # additive metrics (reference labels present)
     timings: dict[str, float] = field(default_factory=dict)
+    peak_mb: float = 0.0  # the peak resident memory of the process that ran it, so far
 
 
 def tile_name(tile: int) -> str:
@@ -96,6 +97,7 @@ def write_tile(out: Path, result: TileResult, offset: np.ndarray) -> dict:
         "maps": maps,
         "metric_counts": result.metric_counts,
         "timings": result.timings,
+        "worker_peak_mb": round(result.peak_mb, 1),
     }
     write_json(folder / f"{name}.json", summary)
     return summary
@@ -169,4 +171,6 @@ def _totals(summaries: list[dict]) -> dict:
         for step, seconds in s["timings"].items():
             timings[step] = round(timings.get(step, 0.0) + seconds, 3)
     counts["pillars_per_class"] = per_class
-    return {"counts": counts, "metric_counts": metric_counts, "timings": timings}
+    peak = max((s.get("worker_peak_mb", 0.0) for s in summaries), default=0.0)
+    return {"counts": counts, "metric_counts": metric_counts, "timings": timings,
+            "worker_peak_mb": peak}  # fmt: skip

@@ -12,6 +12,7 @@ pillar window (+-1.1 m) and its 31 x 31 pillar context (+-3.1 m), the 5 x 5 refi
 
 from __future__ import annotations
 
+import resource
 import time
 from collections.abc import Callable, Generator
 from contextlib import closing
@@ -93,6 +94,7 @@ def run_tile(
         pillars=pillars,
         metric_counts=counts,
         timings=result.timings,
+        peak_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,  # Linux: kB
     )
 
 
@@ -175,6 +177,7 @@ class TiledRun:
     counts: dict
     metric_counts: dict | None
     timings: dict[str, float]
+    worker_peak_mb: float  # the largest peak memory of a process that ran a tile
     index: TileIndex
     tiles_run: int
 
