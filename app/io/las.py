@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import copy
 import datetime
+import os
 from collections.abc import Iterator
 from functools import partial
 from pathlib import Path
@@ -330,29 +331,56 @@ def _column(
 MERGE_CHUNK = 1_000_000  # points per chunk when files are concatenated
 
 
-def concatenate_las(parts: list[Path], path: str | Path) -> int:
-    """Stream the points of `parts` (written by `write_laz` with one scale and offset, as a
-    tiled run's parts are) into one file, chunk by chunk: memory stays at one chunk whatever
-    the survey's length. Returns the number of points written."""
-    path = Path(path)
-    if not parts:
-        raise ValueError(f"{path}: no parts to concatenate")
-    with laspy.open(parts[0]) as first:
-        header = copy.deepcopy(first.header)  # the writer recounts points and bounds
-    written = 0
+class LasAppender:
+    """One LAS / LAZ file written from part files as they come (a tiled run appends each tile's
+    part once the tiles before it are in): the parts share one scale and offset, so points are
+    copied chunk by chunk. Written through `<path>.partial`, renamed by `close`; `abort` leaves
+    nothing."""
 
-    def write(f) -> None:
-        nonlocal written
-        with laspy.open(f, mode="w", header=header, do_compress=path.suffix.lower() == ".laz",
-                        closefd=False) as writer:  # fmt: skip
-            for part in parts:
-                with laspy.open(part) as reader:
-                    if not (np.array_equal(reader.header.scales, header.scales)
-                            and np.array_equal(reader.header.offsets, header.offsets)):  # fmt: skip
-                        raise ValueError(f"{part}: scale or offset differs from {parts[0]}")
-                    for chunk in reader.chunk_iterator(MERGE_CHUNK):
-                        writer.write_points(chunk)
-                        written += len(chunk)
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.partial = self.path.with_suffix(self.path.suffix + ".partial")
+        self.count = 0
+        self._file = None
+        self._writer = None
+        self._first: Path | None = None
+        self._scales = self._offsets = None
 
-    write_atomically(path, write)
-    return written
+    def append(self, part: Path) -> None:
+        with laspy.open(part) as reader:
+            header = reader.header
+            if self._writer is None:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+                self._file = open(self.partial, "wb")  # noqa: SIM115 (closed by close / abort)
+                self._writer = laspy.open(
+                    self._file, mode="w", header=copy.deepcopy(header),  # recounted on close
+                    do_compress=self.path.suffix.lower() == ".laz", closefd=False,
+                )  # fmt: skip
+                self._first, self._scales, self._offsets = part, header.scales, header.offsets
+            elif not (np.array_equal(header.scales, self._scales)
+                      and np.array_equal(header.offsets, self._offsets)):  # fmt: skip
+                raise ValueError(f"{part}: scale or offset differs from {self._first}")
+            for chunk in reader.chunk_iterator(MERGE_CHUNK):
+                self._writer.write_points(chunk)
+                self.count += len(chunk)
+
+    def close(self) -> int:
+        """Finish the file under its name; the points written (0: nothing was appended, and
+        no file is made)."""
+        if self._writer is None:
+            return 0
+        self._writer.close()
+        self._file.close()
+        self._writer = self._file = None
+        os.replace(self.partial, self.path)
+        return self.count
+
+    def abort(self) -> None:
+        for handle in (self._writer, self._file):
+            try:
+                if handle is not None:
+                    handle.close()
+            except Exception:  # already failing: the partial file goes either way
+                pass
+        self._writer = self._file = None
+        self.partial.unlink(missing_ok=True)

@@ -18,7 +18,7 @@ from app.io.asprs import (
     AsprsClass,
     to_asprs,
 )
-from app.io.las import las_point_count, read_las, read_las_points, write_laz
+from app.io.las import LasAppender, las_point_count, read_las, read_las_points, write_laz
 from app.io.point_files import guarded
 from app.io.registry import open_survey
 from app.io.survey import MAP_FRAME_ID
@@ -449,3 +449,27 @@ def test_info_on_a_laz_with_a_garbage_chunk_count_says_one_line(tmp_path: Path):
     _patched(path, (_chunk_table_start(path) + 4, "<I", 0xFFFFFFFF))
     result = mmsclean("info", str(path), "--format", "las", "--check", timeout=30)
     assert_one_line_error(result, str(path), "claims 4,294,967,295 chunks")
+
+
+def test_parts_are_appended_into_one_file_and_a_failed_one_leaves_nothing(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    parts = []
+    for k in range(3):
+        xyz = rng.uniform(0, 50, (1000 + k, 3)) + [500_000.0, 5_000_000.0, 0.0]
+        parts.append((write_laz(tmp_path / f"p{k}.laz", xyz, offset=[500_000, 5_000_000, 0],
+                                source_index=np.arange(len(xyz))), xyz))  # fmt: skip
+    appender = LasAppender(tmp_path / "all.laz")
+    for path, _ in parts:
+        appender.append(path)
+    assert appender.close() == 3003
+    merged = laspy.read(tmp_path / "all.laz")
+    np.testing.assert_allclose(merged.xyz, np.concatenate([x for _, x in parts]), atol=6e-4)
+    assert np.asarray(merged["source_index"])[1000] == 0  # the second part starts again
+    other = write_laz(tmp_path / "other.laz", parts[0][1], offset=[499_000, 5_000_000, 0])
+    failing = LasAppender(tmp_path / "bad.laz")
+    failing.append(parts[0][0])
+    with pytest.raises(ValueError, match="offset"):
+        failing.append(other)
+    failing.abort()
+    assert not list(tmp_path.glob("bad.laz*"))
+    assert LasAppender(tmp_path / "none.laz").close() == 0 and not (tmp_path / "none.laz").exists()

@@ -6,8 +6,9 @@ workers): `NNNNN.npz` (its own points' frame, index and label; its own pillars' 
 posteriors and labels), `NNNNN.cleaned.laz` / `NNNNN.removed.laz`, and last `NNNNN.json`,
 its summary. A tile is done when its summary exists: a resumed run reruns only the others, as
 long as `plan.json` (survey, model, configuration, tiles) is the same; a changed plan starts
-the tiles afresh. Assembly: labels per frame filled on disk (`outputs.start_frame_labels`),
-the LAZ parts streamed into one file each (`io.las.concatenate_las`), the pillars joined.
+the tiles afresh. Assembly (`Assembly`, while later tiles still run): labels per frame filled on
+disk (`outputs.start_frame_labels`), the LAZ parts appended to one file each in tile order
+(`io.las.LasAppender`), the pillars joined.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import numpy as np
 
 from app.core.labels import PillarClass
 from app.io.asprs import PHANTOM_LABEL_TO_ASPRS, to_asprs
-from app.io.las import concatenate_las, write_laz
+from app.io.las import LasAppender, write_laz
 from app.pipelines.outputs import (
     commit_frame_labels,
     fill_frame_labels,
@@ -121,39 +122,57 @@ def finished_tiles(out: Path, plan: dict) -> dict[int, dict]:
     return done
 
 
-def assemble(
-    out: Path, frame_ids: list[str], frame_sizes: np.ndarray, summaries: list[dict]
-) -> dict:
-    """The contract's files from the tiles' (labels, cleaned / removed LAZ, pillars.npz) and
-    the run's counts; returns {"files", "counts", "metric_counts", "timings"}."""
-    out = Path(out)
-    folder = out / TILES
-    summaries = sorted(summaries, key=lambda s: s["tile"])
-    start_frame_labels(out, dict(zip(frame_ids, frame_sizes.tolist(), strict=True)))
-    columns: dict[str, list[np.ndarray]] = {}
-    for summary in summaries:
-        with np.load(folder / f"{tile_name(summary['tile'])}.npz") as data:
+class Assembly:
+    """The contract's files built from the tiles' as they finish, while later tiles still run:
+    each tile's labels go into the frames' label files on disk, its pillars are kept (a few
+    bytes per pillar), and its LAZ parts are appended to cleaned.laz / removed.laz as soon as
+    every tile before it is in (the maps keep tile order whatever order tiles finish in)."""
+
+    def __init__(self, out: Path, frame_ids: list[str], frame_sizes: np.ndarray):
+        self.out, self.folder, self.frame_ids = Path(out), Path(out) / TILES, frame_ids
+        start_frame_labels(self.out, dict(zip(frame_ids, frame_sizes.tolist(), strict=True)))
+        self.columns: dict[str, list[tuple[int, np.ndarray]]] = {}
+        self.summaries: dict[int, dict] = {}
+        self.maps = {kind: LasAppender(self.out / f"{kind}.laz") for kind in MAPS}
+        self._next = 0  # the first tile whose maps are not appended yet
+
+    def add(self, summary: dict) -> None:
+        tile = int(summary["tile"])
+        with np.load(self.folder / f"{tile_name(tile)}.npz") as data:
             frame, index, labels = data["frame"], data["index"], data["labels"]
             order = np.argsort(frame, kind="stable")
             frame, index, labels = frame[order], index[order], labels[order]
             starts = np.flatnonzero(np.r_[True, frame[1:] != frame[:-1]])
             for a, b in zip(starts, np.r_[starts[1:], len(frame)], strict=True):
-                fill_frame_labels(out, frame_ids[int(frame[a])], index[a:b], labels[a:b])
+                fill_frame_labels(self.out, self.frame_ids[int(frame[a])], index[a:b], labels[a:b])
             for key in data.files:
                 if key.startswith("pillar_"):
-                    columns.setdefault(key.removeprefix("pillar_"), []).append(data[key])
-    commit_frame_labels(out, frame_ids)
-    files = {}
-    for kind in MAPS:
-        parts = [folder / s["maps"][kind] for s in summaries if kind in s["maps"]]
-        if parts:
-            concatenate_las(parts, out / f"{kind}.laz")
-            files[kind] = f"{kind}.laz"
-    pillars = {k: np.concatenate(v) for k, v in columns.items()}
-    cell_size = float(pillars.pop("cell_size")[0]) if "cell_size" in pillars else 0.0
-    np.savez_compressed(out / "pillars.npz", cell_size=cell_size, **pillars)
-    files["pillars"] = "pillars.npz"
-    return {"files": files, **_totals(summaries)}
+                    self.columns.setdefault(key.removeprefix("pillar_"), []).append(
+                        (tile, data[key])
+                    )
+        self.summaries[tile] = summary
+        while self._next in self.summaries:
+            for kind, part in self.summaries[self._next]["maps"].items():
+                self.maps[kind].append(self.folder / part)
+            self._next += 1
+
+    def finish(self) -> dict:
+        """The files completed; returns {"files", "counts", "metric_counts", "timings",
+        "worker_peak_mb"}."""
+        commit_frame_labels(self.out, self.frame_ids)
+        files = {kind: f"{kind}.laz" for kind in MAPS if self.maps[kind].close()}
+        pillars = {
+            key: np.concatenate([values for _, values in sorted(parts, key=lambda p: p[0])])
+            for key, parts in self.columns.items()
+        }
+        cell_size = float(pillars.pop("cell_size")[0]) if "cell_size" in pillars else 0.0
+        np.savez_compressed(self.out / "pillars.npz", cell_size=cell_size, **pillars)
+        files["pillars"] = "pillars.npz"
+        return {"files": files, **_totals(list(self.summaries.values()))}
+
+    def abort(self) -> None:
+        for appender in self.maps.values():
+            appender.abort()
 
 
 def _totals(summaries: list[dict]) -> dict:

@@ -29,7 +29,7 @@ from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.evaluation.classification_metrics import metric_counts
 from app.pipelines.phantom.network import CONTEXT_SPAN
 from app.pipelines.phantom.pipeline import PhantomPipeline
-from app.pipelines.phantom.tile_outputs import TileResult, assemble, finished_tiles, write_tile
+from app.pipelines.phantom.tile_outputs import Assembly, TileResult, finished_tiles, write_tile
 
 TILE_LENGTH = 100.0  # metres of trajectory per tile
 INDEX_CELL = 2.0  # metres: the grid a tile's own points and its halo are kept on
@@ -219,18 +219,25 @@ def run_phantom_tiled(
     if len(missing) <= 1:  # one tile fits a worker's memory anyway: no round trip to a cluster
         fn, map_tiles = partial(phantom_tile, progress=steps), in_process
     report(f"{len(done)} of {index.count} tiles")
-    # closed on the way out, a cancel (raised by `progress`) included: a cluster's map then
-    # cancels the tiles still queued or running
-    with closing(map_tiles(fn, spec, index, missing)) as finished:
-        for summary in finished:
-            done[int(summary["tile"])] = summary
-            report(f"{len(done)} of {index.count} tiles")
-    owned = sum(s["points"] for s in done.values())
-    if owned != int(index.frame_sizes.sum()):
-        raise RuntimeError(
-            f"tiles labelled {owned} of {int(index.frame_sizes.sum())} points: a tile lost "
-            "points it owns"
-        )
-    frame_ids = [f.frame_id for f in survey.frames]
-    assembled = assemble(out, frame_ids, index.frame_sizes, list(done.values()))
+    assembly = Assembly(out, [f.frame_id for f in survey.frames], index.frame_sizes)
+    try:
+        for summary in done.values():  # an earlier attempt's
+            assembly.add(summary)
+        # closed on the way out, a cancel (raised by `progress`) included: a cluster's map
+        # then cancels the tiles still queued or running
+        with closing(map_tiles(fn, spec, index, missing)) as finished:
+            for summary in finished:
+                done[int(summary["tile"])] = summary
+                assembly.add(summary)  # while the other tiles run
+                report(f"{len(done)} of {index.count} tiles")
+        owned = sum(s["points"] for s in done.values())
+        if owned != int(index.frame_sizes.sum()):
+            raise RuntimeError(
+                f"tiles labelled {owned} of {int(index.frame_sizes.sum())} points: a tile lost "
+                "points it owns"
+            )
+        assembled = assembly.finish()
+    except BaseException:
+        assembly.abort()
+        raise
     return TiledRun(**assembled, index=index, tiles_run=len(missing))
