@@ -95,12 +95,12 @@ def close_clients() -> None:
 def tile_map(settings: Settings) -> Callable[..., Iterator[Any]]:
     """A `map_tiles` for the tiled runners: `fn(spec, index, tile)` for every tile on the
     settings' cluster (`tile_client`, connected on the first call), results in the order they
-    finish. The tile index travels once per worker."""
+    finish. The tile index travels inside every task (a few MB), not scattered: scattered data
+    is lost with the workers holding it, and a task that needs it could never run again."""
 
     def map_tiles(fn: Callable[..., Any], spec: Any, index: Any, tiles: list[int]):
         client = tile_client(settings)
-        shared = client.scatter(index, broadcast=True)
-        futures = [client.submit(fn, spec, shared, tile, pure=False) for tile in tiles]
+        futures = [client.submit(fn, spec, index, tile, pure=False) for tile in tiles]
         try:
             for future in as_completed(futures):
                 yield future.result()
