@@ -3,7 +3,8 @@
 Each tile reads the frames that reach its window (its own points plus the halo,
 `io.tile_index`), runs the whole pipeline there (`PhantomPipeline.run_map`) and keeps the results
 of the points and pillars it owns, written as soon as it finishes (`tile_outputs`); the run's
-files are assembled from the tiles' at the end, and a rerun keeps the finished ones. The halo covers
+files are assembled from the tiles' while later tiles run, and a rerun keeps the finished ones.
+The halo covers
 every step's reach, so the labels agree with a run on the whole map: the network's 11 x 11
 pillar window (+-1.1 m) and its 31 x 31 pillar context (+-3.1 m), the 5 x 5 refinement vote
 (+-0.4 m), the ground model's opening and cells (`PhantomConfig.ground_opening`), and the
@@ -170,7 +171,7 @@ def in_process(fn, spec: PhantomTileSpec, index: TileIndex, tiles: list[int]):
 
 @dataclass
 class TiledRun:
-    """A tiled run's outcome: the assembled files and totals (`tile_outputs.assemble`), the
+    """A tiled run's outcome: the assembled files and totals (`tile_outputs.Assembly`), the
     tile index, and how many tiles this attempt ran (the rest came from an earlier one)."""
 
     files: dict[str, str]
