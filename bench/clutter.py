@@ -33,8 +33,7 @@ from app.pipelines.clutter.fusion import fuse
 from app.pipelines.clutter.masking import mask_points
 from app.pipelines.clutter.motion import object_shape, register_many
 from app.pipelines.clutter.pipeline import ClutterPipeline, ClutterResult
-from app.pipelines.clutter.run import segmented_class_maps
-from app.pipelines.clutter.segmenter import ESPNetv2Segmenter
+from app.pipelines.clutter.segmenter import ESPNetv2Segmenter, segmented_class_maps
 from bench.common import append_results, markdown_table
 
 COMMAND = (

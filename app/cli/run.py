@@ -67,6 +67,18 @@ def cluster_settings(scheduler: str | None):
         ) from None
 
 
+TileLengthOption = Annotated[
+    float, typer.Option(min=20.0, max=1000.0, help="metres of trajectory per tile")
+]
+SchedulerOption = Annotated[
+    str | None,
+    typer.Option(
+        help="Dask scheduler that runs the tiles (tcp://host:8786; default "
+        "MMSCLEAN_DASK_SCHEDULER, else MMSCLEAN_WORKERS local processes)"
+    ),
+]
+
+
 @run_app.command("clutter")
 def run_clutter(
     source: SurveyFolder,
@@ -90,9 +102,13 @@ def run_clutter(
     ] = 0.1,
     threads: Annotated[int, typer.Option(help="worker threads, 0 = all cores")] = 0,
     overlays: Annotated[int, typer.Option(help="write mask overlays of the first N frames")] = 0,
+    tile_length: TileLengthOption = 100.0,
+    scheduler: SchedulerOption = None,
 ) -> None:
-    """Clutter removal (Lee et al.): camera masks, 3D expansion, free space, tracking."""
+    """Clutter removal (Lee et al.): camera masks, 3D expansion, free space, tracking, tile by
+    tile. Rerun into the same folder, it keeps the tiles an interrupted run finished."""
     from app.io import open_survey
+    from app.jobs.cluster import close_clients, tile_map
     from app.pipelines.clutter.config import ClutterConfig
     from app.pipelines.clutter.run import run_clutter_to_folder
 
@@ -110,8 +126,14 @@ def run_clutter(
         threads=threads,
     )
     survey = open_survey(source, fmt)
-    with stage_progress("clutter") as progress:
-        report = run_clutter_to_folder(survey, out, config, overlays=overlays, progress=progress)
+    try:
+        with stage_progress("clutter") as progress:
+            report, _ = run_clutter_to_folder(
+                survey, out, config, overlays, progress, tile_length,
+                tile_map(cluster_settings(scheduler)),
+            )  # fmt: skip
+    finally:
+        close_clients()
     print_report("clutter", report, out=out, mode=mode)
 
 
@@ -132,16 +154,8 @@ def run_phantom(
         bool, typer.Option(help="also score the paper's two baselines (needs reference labels)")
     ] = False,
     sensor: SensorOption = None,
-    tile_length: Annotated[
-        float, typer.Option(min=20.0, max=1000.0, help="metres of trajectory per tile")
-    ] = 100.0,
-    scheduler: Annotated[
-        str | None,
-        typer.Option(
-            help="Dask scheduler that runs the tiles (tcp://host:8786; default "
-            "MMSCLEAN_DASK_SCHEDULER, else MMSCLEAN_WORKERS local processes)"
-        ),
-    ] = None,
+    tile_length: TileLengthOption = 100.0,
+    scheduler: SchedulerOption = None,
 ) -> None:
     """Phantom removal (Nagy & Benedek): pillar 3D CNN on the accumulated map, tile by tile.
     Rerun into the same folder, it keeps the tiles an interrupted run finished."""

@@ -23,6 +23,9 @@ from typing import Any
 from dask.distributed import Client, LocalCluster, as_completed
 
 from app.core.settings import Settings
+from app.jobs.registry import JobContext
+
+TILES_PROGRESS = (0.02, 0.85)  # the share of a job's bar its tiles fill
 
 _lock = threading.Lock()
 _clients: dict[tuple, Client] = {}
@@ -108,3 +111,13 @@ def tile_map(settings: Settings) -> Callable[..., Iterator[Any]]:
             client.cancel(futures)
 
     return map_tiles
+
+
+def tile_progress(context: JobContext):
+    """The tiled run's `progress(message, fraction of the tiles)` as the job's fraction."""
+    start, end = TILES_PROGRESS
+
+    def progress(message: str, fraction: float) -> None:
+        context.progress(start + (end - start) * fraction, message)
+
+    return progress

@@ -14,17 +14,18 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 from sqlmodel import Session
 
 from app.core.errors import ConfigError, ConflictError, InputError
 from app.core.settings import Settings
 from app.io import open_survey
 from app.io.survey import Survey
+from app.jobs.cluster import tile_map, tile_progress
 from app.jobs.memory import (
     MEAN_RAY_M,
     SENSOR_REACH_M,
@@ -39,17 +40,9 @@ from app.jobs.registry import JobContext, task
 from app.jobs.task_config import validated
 from app.pipelines.clutter.accumulate import kept_and_removed
 from app.pipelines.clutter.config import ClutterConfig
-from app.pipelines.clutter.pipeline import ClutterPipeline
-from app.pipelines.clutter.review_units import apply_decisions, write_review_units
-from app.pipelines.clutter.run import (
-    reference_metrics,
-    run_clutter,
-    write_clutter_outputs,
-    write_maps,
-)
-from app.pipelines.clutter.segmenter import (
-    ESPNetv2Segmenter,
-)
+from app.pipelines.clutter.review_units import apply_decisions
+from app.pipelines.clutter.run import reference_metrics, run_clutter_to_folder, write_maps
+from app.pipelines.clutter.tiled import TILE_LENGTH, clutter_halo
 from app.pipelines.outputs import write_frame_labels, write_report
 from app.store import clutter_review
 from app.store.models import Decision
@@ -60,38 +53,38 @@ SEGMENTER_MB = 700.0  # ESPNetv2 and torch's buffers (measured: ~640 MB on Seman
 # a reviewer's decision as the review units' verdict: removed, kept, the pipeline's flag
 VERDICT = {Decision.approved: 1, Decision.rejected: 0, Decision.pending: -1}
 
-# share of the job's progress bar per pipeline stage: (start, span)
-_STAGES = {
-    "segmentation": (0.0, 0.3),
-    "frames": (0.3, 0.25),
-    "free space": (0.55, 0.1),
-    "tracking": (0.65, 0.0),
-    "done": (0.65, 0.0),
-}
-
 
 # --- run:clutter --------------------------------------------------------------------------
 
 
 def check_run_config(config: dict[str, Any], settings: Settings) -> None:
     """Refuse a bad `run:clutter` config when the job is queued (422), not in the worker."""
-    clutter_config(config)
+    clutter_job_config(config)
 
 
 def estimate_run(session: Session, survey: int | None, config: dict[str, Any]) -> MemoryEstimate:
-    """run:clutter's memory: its point arrays, a frame's ground grid, the segmentation
-    network, DUFOMap's octree (measured peak on SemanticKITTI 04, 1,234,476 points, defaults:
-    1,060 MB; this estimate: about 1,600 MB)."""
-    cfg = clutter_config(config)
+    """run:clutter's memory per tile worker: its frames' point arrays, a frame's ground grid,
+    the segmentation network, DUFOMap's octree over the tile's rays (measured peak on
+    SemanticKITTI 04, 1,234,476 points in one tile, defaults: 1,060 MB; this estimate: about
+    1,600 MB). A tile reads its share of the survey's frames by trajectory length: the length
+    is taken as the trajectory's bounding-box diagonal, shorter than a winding drive, so the
+    share comes out generous."""
+    cfg, tile_length = clutter_job_config(config)
     if survey is None:
         return MemoryEstimate("no survey")
     footprint = survey_footprint(session, survey)
+    low, high = np.asarray(footprint.trajectory_min), np.asarray(footprint.trajectory_max)
+    tile_reach = tile_length + 2 * clutter_halo(cfg)
+    share = min(1.0, tile_reach / max(float(np.linalg.norm(high - low)), 1.0))
+    # shorter tiles need less while the survey spans several; a survey within one tile cannot
+    field = "config.tile_length" if share < 1.0 else "survey_id"
     reach = 2 * SENSOR_REACH_M
     estimate = MemoryEstimate(survey_text(footprint))
     estimate.add(
-        "survey_id",
-        points_mb(footprint, CLUTTER_BYTES_PER_POINT),
-        f"{CLUTTER_BYTES_PER_POINT:.0f} bytes per point",
+        field,
+        points_mb(footprint, CLUTTER_BYTES_PER_POINT * share),
+        f"{CLUTTER_BYTES_PER_POINT:.0f} bytes per point of a {tile_reach:.0f} m tile "
+        f"({share:.0%} of the survey)",
     )
     estimate.add(
         "config.ground_cell",
@@ -103,9 +96,9 @@ def estimate_run(session: Session, survey: int | None, config: dict[str, Any]) -
     if cfg.use_free_space:
         estimate.add(
             "config.dufomap_resolution",
-            dufomap_mb(footprint, cfg.dufomap_resolution),
-            f"{cfg.dufomap_resolution:g} m free-space voxels over {extent_text(footprint)}, "
-            f"rays of about {MEAN_RAY_M:.0f} m",
+            dufomap_mb(footprint, cfg.dufomap_resolution) * share,
+            f"{cfg.dufomap_resolution:g} m free-space voxels over a tile's share of "
+            f"{extent_text(footprint)}, rays of about {MEAN_RAY_M:.0f} m",
         )
     return estimate
 
@@ -117,26 +110,25 @@ def check_recompute_config(config: dict[str, Any], settings: Settings) -> None:
 
 @task(clutter_review.RUN_KIND, check=check_run_config, estimate=estimate_run)
 def run_clutter_task(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
-    """The pipeline on the job's survey, its contract files in the workdir, and its instances
-    (each pending) in the store in place of the previous run's."""
-    cfg = clutter_config(config)
+    """The pipeline on the job's survey tile by tile (on the server's tile cluster), its
+    contract files in the workdir, and its instances (each pending) in the store in place of
+    the previous run's. A resumed job keeps the tiles its earlier attempt finished."""
+    cfg, tile_length = clutter_job_config(config)
     survey = _open_survey(context)
-    camera = ClutterPipeline(cfg).camera(survey)  # None: no images to segment
-    segmenter = None if camera is None else ESPNetv2Segmenter(context.settings.weights_dir)
-    result, cached, segmentation_s = run_clutter(
-        survey,
-        cfg,
-        segmenter,
-        _pipeline_progress(context),
-        context.settings.cache_dir / "segmentation",
-    )
-    context.progress(0.7, "writing the cleaned map")
+    report, run = run_clutter_to_folder(
+        survey, context.workdir, cfg, progress=tile_progress(context), tile_length=tile_length,
+        map_tiles=tile_map(context.settings), review=True,
+        cache_dir=context.settings.cache_dir / "segmentation",
+        weights_dir=context.settings.weights_dir,
+    )  # fmt: skip
+    tiles = report["tiles"]
+    context.log.info(
+        "%d tiles of %.0f m: %d run, %d kept from an earlier attempt",
+        tiles["count"], tiles["length_m"], tiles["run"], tiles["kept_from_earlier_attempt"],
+    )  # fmt: skip
+    context.progress(0.9, "instances for review")  # last chance to cancel
     out = context.workdir
-    report = write_clutter_outputs(survey, out, cfg, result, cached, segmentation_s)
-    context.progress(0.8, "instances for review")
-    rows = write_review_units(
-        survey, result, cfg, camera, cached, out / "instances", context.progress
-    )
+    rows = run.rows
     with Session(context.engine) as session:
         clutter_review.replace_instances(
             session, survey_id(context), rows, context.user_id, context.job_id
@@ -160,8 +152,27 @@ def run_clutter_task(context: JobContext, config: dict[str, Any]) -> dict[str, A
     }
 
 
+def clutter_job_config(config: dict[str, Any]) -> tuple[ClutterConfig, float]:
+    """The job config as a ClutterConfig and the tile length; an unknown key or a bad value
+    names the field."""
+    values = dict(config or {})
+    tiles = validated(ClutterTiles, {"tile_length": values.pop("tile_length", TILE_LENGTH)})
+    return clutter_config(values), tiles.tile_length
+
+
+class ClutterTiles(BaseModel):
+    """How a run:clutter job cuts the survey (the pipeline's parameters are ClutterConfig's)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    tile_length: float = Field(
+        TILE_LENGTH, ge=20.0, le=1000.0, description="metres of trajectory per tile"
+    )
+
+
 def clutter_config(config: dict[str, Any]) -> ClutterConfig:
-    """The job config as a ClutterConfig; an unknown key or a bad value names the field."""
+    """The pipeline parameters as a ClutterConfig; an unknown key or a bad value names the
+    field."""
     return validated(ClutterConfig, config, known=tuple(ClutterConfig.model_fields))
 
 
@@ -176,14 +187,6 @@ def _open_survey(context: JobContext) -> Survey:
         record = get_survey(session, survey_id(context))
         source, fmt = record.source_path, record.format
     return open_survey(Path(source), fmt)
-
-
-def _pipeline_progress(context: JobContext) -> Callable[[str, float], None]:
-    def report(stage: str, fraction: float) -> None:
-        start, span = _STAGES.get(stage, (0.65, 0.0))
-        context.progress(start + span * fraction, stage)
-
-    return report
 
 
 # --- clutter:recompute --------------------------------------------------------------------

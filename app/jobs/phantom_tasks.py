@@ -20,7 +20,7 @@ from app.core.bounds import RecordId
 from app.core.errors import ConfigError
 from app.core.settings import Settings
 from app.io import open_survey
-from app.jobs.cluster import tile_map
+from app.jobs.cluster import tile_map, tile_progress
 from app.jobs.memory import MemoryEstimate, points_mb, survey_text
 from app.jobs.model_choice import model_for_job
 from app.jobs.registry import JobContext, task
@@ -37,7 +37,6 @@ from app.store.surveys import get_survey, survey_footprint
 
 KIND = "run:phantom"
 # overall progress at the start and end of the tiles; the rest is assembling and ingestion
-TILES_PROGRESS = (0.02, 0.85)
 INGEST_AT = 0.9
 PHANTOM_BYTES_PER_POINT = 200.0  # map xyz, ground, pillar keys, sort buffers, labels
 
@@ -91,16 +90,6 @@ def model_version_for(
 ) -> tuple[ModelVersion, ModelChoice]:
     """The version row of the checkpoint to run and why (`model_choice.model_for_job`)."""
     return model_for_job(session, Pipeline.phantom, survey, model_id, SHIPPED, read_card)
-
-
-def tile_progress(context: JobContext):
-    """The tiled run's `progress(message, fraction of the tiles)` as the job's fraction."""
-    start, end = TILES_PROGRESS
-
-    def progress(message: str, fraction: float) -> None:
-        context.progress(start + (end - start) * fraction, message)
-
-    return progress
 
 
 def model_label_rows(pillars_npz: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

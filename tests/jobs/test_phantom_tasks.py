@@ -15,14 +15,13 @@ from sqlmodel import Session, select
 
 from app.core.errors import ConfigError
 from app.core.settings import Settings
+from app.jobs.cluster import TILES_PROGRESS, tile_progress
 from app.jobs.phantom_tasks import (
     INGEST_AT,
-    TILES_PROGRESS,
     model_label_rows,
     model_version_for,
     parse_config,
     run_phantom,
-    tile_progress,
 )
 from app.pipelines.phantom.model import DEFAULT_MODEL, PAPER_MODEL
 from app.store.model_labels import store_model_labels

@@ -32,10 +32,17 @@ class FreeSpaceMap:
     space (`flags`), so a long drive never has to sit in memory at once."""
 
     def __init__(
-        self, resolution: float = 0.1, d_s: float = 0.2, d_p: int = 1, threads: int = 0
+        self,
+        resolution: float = 0.1,
+        d_s: float = 0.2,
+        d_p: int = 1,
+        threads: int = 0,
+        origin: np.ndarray | None = None,
     ) -> None:
+        """`origin`: the world point frames are re-centred on (default: the first frame's
+        sensor); the tiles of one survey share it, so their voxels are the same voxels."""
         self._engine = _dufomap_class()(resolution, d_s, d_p, num_threads=threads)
-        self._origin: np.ndarray | None = None
+        self._origin = None if origin is None else np.array(origin, dtype=np.float64)[:3]
         self._propagated = False
 
     def _local(self, pose: np.ndarray) -> np.ndarray:

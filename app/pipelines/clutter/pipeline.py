@@ -50,6 +50,8 @@ class ClutterResult:
     evidence: list[FrameEvidence]
     tracks: TrackEvidence | None
     timings: dict[str, float] = field(default_factory=dict)
+    # per frame of the result, its index in the survey (a tile runs some of the frames)
+    frame_numbers: np.ndarray | None = None
 
     def frame_labels(self) -> dict[str, np.ndarray]:
         """The contract's labels: per frame, uint8 1 = removed, 0 = kept."""
@@ -71,28 +73,37 @@ class ClutterPipeline:
             raise ConfigError("camera", f"survey {survey.name} has no camera {name!r} ({known})")
         return survey.cameras[name]
 
-    def run(self, survey: Survey, progress: Progress | None = None) -> ClutterResult:
+    def run(
+        self, survey: Survey, progress: Progress | None = None, only: np.ndarray | None = None
+    ) -> ClutterResult:
+        """Every frame of the survey, or the frames whose indices `only` lists (ascending: a
+        tile's, `tiled.py`): they are numbered, timed and re-centred as in the whole survey,
+        so a frame's evidence does not depend on which frames ran with it."""
         cfg = self.config
         report = progress or (lambda stage, fraction: None)
         clock = Stopwatch()
         camera = self.camera(survey)
         if camera is not None and self.class_maps is None:
             raise ConfigError("class_maps", "a camera is in use but no segmenter was given")
+        every = list(survey.frames)
+        times = _frame_times(every)
+        numbers = np.arange(len(every)) if only is None else np.asarray(only, dtype=np.int64)
+        frames = [every[int(k)] for k in numbers]
         space = None
         if cfg.use_free_space:
+            origin = every[0].pose[:3, 3] if every else None
             space = FreeSpaceMap(
-                cfg.dufomap_resolution, cfg.dufomap_d_s, cfg.dufomap_d_p, cfg.threads
+                cfg.dufomap_resolution, cfg.dufomap_d_s, cfg.dufomap_d_p, cfg.threads, origin
             )
         tracker = Tracker(cfg.track_gate) if cfg.use_tracking else None
-        frames = list(survey.frames)
-        times = _frame_times(frames)
         evidence: list[FrameEvidence] = []
         observations: list[Observation] = []
         for i, frame in enumerate(frames):  # steps 1-5 (free space: rays in)
             report("frames", i / max(len(frames), 1))
             with clock("read"):
                 xyz = frame.points().xyz
-            ev, obs = self._frame(i, times[i], frame, xyz, camera, clock)
+            number = int(numbers[i])
+            ev, obs = self._frame(number, times[number], frame, xyz, camera, clock)
             if tracker is not None:
                 with clock("tracking"):
                     tracker.step(obs)
@@ -127,6 +138,7 @@ class ClutterPipeline:
             evidence=evidence,
             tracks=tracks,
             timings=clock.rounded(),
+            frame_numbers=numbers,
         )
 
     def _frame(

@@ -156,20 +156,25 @@ def write_review_units(
     cached: CachedSegmenter | None,
     folder: Path,
     progress: Callable[[float, str], object] | None = None,
+    keep: np.ndarray | None = None,
 ) -> list[dict[str, Any]]:
-    """Per frame the membership npz and the instances' mask images; returns the store rows
-    (plain dicts: the job puts them in the store). `progress(fraction, message)` sees each
-    frame on the job's bar."""
+    """Per frame of the result (or those at the positions `keep` lists: a tile's own) the
+    membership npz and the instances' mask images; returns the store rows (plain dicts: the job
+    puts them in the store). `progress(fraction, message)` sees each frame on the job's bar."""
     folder.mkdir(parents=True, exist_ok=True)
     moving = movable = track_class = None
     if result.tracks is not None:
         moving, movable = track_decisions(result.tracks, config)
         track_class = np.where(movable, result.tracks.camera_class, 0)
     rows: list[dict[str, Any]] = []
-    frames = list(survey.frames)
-    for i, frame in enumerate(frames):
+    numbers = result.frame_numbers
+    if numbers is None:
+        numbers = np.arange(len(result.frame_ids))
+    positions = np.arange(len(numbers)) if keep is None else np.asarray(keep, dtype=np.int64)
+    for n, i in enumerate(positions.tolist()):
         if progress is not None:
-            progress(0.8 + 0.2 * i / max(len(frames), 1), "instances for review")
+            progress(0.8 + 0.2 * n / max(len(positions), 1), "instances for review")
+        frame = survey.frames[int(numbers[i])]
         xyz = frame.points().xyz
         cluster_track = None if result.tracks is None else result.tracks.cluster_track[i]
         units = frame_instances(

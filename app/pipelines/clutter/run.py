@@ -1,5 +1,6 @@
-"""A clutter run from survey to output folder: segmentation (cached), the pipeline, the
-contract's files (labels, cleaned and removed LAZ), overlays and the report."""
+"""A clutter run from survey to output folder, tile by tile (`tiled`): the contract's files
+(labels, cleaned and removed LAZ), overlays and the report; and the maps and scores of given
+per-frame decisions (the web app's recompute, `mmsclean evaluate`)."""
 
 from __future__ import annotations
 
@@ -13,123 +14,75 @@ from app.core.progress import Progress
 from app.io.accumulate import AccumulatedMap
 from app.io.asprs import REMOVED_CLUTTER_ASPRS
 from app.io.las import write_laz
-from app.io.survey import Frame, Survey
-from app.pipelines.clutter.accumulate import kept_and_removed
+from app.io.survey import Survey
 from app.pipelines.clutter.config import ClutterConfig
-from app.pipelines.clutter.pipeline import ClassMaps, ClutterPipeline, ClutterResult
-from app.pipelines.clutter.segmenter import CachedSegmenter, Segmenter, overlay_png
-from app.pipelines.outputs import write_frame_labels, write_report
-
-
-def segmented_class_maps(
-    survey: Survey,
-    camera: str,
-    segmenter: Segmenter | None = None,
-    progress: Progress | None = None,
-    cache_dir: Path | None = None,
-) -> tuple[ClassMaps, CachedSegmenter]:
-    """Segment every frame's image of `camera` in batches (cached per image file, under
-    `cache_dir`, default the settings' cache), then hand the pipeline a per-frame lookup."""
-    if segmenter is None:
-        from app.pipelines.clutter.segmenter import ESPNetv2Segmenter
-
-        segmenter = ESPNetv2Segmenter()
-    cached = CachedSegmenter(segmenter, cache_dir)
-    paths = [f.image_paths[camera] for f in survey.frames if camera in f.image_paths]
-    step = max(cached.chunk, 1)
-    for start in range(0, len(paths), step):
-        if progress:
-            progress("segmentation", start / max(len(paths), 1))
-        cached.segment_files(paths[start : start + step])
-
-    def class_map(frame: Frame) -> np.ndarray:
-        return cached.segment_files([frame.image_paths[camera]])[0]
-
-    return class_map, cached
-
-
-def run_clutter(
-    survey: Survey,
-    config: ClutterConfig | None = None,
-    segmenter: Segmenter | None = None,
-    progress: Progress | None = None,
-    cache_dir: Path | None = None,
-) -> tuple[ClutterResult, CachedSegmenter | None, float]:
-    """The pipeline with its segmentation; returns the result, the cache and the network time."""
-    pipeline = ClutterPipeline(config or ClutterConfig())
-    camera = pipeline.camera(survey)
-    cached = None
-    started = time.perf_counter()
-    if camera is not None:
-        pipeline.class_maps, cached = segmented_class_maps(
-            survey, camera.name, segmenter, progress, cache_dir
-        )
-    segmentation_s = time.perf_counter() - started
-    return pipeline.run(survey, progress), cached, segmentation_s
+from app.pipelines.clutter.evaluation.removal_metrics import metrics_from_counts
+from app.pipelines.clutter.pipeline import ClutterPipeline
+from app.pipelines.clutter.segmenter import CachedSegmenter, overlay_png
+from app.pipelines.clutter.tiled import (
+    TILE_LENGTH,
+    ClutterTiledRun,
+    cached_segmentation,
+    reflectance,
+    run_clutter_tiled,
+)
+from app.pipelines.outputs import write_report
+from app.pipelines.tiling import TileMap, in_process
 
 
 def run_clutter_to_folder(
     survey: Survey,
     out: Path,
     config: ClutterConfig | None = None,
-    segmenter: Segmenter | None = None,
     overlays: int = 0,
     progress: Progress | None = None,
-) -> dict:
+    tile_length: float = TILE_LENGTH,
+    map_tiles: TileMap = in_process,
+    review: bool = False,
+    cache_dir: Path | None = None,
+    weights_dir: Path | None = None,
+) -> tuple[dict, ClutterTiledRun]:
+    """The survey tile by tile (`tiled`) into `out`, then the report; returns it and the run
+    (with `review`, the run's review rows for the web app's store). `map_tiles` may spread the
+    tiles over a cluster; tiles an earlier attempt in `out` finished are kept. The segmentation
+    network and its cache come from the settings unless named."""
     started = time.perf_counter()
     config = config or ClutterConfig()
-    result, cached, segmentation_s = run_clutter(survey, config, segmenter, progress)
-    return write_clutter_outputs(
-        survey, out, config, result, cached, segmentation_s, overlays, started
-    )
-
-
-def write_clutter_outputs(
-    survey: Survey,
-    out: Path,
-    config: ClutterConfig,
-    result: ClutterResult,
-    cached: CachedSegmenter | None,
-    segmentation_s: float,
-    overlays: int = 0,
-    started: float | None = None,
-) -> dict:
-    """The contract's files of a finished run (labels, cleaned and removed LAZ, overlays,
-    report.json); the web app's job calls it between the run and its review ingestion."""
-    started = time.perf_counter() if started is None else started
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    write_frame_labels(out, result.frame_labels())
-    t0 = time.perf_counter()
-    kept, removed = kept_and_removed(survey, result.removed, config.voxel_dedup)
-    result.timings["accumulation"] = round(time.perf_counter() - t0, 3)
-    files = write_maps(out, kept, removed)
+    run = run_clutter_tiled(
+        config, survey, out, tile_length, progress=progress, map_tiles=map_tiles, review=review,
+        cache_dir=cache_dir, weights_dir=weights_dir,
+    )  # fmt: skip
+    files = dict(run.files)
     camera = ClutterPipeline(config).camera(survey)
-    if overlays and cached is not None and camera is not None:
-        files.update(_write_overlays(out, survey, camera.name, cached, overlays))
-    timings = {"segmentation_with_cache": round(segmentation_s, 3), **result.timings}
+    segmenter = None
+    if camera is not None:
+        cached = cached_segmentation(cache_dir, weights_dir)
+        segmenter = {"name": cached.name, "cache_hits": run.segmentation_cache_hits}
+        if overlays:
+            files.update(_write_overlays(out, survey, camera.name, cached, overlays))
     report: dict = {
         "pipeline": "clutter",
         "survey": {"name": survey.name, "format": survey.format, "source": str(survey.source)},
         "config": config.model_dump(),
-        "segmenter": None if cached is None else {"name": cached.name, "cache_hits": cached.hits},
-        "counts": {
-            "frames": len(result.frame_ids),
-            "points": int(sum(len(r) for r in result.removed)),
-            "points_in_view": int(sum(int(v.sum()) for v in result.in_view)),
-            "removed_points": int(sum(int(r.sum()) for r in result.removed)),
-            "map_points": int(len(kept.xyz)),
-            "tracks": 0 if result.tracks is None else len(result.tracks.tracks),
+        "segmenter": segmenter,
+        "tiles": {
+            "count": run.tiles.count,
+            "length_m": run.tiles.layout.length,
+            "halo_m": run.tiles.layout.halo,
+            "run": run.tiles_run,
+            "kept_from_earlier_attempt": run.tiles.count - run.tiles_run,
+            "worker_peak_mb": run.worker_peak_mb,
         },
-        "timings": timings,
+        "counts": dict(run.counts),
+        "timings": dict(run.timings),  # summed over the tiles
         "files": files,
     }
-    metrics = reference_metrics(survey, result.removed, result.in_view)
-    if metrics is not None:
-        report["metrics"] = metrics
+    if run.metric_counts is not None:
+        report["metrics"] = metrics_from_counts(run.metric_counts)
     report["timings"]["total"] = round(time.perf_counter() - started, 3)
     write_report(out, report)
-    return report
+    return report, run
 
 
 def reference_metrics(
@@ -161,17 +114,11 @@ def write_maps(out: Path, kept: AccumulatedMap, removed: AccumulatedMap) -> dict
             classification=np.full(n, REMOVED_CLUTTER_ASPRS if label else 1, dtype=np.uint8),
             source_frame=world.source_frame,
             source_index=world.source_index,
-            intensity=None if world.intensity is None else _reflectance(world.intensity),
+            intensity=None if world.intensity is None else reflectance(world.intensity),
             creation_date=datetime.date.today(),
         )
         written[name.removesuffix(".laz")] = name
     return written
-
-
-def _reflectance(values: np.ndarray) -> np.ndarray:
-    """Reflectance 0..1 to the LAS 16-bit range; values already above 1 are kept as they are."""
-    values = np.asarray(values, dtype=np.float64)
-    return values * 65535.0 if values.size and values.max() <= 1.0 else values
 
 
 def _write_overlays(

@@ -18,7 +18,7 @@ from __future__ import annotations
 import hashlib
 import os
 import uuid
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
@@ -26,6 +26,8 @@ import cv2
 import numpy as np
 
 from app.core.errors import ConfigError, DependencyMissingError, InputError
+from app.core.progress import Progress
+from app.io.survey import Frame, Survey
 
 if TYPE_CHECKING:
     import torch
@@ -318,3 +320,28 @@ def overlay_png(image: np.ndarray, class_map: np.ndarray, path: Path, alpha: flo
     path = Path(path)
     _write_atomic(path, png.tobytes())
     return path
+
+
+def segmented_class_maps(
+    survey: Survey,
+    camera: str,
+    segmenter: Segmenter | None = None,
+    progress: Progress | None = None,
+    cache_dir: Path | None = None,
+) -> tuple[Callable[[Frame], np.ndarray], CachedSegmenter]:
+    """Segment every frame's image of `camera` in batches (cached per image file, under
+    `cache_dir`, default the settings' cache), then hand the pipeline a per-frame lookup."""
+    if segmenter is None:
+        segmenter = ESPNetv2Segmenter()
+    cached = CachedSegmenter(segmenter, cache_dir)
+    paths = [f.image_paths[camera] for f in survey.frames if camera in f.image_paths]
+    step = max(cached.chunk, 1)
+    for start in range(0, len(paths), step):
+        if progress:
+            progress("segmentation", start / max(len(paths), 1))
+        cached.segment_files(paths[start : start + step])
+
+    def class_map(frame: Frame) -> np.ndarray:
+        return cached.segment_files([frame.image_paths[camera]])[0]
+
+    return class_map, cached

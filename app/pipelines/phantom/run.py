@@ -14,8 +14,9 @@ from app.pipelines.phantom.evaluation.classification_metrics import metrics_from
 from app.pipelines.phantom.model import SHIPPED, read_card
 from app.pipelines.phantom.outputs import write_confusion_plots
 from app.pipelines.phantom.pipeline import PhantomPipeline
-from app.pipelines.phantom.tiled import TILE_LENGTH, TileMap, in_process, run_phantom_tiled
+from app.pipelines.phantom.tiled import TILE_LENGTH, run_phantom_tiled
 from app.pipelines.sensor_models import ModelChoice, choose_model
+from app.pipelines.tiling import TileMap, in_process
 
 
 def run_phantom_to_folder(

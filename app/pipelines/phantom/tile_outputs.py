@@ -4,17 +4,13 @@ finishes, and the contract's files assembled from them without holding the surve
 Per tile (written by whichever worker ran it; the folder must be shared with a cluster's
 workers): `NNNNN.npz` (its own points' frame, index and label; its own pillars' grid cells,
 posteriors and labels), `NNNNN.cleaned.laz` / `NNNNN.removed.laz`, and last `NNNNN.json`,
-its summary. A tile is done when its summary exists: a resumed run reruns only the others, as
-long as `plan.json` (survey, model, configuration, tiles) is the same; a changed plan starts
-the tiles afresh. Assembly (`Assembly`, while later tiles still run): labels per frame filled on
-disk (`outputs.start_frame_labels`), the LAZ parts appended to one file each in tile order
-(`io.las.LasAppender`), the pillars joined.
+its summary (resuming: `pipelines.tiling`). Assembly (`Assembly`, while later tiles still
+run): labels per frame filled on disk (`outputs.start_frame_labels`), the LAZ parts appended to
+one file each in tile order (`io.las.LasAppender`), the pillars joined.
 """
 
 from __future__ import annotations
 
-import json
-import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -31,9 +27,8 @@ from app.pipelines.outputs import (
 )
 from app.pipelines.phantom.evaluation.classification_metrics import add_counts
 from app.pipelines.phantom.point_labels import kept
+from app.pipelines.tiling import TILES, tile_name
 
-TILES = "tiles"
-PLAN = "plan.json"
 MAPS = ("cleaned", "removed")
 
 
@@ -51,10 +46,6 @@ class TileResult:
     metric_counts: dict | None = None  # additive metrics (reference labels present)
     timings: dict[str, float] = field(default_factory=dict)
     peak_mb: float = 0.0  # the peak resident memory of the process that ran it, so far
-
-
-def tile_name(tile: int) -> str:
-    return f"{tile:05d}"
 
 
 def write_tile(out: Path, result: TileResult, offset: np.ndarray) -> dict:
@@ -102,24 +93,6 @@ def write_tile(out: Path, result: TileResult, offset: np.ndarray) -> dict:
     }
     write_json(folder / f"{name}.json", summary)
     return summary
-
-
-def finished_tiles(out: Path, plan: dict) -> dict[int, dict]:
-    """Summaries of the tiles an earlier attempt with the same plan finished; a different plan
-    (or none) clears the tiles folder and records this one."""
-    folder = Path(out) / TILES
-    plan_path = folder / PLAN
-    recorded = json.loads(plan_path.read_text()) if plan_path.is_file() else None
-    if recorded != json.loads(json.dumps(plan)):
-        shutil.rmtree(folder, ignore_errors=True)
-        folder.mkdir(parents=True)
-        write_json(plan_path, plan)
-        return {}
-    done = {}
-    for path in sorted(folder.glob("[0-9]" * 5 + ".json")):
-        summary = json.loads(path.read_text())
-        done[int(summary["tile"])] = summary
-    return done
 
 
 class Assembly:

@@ -15,10 +15,8 @@ from __future__ import annotations
 
 import resource
 import time
-from collections.abc import Callable, Generator
-from contextlib import closing
 from dataclasses import dataclass
-from functools import lru_cache, partial
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +28,8 @@ from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.evaluation.classification_metrics import metric_counts
 from app.pipelines.phantom.network import CONTEXT_SPAN
 from app.pipelines.phantom.pipeline import PhantomPipeline
-from app.pipelines.phantom.tile_outputs import Assembly, TileResult, finished_tiles, write_tile
+from app.pipelines.phantom.tile_outputs import Assembly, TileResult, write_tile
+from app.pipelines.tiling import TileMap, drive_tiles, file_stamp, finished_tiles, in_process
 
 TILE_LENGTH = 100.0  # metres of trajectory per tile
 INDEX_CELL = 2.0  # metres: the grid a tile's own points and its halo are kept on
@@ -126,17 +125,12 @@ class PhantomTileSpec:
         layout = index.layout
         return {
             "survey": [self.survey_source, self.survey_format],
-            "model": [self.model_path, _file_stamp(Path(self.model_path))],
+            "model": [self.model_path, file_stamp(Path(self.model_path))],
             "config": self.config, "dense": self.dense, "baselines": self.baselines,
             "offset": list(self.offset),
             "tiles": [index.count, layout.length, layout.halo, index.cell],
             "frame_sizes": [len(index.frame_sizes), int(index.frame_sizes.sum())],
         }  # fmt: skip
-
-
-def _file_stamp(path: Path) -> list[int]:
-    stat = path.stat()
-    return [stat.st_size, stat.st_mtime_ns]
 
 
 @lru_cache(maxsize=2)
@@ -156,17 +150,6 @@ def phantom_tile(
     survey = open_survey(Path(spec.survey_source), spec.survey_format)
     result = run_tile(pipeline, survey, index, tile, spec.baselines, progress)
     return write_tile(Path(spec.out), result, np.asarray(spec.offset))
-
-
-# runs `phantom_tile(spec, index, tile)` for the tiles given and yields the summaries as they
-# finish, in any order: in this process by default, on a Dask cluster from `app.jobs.cluster`
-TileMap = Callable[[Callable[..., dict], PhantomTileSpec, TileIndex, list[int]], Generator[dict]]
-
-
-def in_process(fn, spec: PhantomTileSpec, index: TileIndex, tiles: list[int]):
-    """The tiles one after the other in this process."""
-    for tile in tiles:
-        yield fn(spec, index, tile)
 
 
 @dataclass
@@ -205,32 +188,12 @@ def run_phantom_tiled(
         tuple(np.floor(index.low).tolist()), pipeline.dense, baselines,
     )  # fmt: skip
     done = finished_tiles(out, spec.plan(index))
-    missing = [t for t in range(index.count) if t not in done]
-
-    def report(stage: str, within: float = 0.0) -> None:
-        if progress is not None:
-            progress(stage, (len(done) + within) / index.count)
-
-    def steps(stage: str, fraction: float) -> None:  # a tile's own steps, run in this process
-        start, end = TILE_STEPS.get(stage, (1.0, 1.0))
-        report(f"tile {len(done) + 1} of {index.count}: {stage}", start + (end - start) * fraction)
-
-    # a cluster's tiles report when they finish; tiles run here report their steps as well
-    fn = partial(phantom_tile, progress=steps) if map_tiles is in_process else phantom_tile
-    if len(missing) <= 1:  # one tile fits a worker's memory anyway: no round trip to a cluster
-        fn, map_tiles = partial(phantom_tile, progress=steps), in_process
-    report(f"{len(done)} of {index.count} tiles")
     assembly = Assembly(out, [f.frame_id for f in survey.frames], index.frame_sizes)
     try:
-        for summary in done.values():  # an earlier attempt's
-            assembly.add(summary)
-        # closed on the way out, a cancel (raised by `progress`) included: a cluster's map
-        # then cancels the tiles still queued or running
-        with closing(map_tiles(fn, spec, index, missing)) as finished:
-            for summary in finished:
-                done[int(summary["tile"])] = summary
-                assembly.add(summary)  # while the other tiles run
-                report(f"{len(done)} of {index.count} tiles")
+        ran = drive_tiles(
+            phantom_tile, spec, index, index.count, done, assembly.add, map_tiles, progress,
+            TILE_STEPS,
+        )  # fmt: skip
         owned = sum(s["points"] for s in done.values())
         if owned != int(index.frame_sizes.sum()):
             raise RuntimeError(
@@ -241,4 +204,4 @@ def run_phantom_tiled(
     except BaseException:
         assembly.abort()
         raise
-    return TiledRun(**assembled, index=index, tiles_run=len(missing))
+    return TiledRun(**assembled, index=index, tiles_run=ran)

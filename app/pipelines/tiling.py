@@ -1,0 +1,110 @@
+"""What every tiled pipeline run shares: the tiles folder, resuming, and the loop that hands the
+tiles to a `map_tiles` and each finished tile's summary to the run's assembly.
+
+Each tile writes its files under OUT/tiles/ and last `NNNNN.json`, its summary: a tile is done
+when its summary exists. A rerun into the same folder keeps the finished tiles as long as
+`plan.json` (what the tiles' results depend on: survey, model, configuration, tiles) is the
+same; a changed plan starts afresh.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections.abc import Callable, Generator
+from contextlib import closing
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+from app.core.progress import Progress
+from app.pipelines.outputs import write_json
+
+TILES = "tiles"
+PLAN = "plan.json"
+
+# runs `fn(spec, index, tile)` for the tiles given and yields the summaries as they finish, in
+# any order: in this process by default, on a Dask cluster from `app.jobs.cluster`
+TileMap = Callable[[Callable[..., dict], Any, Any, list[int]], Generator[dict]]
+
+
+def in_process(fn: Callable[..., dict], spec: Any, index: Any, tiles: list[int]):
+    """The tiles one after the other in this process."""
+    for tile in tiles:
+        yield fn(spec, index, tile)
+
+
+def tile_name(tile: int) -> str:
+    return f"{tile:05d}"
+
+
+def file_stamp(path: Path) -> list[int]:
+    """Size and modification time: a plan names a model file by these too."""
+    stat = Path(path).stat()
+    return [stat.st_size, stat.st_mtime_ns]
+
+
+def finished_tiles(out: Path, plan: dict) -> dict[int, dict]:
+    """Summaries of the tiles an earlier attempt with the same plan finished; a different plan
+    (or none) clears the tiles folder and records this one."""
+    folder = Path(out) / TILES
+    plan_path = folder / PLAN
+    recorded = json.loads(plan_path.read_text()) if plan_path.is_file() else None
+    if recorded != json.loads(json.dumps(plan)):
+        shutil.rmtree(folder, ignore_errors=True)
+        folder.mkdir(parents=True)
+        write_json(plan_path, plan)
+        return {}
+    done = {}
+    for path in sorted(folder.glob("[0-9]" * 5 + ".json")):
+        summary = json.loads(path.read_text())
+        done[int(summary["tile"])] = summary
+    return done
+
+
+def write_summary(out: Path, tile: int, summary: dict) -> dict:
+    """A tile's summary, written last: it marks the tile done."""
+    write_json(Path(out) / TILES / f"{tile_name(tile)}.json", {"tile": tile, **summary})
+    return {"tile": tile, **summary}
+
+
+def drive_tiles(
+    fn: Callable[..., dict],
+    spec: Any,
+    index: Any,
+    count: int,
+    done: dict[int, dict],
+    add: Callable[[dict], None],
+    map_tiles: TileMap = in_process,
+    progress: Progress | None = None,
+    steps: dict[str, tuple[float, float]] | None = None,
+) -> int:
+    """Every tile of `count` not in `done` through `map_tiles` (`fn(spec, index, tile)`), each
+    summary to `add` as it arrives, the earlier attempt's first; returns how many tiles ran.
+    `progress` sees tiles done / tiles; tiles run in this process also report their own steps
+    (`fn`'s `progress`, placed within the tile by `steps`: {step: (start, end)}). A cancel
+    raised by `progress` closes `map_tiles`, which cancels a cluster's queued tiles."""
+    missing = [t for t in range(count) if t not in done]
+
+    def report(stage: str, within: float = 0.0) -> None:
+        if progress is not None:
+            progress(stage, (len(done) + within) / count)
+
+    def tile_steps(stage: str, fraction: float) -> None:
+        start, end = (steps or {}).get(stage, (1.0, 1.0))
+        report(f"tile {len(done) + 1} of {count}: {stage}", start + (end - start) * fraction)
+
+    local = partial(fn, progress=tile_steps)
+    if len(missing) <= 1:  # one tile fits a worker's memory anyway: no round trip to a cluster
+        fn, map_tiles = local, in_process
+    elif map_tiles is in_process:
+        fn = local
+    report(f"{len(done)} of {count} tiles")
+    for summary in done.values():
+        add(summary)
+    with closing(map_tiles(fn, spec, index, missing)) as finished:
+        for summary in finished:
+            done[int(summary["tile"])] = summary
+            add(summary)  # while the other tiles run
+            report(f"{len(done)} of {count} tiles")
+    return len(missing)
