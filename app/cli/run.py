@@ -128,9 +128,9 @@ def run_clutter(
     survey = open_survey(source, fmt)
     try:
         with stage_progress("clutter") as progress:
-            report, _ = run_clutter_to_folder(
-                survey, out, config, overlays, progress, tile_length,
-                tile_map(cluster_settings(scheduler)),
+            report = run_clutter_to_folder(
+                survey, out, config=config, overlays=overlays, progress=progress,
+                tile_length=tile_length, map_tiles=tile_map(cluster_settings(scheduler)),
             )  # fmt: skip
     finally:
         close_clients()

@@ -41,7 +41,7 @@ from app.jobs.task_config import validated
 from app.pipelines.clutter.accumulate import kept_and_removed
 from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.review_units import apply_decisions
-from app.pipelines.clutter.run import reference_metrics, run_clutter_to_folder, write_maps
+from app.pipelines.clutter.run import reference_metrics, run_clutter_report, write_maps
 from app.pipelines.clutter.tiled import TILE_LENGTH, clutter_halo
 from app.pipelines.outputs import write_frame_labels, write_report
 from app.store import clutter_review
@@ -115,7 +115,7 @@ def run_clutter_task(context: JobContext, config: dict[str, Any]) -> dict[str, A
     the previous run's. A resumed job keeps the tiles its earlier attempt finished."""
     cfg, tile_length = clutter_job_config(config)
     survey = _open_survey(context)
-    report, run = run_clutter_to_folder(
+    report, run = run_clutter_report(
         survey, context.workdir, cfg, progress=tile_progress(context), tile_length=tile_length,
         map_tiles=tile_map(context.settings), review=True,
         cache_dir=context.settings.cache_dir / "segmentation",

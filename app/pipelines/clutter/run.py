@@ -31,6 +31,13 @@ from app.pipelines.tiling import TileMap, in_process
 
 
 def run_clutter_to_folder(
+    survey: Survey, out: Path, config: ClutterConfig | None = None, **options
+) -> dict:
+    """The run's report (the options: `run_clutter_report`)."""
+    return run_clutter_report(survey, out, config, **options)[0]
+
+
+def run_clutter_report(
     survey: Survey,
     out: Path,
     config: ClutterConfig | None = None,
