@@ -110,7 +110,13 @@ def test_each_refusal_names_what_grows(engine: Engine, limited: Settings) -> Non
             survey,
             "config.ground_cell",
         ),
-        ("run:clutter", {"use_free_space": False, "use_camera": False}, huge, "survey_id"),
+        ("run:clutter", {"use_free_space": False, "use_camera": False}, dense, "survey_id"),
+        (
+            "run:clutter",
+            {"tile_length": 1000.0, "use_camera": False, "use_free_space": False},
+            huge,
+            "config.tile_length",
+        ),
         ("run:phantom", {}, dense, "survey_id"),
         ("run:phantom", {"tile_length": 1000.0}, huge, "config.tile_length"),
         ("run:guardrail", {}, huge, "survey_id"),
@@ -120,4 +126,6 @@ def test_each_refusal_names_what_grows(engine: Engine, limited: Settings) -> Non
         assert error.field == field, (kind, config, str(error))
     with Session(engine) as session:  # tile by tile, a long survey needs one tile's memory
         assert enqueue(session, "run:phantom", {}, huge, None, limited).id
+        no_rays = {"use_camera": False, "use_free_space": False}
+        assert enqueue(session, "run:clutter", no_rays, huge, None, limited).id
         assert "MMSCLEAN_JOB_MEMORY_MB" in str(error)

@@ -65,7 +65,7 @@ def run_clutter_report(
     segmenter = None
     if camera is not None:
         cached = cached_segmentation(cache_dir, weights_dir)
-        segmenter = {"name": cached.name, "cache_hits": run.segmentation_cache_hits}
+        segmenter = {"name": cached.name, **run.segmentation}
         if overlays:
             files.update(_write_overlays(out, survey, camera.name, cached, overlays))
     report: dict = {

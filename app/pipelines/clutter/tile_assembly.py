@@ -44,7 +44,7 @@ class ClutterAssembly:
 
     def finish(self) -> dict:
         """The maps completed; returns {"files", "counts", "metric_counts", "timings",
-        "worker_peak_mb", "segmentation_cache_hits", "rows"} (rows with joined track ids)."""
+        "worker_peak_mb", "segmentation", "rows"} (rows with joined track ids)."""
         files = {kind: f"{kind}.laz" for kind in MAPS if self.maps[kind].close()}
         tiles = sorted(self.summaries)
         track_of = join_tracks(self.folder, tiles)
@@ -68,8 +68,8 @@ class ClutterAssembly:
             "files": files, "counts": counts, "metric_counts": metric_counts, "timings": timings,
             "worker_peak_mb": max((s["worker_peak_mb"] for s in self.summaries.values()),
                                   default=0.0),
-            "segmentation_cache_hits": sum(s["segmentation_cache_hits"]
-                                           for s in self.summaries.values()),
+            "segmentation": {key: sum(s["segmentation"][key] for s in self.summaries.values())
+                             for key in ("cache_hits", "segmented")},
             "rows": rows,
         }  # fmt: skip
 

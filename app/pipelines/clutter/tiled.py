@@ -111,7 +111,7 @@ def clutter_tile(
     survey = open_survey(Path(spec.survey_source), spec.survey_format)
     config = ClutterConfig.model_validate_json(spec.config)
     if len(own) == 0:  # a stretch of trajectory between two frames
-        return write_summary(out, tile, _summary({}, 0, {}, None, [], {}, 0, started))
+        return write_summary(out, tile, _summary({}, None, {}, None, [], {}, started))
     pipeline = ClutterPipeline(config)
     camera = pipeline.camera(survey)
     cached = None
@@ -140,26 +140,28 @@ def clutter_tile(
         )
     _write_tracks(out, tile, result, keep)
     metrics = _error_counts(survey, result, keep)
-    hits = 0 if cached is None else cached.hits
     return write_summary(
-        out, tile, _summary(counts, hits, maps, metrics, rows, result.timings, len(keep), started)
+        out, tile, _summary(counts, cached, maps, metrics, rows, result.timings, started)
     )
 
 
 def _summary(
     counts: dict,
-    cache_hits: int,
+    cached: CachedSegmenter | None,
     maps: dict,
     metric_counts: dict | None,
     rows: list,
     timings: dict,
-    frames: int,
     started: float,
 ) -> dict:
     empty = {"frames": 0, "points": 0, "points_in_view": 0, "removed_points": 0, "map_points": 0}
     return {
         "counts": {**empty, **counts},
-        "segmentation_cache_hits": cache_hits,
+        # images found in the segmentation cache, images the network segmented
+        "segmentation": {
+            "cache_hits": 0 if cached is None else cached.hits,
+            "segmented": 0 if cached is None else cached.misses,
+        },
         "maps": maps,
         "metric_counts": metric_counts,
         "rows": rows,
@@ -262,7 +264,7 @@ class ClutterTiledRun:
     metric_counts: dict | None
     timings: dict[str, float]
     worker_peak_mb: float  # the largest peak memory of a process that ran a tile
-    segmentation_cache_hits: int
+    segmentation: dict[str, int]  # images found in the cache, images segmented (`_summary`)
     rows: list[dict]  # the review units' store rows (with `review`), track ids joined
     tiles: FrameTiles
     tiles_run: int
