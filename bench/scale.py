@@ -1,8 +1,8 @@
-"""Surveys of any length (issue 18): the tiled phantom pipeline on simulated surveys of growing
-length. Prints a table and appends it to RESULTS.md.
+"""Surveys of any length (issue 18): the tiled pipelines on simulated surveys of growing length.
+Prints a table and appends it to RESULTS.md.
 
   phantom   per length (--lengths, km): wall time, time per km, peak resident memory of each
-            tile worker and of the run's own process (which assembles the outputs); then 1 vs 2
+  clutter   tile worker and of the run's own process (which assembles the outputs); then 1 vs 2
             tile workers on one survey (--speedup-km), same run: the speed-up
   viewer    the viewer's map of the longest survey (--lengths' last): building its cache, then in
             a fresh process what a first scene needs (open the cache, the overview's points and
@@ -14,8 +14,8 @@ are that run's: a worker's is its whole life (`ru_maxrss` after each tile, in th
 Surveys are synthetic (app.simulate, `--scanner` profile or hdl64, scene mixed, seed 901),
 cached under $MMSCLEAN_DATA_DIR/cache/bench.
 
-Usage: python -m bench.scale phantom|viewer [--lengths 0.25,0.5,1,2,4] [--scanner profile]
-       [--workers 2] [--speedup-km 2] [--no-record]
+Usage: python -m bench.scale phantom|clutter|viewer [--lengths 0.25,0.5,1,2,4]
+       [--scanner profile] [--tile-length 100] [--workers 2] [--speedup-km 2] [--no-record]
 """
 
 from __future__ import annotations
@@ -39,11 +39,13 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux: kilobytes
 
 
-def run_one(km: float, scanner: str, workers: int) -> dict:
-    """One tiled phantom run on a fresh local cluster of `workers` processes."""
+def run_one(km: float, scanner: str, workers: int, pipeline: str, tile_length: float) -> dict:
+    """One tiled run of `pipeline` on a fresh local cluster of `workers` processes."""
     from app.core.settings import Settings
     from app.io import open_survey
     from app.jobs.cluster import close_clients, tile_client, tile_map
+    from app.pipelines.clutter.config import ClutterConfig
+    from app.pipelines.clutter.run import run_clutter_to_folder
     from app.pipelines.phantom.run import run_phantom_to_folder
     from bench.phantom import simulated
 
@@ -54,12 +56,21 @@ def run_one(km: float, scanner: str, workers: int) -> dict:
         client = tile_client(settings)
         client.wait_for_workers(workers)
         started = time.perf_counter()
-        report = run_phantom_to_folder(survey, Path(out), map_tiles=tile_map(settings))
+        if pipeline == "clutter":  # threads: one per worker, as the job gives it
+            config = ClutterConfig(mode="dynamic", threads=1)
+            report = run_clutter_to_folder(
+                survey, Path(out), config, tile_length=tile_length, map_tiles=tile_map(settings)
+            )
+        else:
+            report = run_phantom_to_folder(
+                survey, Path(out), tile_length=tile_length, map_tiles=tile_map(settings)
+            )
         wall = time.perf_counter() - started
         close_clients()
     tiles = report["tiles"]
     return {
         "km": km,
+        "pipeline": pipeline,
         "scanner": scanner,
         "workers": workers,
         "points": report["counts"]["points"],
@@ -70,10 +81,14 @@ def run_one(km: float, scanner: str, workers: int) -> dict:
     }
 
 
-def measure(km: float, scanner: str, workers: int, part: str = "one", cache: str = "") -> dict:
+def measure(
+    km: float, scanner: str, workers: int, part: str = "one", cache: str = "",
+    pipeline: str = "phantom", tile_length: float = 100.0,
+) -> dict:  # fmt: skip
     """`run_one` (or a viewer step) in a fresh process: its own peak memory, its own cluster."""
     command = [sys.executable, "-m", "bench.scale", part, "--km", str(km),
-               "--scanner", scanner, "--workers", str(workers), "--cache", cache]  # fmt: skip
+               "--scanner", scanner, "--workers", str(workers), "--cache", cache,
+               "--pipeline", pipeline, "--tile-length", str(tile_length)]  # fmt: skip
     done = subprocess.run(command, capture_output=True, text=True, check=False)
     if done.returncode != 0:
         raise SystemExit(f"{' '.join(command)} failed:\n{done.stderr[-3000:]}")
@@ -173,8 +188,8 @@ def part_viewer(args) -> tuple[str, str, str]:
     return "Scale: the viewer's map of a long survey", table, notes
 
 
-def part_phantom(args) -> tuple[str, str, str]:
-    from app.pipelines.phantom.tiled import TILE_LENGTH
+def part_pipeline(args) -> tuple[str, str, str]:
+    """The phantom or clutter rows (`args.part`)."""
     from bench.common import markdown_table
     from bench.phantom import simulated
 
@@ -182,8 +197,13 @@ def part_phantom(args) -> tuple[str, str, str]:
     for km in sorted({*lengths, args.speedup_km}):
         simulated(SCENE, km * 1000.0, SEED, args.scanner)  # simulated before any clock runs
     rows, runs = [], []
+    pipeline, tile_length = args.part, args.tile_length
+
+    def timed(km: float, workers: int) -> dict:
+        return measure(km, args.scanner, workers, pipeline=pipeline, tile_length=tile_length)
+
     for km in lengths:
-        run = measure(km, args.scanner, args.workers)
+        run = timed(km, args.workers)
         runs.append(run)
         rows.append([f"{km:g}", f"{run['points']:,}", str(run["tiles"]), str(args.workers),
                      f"{run['wall_s']:.1f}", f"{run['wall_s'] / km:.1f}",
@@ -195,29 +215,40 @@ def part_phantom(args) -> tuple[str, str, str]:
          "peak MB run process"],
         rows,
     )  # fmt: skip
-    one = measure(args.speedup_km, args.scanner, 1)
-    two = measure(args.speedup_km, args.scanner, 2)
+    one = timed(args.speedup_km, 1)
+    two = timed(args.speedup_km, 2)
     speed = markdown_table(
         ["km", "1 worker s", "2 workers s", "speed-up"],
         [[f"{args.speedup_km:g}", f"{one['wall_s']:.1f}", f"{two['wall_s']:.1f}",
           f"{one['wall_s'] / two['wall_s']:.2f}"]],
     )  # fmt: skip
+    how = {
+        "phantom": "phantom pipeline tile by tile (11 m halo), shipped model of the survey's "
+        "sensor kind",
+        "clutter": "clutter pipeline tile by tile (dynamic mode, free space and tracking: the "
+        "surveys have no images; 40 m halo of frames, one DUFOMap thread per worker)",
+    }[pipeline]
     notes = (
         f"Synthetic: simulated {args.scanner} surveys (scene {SCENE}, seed {SEED}, no camera), "
-        f"phantom pipeline tile by tile ({TILE_LENGTH:g} m tiles, 11 m halo) on a fresh local "
-        f"Dask cluster per run, shipped model of the survey's sensor kind. Wall time from the "
-        f"start of the run to report.json (tiles, assembly of labels, LAZ and pillars; the "
+        f"{how}, {tile_length:g} m tiles, on a fresh local Dask cluster per run. Wall time from "
+        f"the start of the run to report.json (tiles, assembly of labels, LAZ and the rest; the "
         f"cluster's start and the simulation not counted). Time per km spread from the "
         f"fastest to the slowest length: {spread:.0f} %. Peak memory: ru_maxrss of each tile "
         f"worker process over its life (it imports torch and the network), and of the "
         f"process that ran the job and assembled the outputs."
     )
-    return "Scale: the tiled phantom pipeline by survey length", table + "\n\n" + speed, notes
+    title = f"Scale: the tiled {pipeline} pipeline by survey length ({args.scanner})"
+    return title, table + "\n\n" + speed, notes
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("part", choices=["phantom", "viewer", "one", "viewer-build", "viewer-open"])
+    parser.add_argument(
+        "part", choices=["phantom", "clutter", "viewer", "one", "viewer-build", "viewer-open"]
+    )
+    parser.add_argument("--pipeline", default="phantom", choices=["phantom", "clutter"],
+                        help="one: the pipeline")  # fmt: skip
+    parser.add_argument("--tile-length", type=float, default=100.0, help="metres per tile")
     parser.add_argument("--lengths", default="0.25,0.5,1,2,4", help="survey lengths in km")
     parser.add_argument("--scanner", default="profile", choices=["profile", "hdl64"])
     parser.add_argument("--workers", type=int, default=2, help="tile workers")
@@ -227,7 +258,9 @@ def main() -> int:
     parser.add_argument("--no-record", action="store_true")
     args = parser.parse_args()
     steps = {
-        "one": lambda: run_one(args.km, args.scanner, args.workers),
+        "one": lambda: run_one(
+            args.km, args.scanner, args.workers, args.pipeline, args.tile_length
+        ),  # fmt: skip
         "viewer-build": lambda: viewer_build(args.km, args.scanner, Path(args.cache)),
         "viewer-open": lambda: viewer_open(args.km, args.scanner, Path(args.cache)),
     }
@@ -236,7 +269,7 @@ def main() -> int:
         return 0
     from bench.common import append_results
 
-    title, table, notes = (part_phantom if args.part == "phantom" else part_viewer)(args)
+    title, table, notes = (part_viewer if args.part == "viewer" else part_pipeline)(args)
     print(table)
     print(notes)
     if not args.no_record:

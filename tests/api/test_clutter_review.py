@@ -263,6 +263,7 @@ def test_bad_clutter_configs_are_refused_when_queued(review: Review) -> None:
     for kind, config, field in (
         ("run:clutter", {"mode": "everything"}, "config.mode"),
         ("run:clutter", {"padding": 3}, "config.padding"),
+        ("run:clutter", {"tile_length": 5}, "config.tile_length"),
         ("clutter:recompute", {"force": True}, "config.force"),
     ):
         body = {"kind": kind, "survey_id": review.survey_id, "config": config}

@@ -64,13 +64,16 @@ class ClutterPipeline:
         self.class_maps = class_maps
 
     def camera(self, survey: Survey) -> Camera | None:
-        """The camera whose images are segmented; None when the survey has none or it is off."""
+        """The camera whose images are segmented; None when the survey has none, none of its
+        frames has an image of it, or the camera is off."""
         if not self.config.use_camera or not survey.cameras:
             return None
         name = self.config.camera or next(iter(survey.cameras))
         if name not in survey.cameras:
             known = ", ".join(survey.cameras)
             raise ConfigError("camera", f"survey {survey.name} has no camera {name!r} ({known})")
+        if not any(name in f.image_paths for f in survey.frames):
+            return None  # calibrated, but no image was recorded: nothing to segment
         return survey.cameras[name]
 
     def run(
