@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,7 +68,7 @@ def _out_of_view_clusters(ev: FrameEvidence, count: int) -> np.ndarray:
 
 
 def fuse(
-    evidence: list[FrameEvidence], tracks: TrackEvidence | None, config: ClutterConfig
+    evidence: Sequence[FrameEvidence], tracks: TrackEvidence | None, config: ClutterConfig
 ) -> list[np.ndarray]:
     """Per frame, (N,) bool removed."""
     if tracks is not None:

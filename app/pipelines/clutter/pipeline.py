@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -29,6 +30,7 @@ from app.core.progress import Progress, Stopwatch
 from app.io.survey import Camera, Frame, Survey
 from app.pipelines.clutter.clusters import frame_clusters
 from app.pipelines.clutter.config import ClutterConfig
+from app.pipelines.clutter.evidence_store import SpilledEvidence
 from app.pipelines.clutter.expansion import cluster_shapes, expand_instances, majority_class
 from app.pipelines.clutter.freespace import FreeSpaceMap, off_ground
 from app.pipelines.clutter.fusion import FrameEvidence, fuse
@@ -47,7 +49,7 @@ class ClutterResult:
     frame_ids: list[str]
     removed: list[np.ndarray]  # per frame, (N,) bool in file order
     in_view: list[np.ndarray]  # per frame, (N,) bool: the point projects into the camera image
-    evidence: list[FrameEvidence]
+    evidence: list[FrameEvidence] | SpilledEvidence
     tracks: TrackEvidence | None
     timings: dict[str, float] = field(default_factory=dict)
     # per frame of the result, its index in the survey (a tile runs some of the frames)
@@ -77,11 +79,17 @@ class ClutterPipeline:
         return survey.cameras[name]
 
     def run(
-        self, survey: Survey, progress: Progress | None = None, only: np.ndarray | None = None
+        self,
+        survey: Survey,
+        progress: Progress | None = None,
+        only: np.ndarray | None = None,
+        spill: Path | None = None,
     ) -> ClutterResult:
         """Every frame of the survey, or the frames whose indices `only` lists (ascending: a
         tile's, `tiled.py`): they are numbered, timed and re-centred as in the whole survey,
-        so a frame's evidence does not depend on which frames ran with it."""
+        so a frame's evidence does not depend on which frames ran with it. With `spill`, the
+        frames' evidence waits in that folder instead of memory (`evidence_store`; the
+        caller closes `result.evidence` when done with it)."""
         cfg = self.config
         report = progress or (lambda stage, fraction: None)
         clock = Stopwatch()
@@ -99,7 +107,9 @@ class ClutterPipeline:
                 cfg.dufomap_resolution, cfg.dufomap_d_s, cfg.dufomap_d_p, cfg.threads, origin
             )
         tracker = Tracker(cfg.track_gate) if cfg.use_tracking else None
-        evidence: list[FrameEvidence] = []
+        evidence: list[FrameEvidence] | SpilledEvidence = (
+            [] if spill is None else SpilledEvidence(spill)
+        )
         observations: list[Observation] = []
         for i, frame in enumerate(frames):  # steps 1-5 (free space: rays in)
             report("frames", i / max(len(frames), 1))
@@ -121,11 +131,13 @@ class ClutterPipeline:
                 with clock("read"):
                     xyz = frame.points().xyz
                 with clock("free_space"):
+                    ev = evidence[i]
                     free = space.flags(xyz, frame.pose)
                     if cfg.free_ground == "near_objects":
-                        free = off_ground(free, xyz, evidence[i].ground, cfg.halo_radius)
-                    evidence[i].free = free
-                    observations[i].count_free(evidence[i].cluster, evidence[i].free)
+                        free = off_ground(free, xyz, ev.ground, cfg.halo_radius)
+                    ev.free = free
+                    evidence[i] = ev
+                    observations[i].count_free(ev.cluster, ev.free)
         tracks = None
         if tracker is not None:
             report("tracking", 0.0)

@@ -15,24 +15,24 @@ from __future__ import annotations
 
 import resource
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
 from app.core.progress import Progress
+from app.geometry.voxels import voxel_indices
 from app.io.asprs import REMOVED_CLUTTER_ASPRS
 from app.io.frame_tiles import FrameTiles
-from app.io.las import write_laz
-from app.io.survey import Survey
-from app.pipelines.clutter.accumulate import kept_and_removed
+from app.io.las import LasAppender, write_laz
+from app.io.survey import Camera, PointCloud, Survey
 from app.pipelines.clutter.config import ClutterConfig
-from app.pipelines.clutter.evaluation.removal_metrics import removal_counts
+from app.pipelines.clutter.evaluation.removal_metrics import add_removal_counts, removal_counts
 from app.pipelines.clutter.pipeline import ClutterPipeline, ClutterResult
 from app.pipelines.clutter.review_units import write_review_units
 from app.pipelines.clutter.segmenter import CachedSegmenter, Segmenter, segmented_class_maps
-from app.pipelines.clutter.tile_assembly import ClutterAssembly
+from app.pipelines.clutter.tile_assembly import MAPS, ClutterAssembly
 from app.pipelines.outputs import write_frame_labels
 from app.pipelines.tiling import (
     TILES,
@@ -122,7 +122,29 @@ def clutter_tile(
         pipeline.class_maps, cached = segmented_class_maps(
             reads, camera.name, segmenter, progress, cache
         )
-    result = pipeline.run(survey, progress, only=tiles.frames[tile])
+    evidence = out / TILES / f"{tile_name(tile)}.evidence"  # on disk: a tile can be dense
+    result = pipeline.run(survey, progress, only=tiles.frames[tile], spill=evidence)
+    try:
+        return _keep_own(spec, survey, config, tiles, tile, own, result, camera, cached, started)
+    finally:
+        result.evidence.close()
+
+
+def _keep_own(
+    spec: ClutterTileSpec,
+    survey: Survey,
+    config: ClutterConfig,
+    tiles: FrameTiles,
+    tile: int,
+    own: np.ndarray,
+    result: ClutterResult,
+    camera: Camera | None,
+    cached: CachedSegmenter | None,
+    started: float,
+) -> dict:
+    """The tile's own frames' results written: labels, map parts, review units, tracks; returns
+    the summary."""
+    out = Path(spec.out)
     keep = np.searchsorted(tiles.frames[tile], own)  # own frames' places in the result
     write_frame_labels(out, {result.frame_ids[i]: result.removed[i] for i in keep})
     maps = _write_maps(out, survey, own, [result.removed[i] for i in keep], config, spec, tile)
@@ -179,30 +201,91 @@ def _write_maps(
     spec: ClutterTileSpec,
     tile: int,
 ) -> dict:
-    """The own frames' kept and removed points as this tile's LAZ parts (`voxel_dedup` thins
-    within the tile: a voxel on a tile border may keep one point from each side)."""
-    frames = replace(survey, frames=[survey.frames[int(k)] for k in own])
-    kept, gone = kept_and_removed(frames, removed, config.voxel_dedup)
+    """The own frames' kept and removed points as this tile's LAZ parts, a frame at a time
+    (each frame's part appended, then dropped). `voxel_dedup` keeps the first kept point of
+    each voxel of a grid fixed for the run (`spec.offset`): one key per kept point is held,
+    and within the tile only (a voxel on a tile border may keep one point from each side)."""
     folder = out / TILES
     folder.mkdir(parents=True, exist_ok=True)
-    maps: dict = {"map_points": int(len(kept.xyz))}
-    for kind, world, label in (("cleaned", kept, 0), ("removed", gone, 1)):
-        n = len(world.xyz)
-        if n == 0:
-            continue
-        name = f"{tile_name(tile)}.{kind}.laz"
-        write_laz(
-            folder / name,
-            world.xyz,
-            mmsclean_label=np.full(n, label, dtype=np.uint8),
-            classification=np.full(n, REMOVED_CLUTTER_ASPRS if label else 1, dtype=np.uint8),
-            source_frame=own[world.source_frame.astype(np.int64)].astype(np.uint32),
-            source_index=world.source_index,
-            intensity=None if world.intensity is None else reflectance(world.intensity),
-            offset=np.asarray(spec.offset),
-        )
-        maps[kind] = name
-    return maps
+    name = tile_name(tile)
+    first = None
+    if config.voxel_dedup:
+        first = _first_in_voxel(survey, own, removed, config.voxel_dedup, np.asarray(spec.offset))
+    appenders = {kind: LasAppender(folder / f"{name}.{kind}.laz") for kind in MAPS}
+    kept_points = 0
+    try:
+        for n, (k, gone) in enumerate(zip(own.tolist(), removed, strict=True)):
+            cloud = survey.frames[k].world_points()
+            if len(cloud.xyz) != len(gone):
+                raise ValueError(f"frame {survey.frames[k].frame_id}: {len(cloud.xyz)} points, "
+                                 f"{len(gone)} decisions")  # fmt: skip
+            keep = ~gone if first is None else ~gone & first[n]
+            kept_points += int(keep.sum())
+            for kind, which, label in (("cleaned", keep, 0), ("removed", gone, 1)):
+                if which.any():
+                    part = folder / f"{name}.{kind}.frame.laz"
+                    _write_points(part, cloud, np.flatnonzero(which), k, label, spec)
+                    appenders[kind].append(part)
+                    part.unlink()
+        maps: dict = {"map_points": kept_points}
+        for kind in MAPS:
+            if appenders[kind].close():
+                maps[kind] = f"{name}.{kind}.laz"
+        return maps
+    except BaseException:
+        for appender in appenders.values():
+            appender.abort()
+        raise
+
+
+def _write_points(
+    path: Path, cloud: PointCloud, index: np.ndarray, frame: int, label: int, spec
+) -> None:
+    n = len(index)
+    write_laz(
+        path,
+        cloud.xyz[index],
+        mmsclean_label=np.full(n, label, dtype=np.uint8),
+        classification=np.full(n, REMOVED_CLUTTER_ASPRS if label else 1, dtype=np.uint8),
+        source_frame=np.full(n, frame, dtype=np.uint32),
+        source_index=index.astype(np.uint32),
+        intensity=None if cloud.intensity is None else reflectance(cloud.intensity[index]),
+        offset=np.asarray(spec.offset),
+    )
+
+
+_HALF = 1 << 20  # voxel indices from the run's origin within +-2^20 pack into one int64
+
+
+def _voxel_key(ijk: np.ndarray) -> np.ndarray:
+    """(N,) int64 key of voxel indices (N, 3), the same in every frame (unlike
+    `geometry.voxels.voxel_keys`, whose keys hold within one call)."""
+    if len(ijk) and int(np.abs(ijk).max()) >= _HALF:
+        raise ValueError("voxel_dedup: the survey reaches over 2^20 voxels from its first "
+                         "sensor position; use larger voxels")  # fmt: skip
+    shifted = ijk.astype(np.int64) + _HALF
+    return (shifted[:, 0] << 42) | (shifted[:, 1] << 21) | shifted[:, 2]
+
+
+def _first_in_voxel(
+    survey: Survey, own: np.ndarray, removed: list[np.ndarray], voxel: float, origin: np.ndarray
+) -> list[np.ndarray]:
+    """Per own frame, (N,) bool: the point is the first kept point of its voxel (frame order)."""
+    keys, sizes = [], []
+    for k, gone in zip(own.tolist(), removed, strict=True):
+        xyz = survey.frames[k].world_points().xyz
+        keys.append(_voxel_key(voxel_indices(xyz[~gone], voxel, origin)))
+        sizes.append(len(gone))
+    flat = np.concatenate(keys) if keys else np.zeros(0, dtype=np.int64)
+    chosen = np.zeros(len(flat), dtype=bool)
+    chosen[np.unique(flat, return_index=True)[1]] = True
+    out, start = [], 0
+    for gone, part in zip(removed, keys, strict=True):
+        flags = np.zeros(len(gone), dtype=bool)
+        flags[~gone] = chosen[start : start + len(part)]
+        start += len(part)
+        out.append(flags)
+    return out
 
 
 def reflectance(values: np.ndarray) -> np.ndarray:
@@ -232,20 +315,17 @@ def _write_tracks(out: Path, tile: int, result: ClutterResult, keep: np.ndarray)
 
 
 def _error_counts(survey: Survey, result: ClutterResult, keep: np.ndarray) -> dict | None:
-    """The own frames' error matrices against the reference labels; None without them."""
+    """The own frames' error matrices against the reference labels, added frame by frame;
+    None without them."""
     if "semantic" not in survey.reference_label_kinds or result.frame_numbers is None:
         return None
-    frames = [survey.frames[int(result.frame_numbers[i])] for i in keep]
-    references = [f.reference_labels() for f in frames]
-    moving = None
-    if "moving" in survey.reference_label_kinds:  # the simulator's per-point flag
-        moving = np.concatenate([r["moving"] for r in references])
-    return removal_counts(
-        np.concatenate([r["semantic"] for r in references]),
-        np.concatenate([result.removed[i] for i in keep]),
-        np.concatenate([result.in_view[i] for i in keep]),
-        moving,
-    )
+    total = None
+    for i in keep.tolist():
+        reference = survey.frames[int(result.frame_numbers[i])].reference_labels()
+        moving = reference.get("moving") if "moving" in survey.reference_label_kinds else None
+        counts = removal_counts(reference["semantic"], result.removed[i], result.in_view[i], moving)
+        total = add_removal_counts(total, counts)
+    return total
 
 
 def cached_segmentation(cache_dir: Path | None, weights_dir: Path | None) -> CachedSegmenter:
