@@ -35,22 +35,55 @@ def _flat(xy: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class TileLayout:
-    """Tiles of `length` metres along a trajectory, each read with `halo` metres around."""
+    """Tiles of at most `length` metres along a trajectory, each read with `halo` metres around.
+    `edges` are the stations where tiles start: every `length` metres (`along`), or closer
+    where the points are dense (`cut_by_points`)."""
 
     stations_of: StationIndex | None  # the trajectory's station index; None: one position
     length: float
     halo: float
+    edges: tuple[float, ...] = (0.0,)  # ascending start stations, the first 0
 
     @classmethod
     def along(cls, trajectory: np.ndarray, length: float, halo: float) -> TileLayout:
-        """The layout of a trajectory (M, 2 or 3) in driving order."""
+        """The layout of a trajectory (M, 2 or 3) in driving order: tiles every `length` m."""
         if not length > 0 or not halo >= 0:
             raise ValueError(f"tile length {length} must be > 0 and halo {halo} >= 0")
         if len(trajectory) == 0:
             raise ValueError("a tile layout needs a trajectory of at least one position")
         positions = _flat(trajectory)
         index = StationIndex(positions) if len(positions) > 1 else None
-        return cls(index, float(length), float(halo))
+        total = 0.0 if index is None else index.length
+        count = max(int(np.ceil(total / length - 1e-9)), 1)
+        return cls(index, float(length), float(halo), tuple(np.arange(count) * float(length)))
+
+    def cut_by_points(
+        self, station: np.ndarray, points: np.ndarray, max_points: int, min_length: float
+    ) -> TileLayout:
+        """The same trajectory with tiles whose window (the tile and its halo, along the
+        stations) holds at most about `max_points` points: `points[k]` points lie at
+        `station[k]` (e.g. per grid cell). A tile ends where it reaches `length` metres or its
+        window `max_points` points, whichever comes first, but is never shorter than
+        `min_length` (where the halo alone holds more, the tile is as short as it may be)."""
+        order = np.argsort(station, kind="stable")
+        at = np.asarray(station, dtype=np.float64)[order]
+        cumulative = np.r_[0, np.cumsum(np.asarray(points, dtype=np.int64)[order])]
+
+        def before(s: float) -> int:  # points at stations below s
+            return int(cumulative[np.searchsorted(at, s, side="left")])
+
+        edges, start = [0.0], 0.0
+        while True:  # one step per tile
+            budget = before(start - self.halo) + max_points
+            full = int(np.searchsorted(cumulative, budget, side="right")) - 1  # first over
+            end = start + self.length
+            if full < len(at):
+                end = min(end, max(float(at[full]) - self.halo, start + min_length))
+            if end >= self.total - 1e-9:
+                break
+            edges.append(end)
+            start = end
+        return TileLayout(self.stations_of, self.length, self.halo, tuple(edges))
 
     @property
     def total(self) -> float:
@@ -60,15 +93,15 @@ class TileLayout:
     @property
     def count(self) -> int:
         """Number of tiles (at least one; the last may be shorter)."""
-        return max(int(np.ceil(self.total / self.length - 1e-9)), 1)
+        return len(self.edges)
 
     def bounds(self, tile: int) -> tuple[float, float]:
         """[start, end) stations the tile owns; the first and last tiles own everything before
         and after the trajectory too."""
         if not 0 <= tile < self.count:
             raise IndexError(f"tile {tile} of {self.count}")
-        start = -np.inf if tile == 0 else tile * self.length
-        end = np.inf if tile == self.count - 1 else (tile + 1) * self.length
+        start = -np.inf if tile == 0 else self.edges[tile]
+        end = np.inf if tile == self.count - 1 else self.edges[tile + 1]
         return float(start), float(end)
 
     def stations(self, xyz: np.ndarray) -> np.ndarray:
@@ -81,8 +114,8 @@ class TileLayout:
 
     def owner(self, station: np.ndarray) -> np.ndarray:
         """(N,) int64 tile owning each station."""
-        k = np.floor(np.asarray(station, dtype=np.float64) / self.length).astype(np.int64)
-        return np.clip(k, 0, self.count - 1)
+        k = np.searchsorted(np.asarray(self.edges), np.asarray(station, np.float64), "right") - 1
+        return np.clip(k, 0, self.count - 1).astype(np.int64)
 
 
 def cell_keys(xy: np.ndarray, cell: float) -> np.ndarray:

@@ -41,10 +41,19 @@ class TileIndex:
         return self.layout.count
 
     @classmethod
-    def build(cls, survey: Survey, length: float, halo: float, cell: float = 2.0) -> TileIndex:
+    def build(
+        cls,
+        survey: Survey,
+        length: float,
+        halo: float,
+        cell: float = 2.0,
+        max_points: int | None = None,
+    ) -> TileIndex:
         """Stream the survey's frames once (a map file chunk by chunk). The trajectory is the
         frames' sensor positions, a map's recorded one, or else the one its points trace
-        (`map_trajectory`, one more pass)."""
+        (`map_trajectory`, one more pass). Tiles are `length` metres long, shorter where they
+        would own more than `max_points` points (`TileLayout.cut_by_points`): a dense scanner's
+        tile fits a worker as a sparse one's does."""
         poses = survey.poses()
         if len(poses) == 0:
             raise ValueError(f"{survey.source}: no frames to cut into tiles")
@@ -53,8 +62,7 @@ class TileIndex:
             path, time0 = map_trajectory(survey)
         layout = TileLayout.along(path, length, halo)
         coarse = cell * FOOTPRINT_CELLS
-        owned: list[list[np.ndarray]] = [[] for _ in range(layout.count)]
-        counts = np.zeros(layout.count, dtype=np.int64)
+        cells = _CellCounts()
         footprints, sizes = [], []
         low = np.full(3, np.inf)
         for frame in survey.frames:
@@ -65,17 +73,20 @@ class TileIndex:
                 if len(xyz):
                     low = np.minimum(low, xyz.min(axis=0))
                 keys, per_key = np.unique(cell_keys(xyz, cell), return_counts=True)
-                tile = _cell_owners(layout, keys, cell)
-                for t in np.unique(tile):
-                    owned[int(t)].append(keys[tile == t])
-                counts += np.bincount(tile, weights=per_key, minlength=layout.count).astype(
-                    np.int64
-                )
+                cells.add(keys, per_key)
                 footprint.append(np.unique(cell_keys(_centres(keys, cell), coarse)))
             sizes.append(size)
             footprints.append(np.unique(np.concatenate(footprint)))
+        keys, per_key = cells.totals()
+        stations = layout.stations(_centres(keys, cell))
+        if max_points is not None:
+            layout = layout.cut_by_points(stations, per_key, max_points, min_length=2 * cell)
+        tile = layout.owner(stations)  # a cell belongs to the tile of its centre's station
+        counts = np.bincount(tile, weights=per_key, minlength=layout.count).astype(np.int64)
+        order = np.argsort(tile, kind="stable")
+        starts = np.searchsorted(tile[order], np.arange(layout.count + 1))
         owned_cells = [
-            np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64) for parts in owned
+            np.sort(keys[order[a:b]]) for a, b in zip(starts[:-1], starts[1:], strict=True)
         ]
         window_cells = [halo_cells(c, halo, cell) for c in owned_cells]
         frame_of = np.repeat(np.arange(len(footprints)), [len(fp) for fp in footprints])
@@ -106,8 +117,31 @@ def _centres(keys: np.ndarray, cell: float) -> np.ndarray:
     return np.column_stack([(i + 0.5) * cell, (j + 0.5) * cell])
 
 
-def _cell_owners(layout: TileLayout, keys: np.ndarray, cell: float) -> np.ndarray:
-    """(K,) tile owning each cell: the tile of its centre's station. A cell, not each point,
-    is placed on the trajectory: a whole cell has one owner, and a frame of 100,000 points
-    touches only a few thousand cells."""
-    return layout.owner(layout.stations(_centres(keys, cell)))
+class _CellCounts:
+    """Points per grid cell over a stream of frames: merged every few frames, so memory grows
+    with the cells of the area driven, not with the frames that touched them."""
+
+    def __init__(self, merge_every: int = 64):
+        self.keys = np.zeros(0, dtype=np.int64)
+        self.counts = np.zeros(0, dtype=np.int64)
+        self.pending: list[tuple[np.ndarray, np.ndarray]] = []
+        self.merge_every = merge_every
+
+    def add(self, keys: np.ndarray, counts: np.ndarray) -> None:
+        self.pending.append((keys, counts))
+        if len(self.pending) >= self.merge_every:
+            self._merge()
+
+    def _merge(self) -> None:
+        keys = np.concatenate([self.keys, *[k for k, _ in self.pending]])
+        counts = np.concatenate([self.counts, *[c for _, c in self.pending]])
+        self.pending = []
+        self.keys, inverse = np.unique(keys, return_inverse=True)
+        self.counts = np.bincount(inverse, weights=counts, minlength=len(self.keys)).astype(
+            np.int64
+        )
+
+    def totals(self) -> tuple[np.ndarray, np.ndarray]:
+        """(sorted cell keys, points in each)."""
+        self._merge()
+        return self.keys, self.counts

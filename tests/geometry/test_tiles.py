@@ -27,6 +27,25 @@ def test_stations_are_the_arc_length_at_the_foot_of_each_point() -> None:
         layout.bounds(4)
 
 
+def test_dense_stretches_get_shorter_tiles() -> None:
+    """1,000 points per metre on the first 100 m, 10,000 per metre after: tiles of at most
+    40 m whose window (the tile and 5 m each side) holds at most about 50,000 points; where
+    the halo alone holds more, tiles are as short as they may be (2 m)."""
+    layout = TileLayout.along(_bend(), length=40.0, halo=5.0)
+    station = np.arange(0.0, 150.0, 0.5) + 0.25
+    points = np.where(station < 100.0, 500, 5000)
+    cut = layout.cut_by_points(station, points, max_points=50_000, min_length=2.0)
+    edges = np.asarray(cut.edges)
+    assert edges[0] == 0.0 and np.all(np.diff(edges) <= 40.0) and np.all(np.diff(edges) >= 2.0)
+    assert edges[1] == pytest.approx(40.0)  # sparse: the length decides
+    for start, end in zip(edges, np.r_[edges[1:], cut.total], strict=True):
+        window = (station >= start - 5.0) & (station < end + 5.0)
+        assert points[window].sum() <= 50_000 + 5000 or end - start == pytest.approx(2.0)
+    assert np.diff(edges)[-1] < 10.0  # dense: the points decide
+    assert cut.owner(np.array([1.0, 41.0, cut.total])).tolist() == [0, 1, cut.count - 1]
+    assert layout.cut_by_points(station, points, 10**9, 2.0).edges == layout.edges
+
+
 def test_bad_layouts_are_refused() -> None:
     with pytest.raises(ValueError, match="tile length"):
         TileLayout.along(_bend(), length=0.0, halo=1.0)

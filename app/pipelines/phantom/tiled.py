@@ -31,7 +31,10 @@ from app.pipelines.phantom.pipeline import PhantomPipeline
 from app.pipelines.phantom.tile_outputs import Assembly, TileResult, write_tile
 from app.pipelines.tiling import TileMap, drive_tiles, file_stamp, finished_tiles, in_process
 
-TILE_LENGTH = 100.0  # metres of trajectory per tile
+TILE_LENGTH = 100.0  # metres of trajectory per tile, at most
+# points in a tile's window at most (the tile is cut shorter where they are denser): a worker's
+# peak memory follows them (bench/RESULTS.md, "Scale")
+TILE_POINTS = 4_000_000
 INDEX_CELL = 2.0  # metres: the grid a tile's own points and its halo are kept on
 # share of a tile's time at the start and end of each step (for progress within a tile)
 TILE_STEPS = {"accumulate": (0.0, 0.15), "classify": (0.15, 0.95), "done": (1.0, 1.0)}
@@ -128,7 +131,7 @@ class PhantomTileSpec:
             "model": [self.model_path, file_stamp(Path(self.model_path))],
             "config": self.config, "dense": self.dense, "baselines": self.baselines,
             "offset": list(self.offset),
-            "tiles": [index.count, layout.length, layout.halo, index.cell],
+            "tiles": [index.count, layout.length, layout.halo, index.cell, list(layout.edges)],
             "frame_sizes": [len(index.frame_sizes), int(index.frame_sizes.sum())],
         }  # fmt: skip
 
@@ -175,13 +178,15 @@ def run_phantom_tiled(
     progress: Progress | None = None,
     map_tiles: TileMap = in_process,
     baselines: bool = False,
+    max_points: int | None = TILE_POINTS,
 ) -> TiledRun:
     """The survey tile by tile into `out`: each tile's files as it finishes, then the
     contract's files assembled from them. Tiles an earlier attempt finished with the same plan
     are not run again. The tiles are independent, so `map_tiles` may run them side by side on
-    a cluster."""
+    a cluster. Tiles are `length` metres, shorter where their window would hold more than
+    `max_points` points (None: no bound)."""
     halo = phantom_halo(pipeline.config) if halo is None else halo
-    index = TileIndex.build(survey, length, halo, INDEX_CELL)
+    index = TileIndex.build(survey, length, halo, INDEX_CELL, max_points)
     spec = PhantomTileSpec(  # absolute paths: a cluster's workers run elsewhere
         str(Path(survey.source).resolve()), survey.format, str(pipeline.model_path.resolve()),
         pipeline.config.model_dump_json(), str(Path(out).resolve()),
