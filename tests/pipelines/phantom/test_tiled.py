@@ -150,3 +150,17 @@ def test_a_windows_ground_is_the_whole_maps_ground() -> None:
         phantom_ground(whole.xyz, pipeline.config).height(own),
         atol=1e-9,
     )
+
+
+def test_a_point_budget_cuts_dense_tiles_shorter() -> None:
+    """The same frames with a budget of a fifth of the points per window: more, shorter tiles,
+    every point still owned by exactly one of them."""
+    survey = _first_frames(24)
+    free = TileIndex.build(survey, 12.0, 11.0, 2.0)
+    total = int(free.frame_sizes.sum())
+    bounded = TileIndex.build(survey, 12.0, 11.0, 2.0, max_points=total // 5)
+    assert bounded.count > free.count
+    assert int(bounded.owned_points.sum()) == total
+    keys = np.concatenate(bounded.owned_cells)
+    assert len(keys) == len(np.unique(keys))  # a cell has one owner
+    assert np.all(np.diff(bounded.layout.edges) <= 12.0)
