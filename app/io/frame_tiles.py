@@ -5,7 +5,9 @@ A frame belongs to the tile of its sensor position's station (`geometry.tiles.Ti
 tile reads its own frames and, as context, every frame whose sensor was within `halo` metres
 (horizontally) of one of its own frames' sensors: the frames whose rays and objects reach its
 own. The halo is spatial, not a stretch of stations, so a drive that comes back along a street
-sees its first pass there too. Only poses are read: building the tiles costs nothing per point.
+sees its first pass there too. A tile may also be cut shorter so that it reads at most a number
+of frames (where the drive comes back, or the frames are dense). Only poses are read: building
+the tiles costs nothing per point.
 """
 
 from __future__ import annotations
@@ -30,19 +32,26 @@ class FrameTiles:
         return self.layout.count
 
     @classmethod
-    def build(cls, survey: Survey, length: float, halo: float) -> FrameTiles:
+    def build(
+        cls, survey: Survey, length: float, halo: float, max_reads: int | None = None
+    ) -> FrameTiles:
+        """Tiles of `length` metres; with `max_reads`, a tile also ends before it would read
+        more than that many frames (its own and their halo's, a drive's other passes
+        included), but owns at least one frame."""
         poses = survey.poses()
         if len(poses) == 0:
             raise ValueError(f"{survey.source}: no frames to cut into tiles")
         sensors = poses[:, :3, 3]
         layout = TileLayout.along(sensors, length, halo)
-        owner = layout.owner(layout.stations(sensors))
-        tree = cKDTree(sensors[:, :2])
+        station = layout.stations(sensors)
+        near = cKDTree(sensors[:, :2]).query_ball_point(sensors[:, :2], r=halo)
+        if max_reads is not None:
+            layout = _cut_by_reads(layout, station, near, max_reads)
+        owner = layout.owner(station)
         frames = []
         for tile in range(layout.count):
             own = np.flatnonzero(owner == tile)
-            near = tree.query_ball_point(sensors[own, :2], r=halo) if len(own) else []
-            reach = np.concatenate([own, *[np.asarray(n, dtype=np.int64) for n in near]])
+            reach = np.concatenate([own, *[np.asarray(near[k], dtype=np.int64) for k in own]])
             frames.append(np.unique(reach.astype(np.int64)))
         return cls(layout, owner.astype(np.int64), frames)
 
@@ -53,3 +62,19 @@ class FrameTiles:
     def tile_survey(self, survey: Survey, tile: int) -> Survey:
         """The survey with only the frames tile `tile` reads (same order)."""
         return replace(survey, frames=[survey.frames[int(k)] for k in self.frames[tile]])
+
+
+def _cut_by_reads(
+    layout: TileLayout, station: np.ndarray, near: list, max_reads: int
+) -> TileLayout:
+    """`layout`'s trajectory with a tile ending at `length` metres or before the frame that
+    would make it read more than `max_reads` frames. One step per frame (frames, not points)."""
+    edges, start, reads = [0.0], 0.0, set()
+    for k in np.argsort(station, kind="stable").tolist():
+        s = max(float(station[k]), 0.0)
+        grown = reads.union(near[k])
+        if reads and (s - start >= layout.length or len(grown) > max_reads) and s > start:
+            edges.append(s)
+            start, grown = s, set(near[k])
+        reads = grown
+    return TileLayout(layout.stations_of, layout.length, layout.halo, tuple(edges))

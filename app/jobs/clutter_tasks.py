@@ -38,10 +38,10 @@ from app.jobs.memory import (
 )
 from app.jobs.registry import JobContext, task
 from app.jobs.task_config import validated
-from app.pipelines.clutter.accumulate import kept_and_removed
 from app.pipelines.clutter.config import ClutterConfig
+from app.pipelines.clutter.maps import MAPS, maps_offset, write_frame_maps
 from app.pipelines.clutter.review_units import apply_decisions
-from app.pipelines.clutter.run import reference_metrics, run_clutter_report, write_maps
+from app.pipelines.clutter.run import reference_metrics, run_clutter_report
 from app.pipelines.clutter.tiled import TILE_LENGTH, clutter_halo
 from app.pipelines.outputs import write_frame_labels, write_report
 from app.store import clutter_review
@@ -214,17 +214,15 @@ def recompute_clutter(context: JobContext, config: dict[str, Any]) -> dict[str, 
     context.progress(0.05, "applying the decisions")
     verdicts = [(frame_id, index, VERDICT[d]) for frame_id, index, d, _ in decisions]
     removed, in_view, pipeline_removed = apply_decisions(survey, run / "instances", verdicts)
-    context.progress(0.4, "accumulating the maps")
+    context.progress(0.4, "writing the maps")
     out = context.workdir
     write_frame_labels(
         out, {f.frame_id: r.astype(np.uint8) for f, r in zip(survey.frames, removed, strict=True)}
     )
-    kept_map, removed_map = kept_and_removed(survey, removed, run_config.voxel_dedup)
-    context.progress(0.8, "writing the maps")
-    files = {
-        name: str((out / path).resolve())
-        for name, path in write_maps(out, kept_map, removed_map).items()
-    }
+    frames = np.arange(len(survey.frames))
+    offset = maps_offset(survey)
+    maps = write_frame_maps(out, "", survey, frames, removed, run_config.voxel_dedup, offset)
+    files = {kind: str((out / maps[kind]).resolve()) for kind in MAPS}
     tally = {d.value: 0 for d in Decision}
     for _, _, decision, _ in decisions:
         tally[decision.value] += 1
@@ -233,7 +231,7 @@ def recompute_clutter(context: JobContext, config: dict[str, Any]) -> dict[str, 
         "points": int(sum(len(r) for r in removed)),
         "removed_points": int(sum(int(r.sum()) for r in removed)),
         "pipeline_removed_points": pipeline_removed,
-        "map_points": int(len(kept_map.xyz)),
+        "map_points": maps["map_points"],
         "instances": len(decisions),
         "decisions": tally,
     }

@@ -5,14 +5,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import laspy
 import numpy as np
 import pytest
 
-from app.geometry.voxels import voxel_downsample
 from app.io import open_survey
 from app.io.accumulate import accumulate
 from app.io.survey import Survey
-from app.pipelines.clutter.accumulate import kept_and_removed
+from app.pipelines.clutter.maps import write_frame_maps
 from app.simulate.survey import SimulationConfig, simulate
 from app.viewer.survey_map import MapSource, accumulate_local
 
@@ -36,27 +36,40 @@ def same(a: np.ndarray, b: np.ndarray) -> None:
 
 
 @pytest.mark.parametrize("voxel", [None, 0.3])
-def test_clutter_maps_are_the_selected_points_of_each_frame(survey: Survey, voxel) -> None:
+def test_clutter_maps_are_the_selected_points_of_each_frame(
+    survey: Survey, voxel, tmp_path: Path
+) -> None:
+    """Written a frame at a time, the maps hold each frame's kept (with `voxel_dedup`: the first
+    kept point of each voxel of the offset's grid) and removed points, with their intensities
+    and source frame / index."""
     rng = np.random.default_rng(0)
     removed = [rng.random(len(f.points())) < 0.3 for f in survey.frames]
-    kept, gone = kept_and_removed(survey, removed, voxel)
-    for flag, got in ((False, kept), (True, gone)):
+    frames = np.arange(len(survey.frames))
+    offset = np.floor(survey.frames[0].pose[:3, 3])
+    maps = write_frame_maps(tmp_path, "", survey, frames, removed, voxel, offset)
+    assert (maps["cleaned"], maps["removed"]) == ("cleaned.laz", "removed.laz")
+    for flag, name in ((False, "cleaned"), (True, "removed")):
         xyz, intensity, frame, index = [], [], [], []
         for i, _, cloud, world in posed(survey):
             picked = np.flatnonzero(removed[i] == flag)
             xyz.append(world[picked])
-            intensity.append(np.asarray(cloud.intensity, np.float32)[picked])
-            frame.append(np.full(len(picked), i, dtype=np.uint32))
-            index.append(picked.astype(np.uint32))
+            intensity.append(np.round(np.asarray(cloud.intensity, np.float64)[picked] * 65535))
+            frame.append(np.full(len(picked), i))
+            index.append(picked)
         want = [np.concatenate(v) for v in (xyz, intensity, frame, index)]
         if voxel and not flag:
-            first = voxel_downsample(want[0], voxel, origin=want[0].min(axis=0))
+            ijk = np.floor((want[0] - offset) / voxel).astype(np.int64)
+            first = np.sort(np.unique(ijk, axis=0, return_index=True)[1])
             want = [v[first] for v in want]
-        got_arrays = (got.xyz, got.intensity, got.source_frame, got.source_index)
-        for a, b in zip(want, got_arrays, strict=True):
-            same(a, b)
+        las = laspy.read(tmp_path / maps[name])
+        got = np.column_stack([las.x, las.y, las.z])
+        assert len(got) == len(want[0]) and np.abs(got - want[0]).max() <= 0.0005 + 1e-9
+        assert np.array_equal(np.asarray(las.intensity), want[1].astype(np.uint16))
+        assert np.array_equal(np.asarray(las["source_frame"]), want[2])
+        assert np.array_equal(np.asarray(las["source_index"]), want[3])
+    assert maps["map_points"] == len(laspy.read(tmp_path / "cleaned.laz").points)
     with pytest.raises(ValueError, match="decisions"):
-        kept_and_removed(survey, [r[:-1] for r in removed])
+        write_frame_maps(tmp_path, "x", survey, frames, [r[:-1] for r in removed], None, offset)
 
 
 def test_phantom_map_keeps_reference_labels_and_splits_back(survey: Survey) -> None:
@@ -82,15 +95,16 @@ def test_viewer_map_is_recentred_float32_beside_exact_world_xy(survey: Survey) -
     same(world_xy, np.concatenate([w[:, :2] for w in worlds]))
 
 
-def test_a_survey_without_frames_gives_empty_maps() -> None:
+def test_a_survey_without_frames_gives_empty_maps(tmp_path: Path) -> None:
     empty = Survey("empty", Path("."), "sim", [])
     same(accumulate(empty).xyz, np.zeros((0, 3)))
     local = accumulate(empty, origin=np.zeros(3))
     same(local.xyz, np.zeros((0, 3), np.float32))
     same(local.world_xy, np.zeros((0, 2)))
-    kept, gone = kept_and_removed(empty, [], 0.3)
-    same(kept.source_frame, np.zeros(0, np.uint32))
-    same(gone.source_index, np.zeros(0, np.uint32))
+
+    maps = write_frame_maps(tmp_path, "", empty, np.zeros(0, np.int64), [], 0.3, np.zeros(3))
+    assert maps["map_points"] == 0
+    assert len(laspy.read(tmp_path / "cleaned.laz").points) == 0  # written, empty
 
 
 def test_a_label_file_of_another_length_names_its_frame() -> None:

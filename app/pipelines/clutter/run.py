@@ -4,26 +4,24 @@ per-frame decisions (the web app's recompute, `mmsclean evaluate`)."""
 
 from __future__ import annotations
 
-import datetime
 import time
 from pathlib import Path
 
 import numpy as np
 
 from app.core.progress import Progress
-from app.io.accumulate import AccumulatedMap
-from app.io.asprs import REMOVED_CLUTTER_ASPRS
-from app.io.las import write_laz
 from app.io.survey import Survey
 from app.pipelines.clutter.config import ClutterConfig
-from app.pipelines.clutter.evaluation.removal_metrics import metrics_from_counts
+from app.pipelines.clutter.evaluation.removal_metrics import (
+    metrics_from_counts,
+    survey_removal_counts,
+)
 from app.pipelines.clutter.pipeline import ClutterPipeline
 from app.pipelines.clutter.segmenter import CachedSegmenter, overlay_png
 from app.pipelines.clutter.tiled import (
     TILE_LENGTH,
     ClutterTiledRun,
     cached_segmentation,
-    reflectance,
     run_clutter_tiled,
 )
 from app.pipelines.outputs import write_report
@@ -96,36 +94,10 @@ def reference_metrics(
     survey: Survey, removed: list[np.ndarray], in_view: list[np.ndarray]
 ) -> dict | None:
     """The paper's removal metrics of per-frame removed flags against the survey's reference
-    labels; None when it has none."""
-    if "semantic" not in survey.reference_label_kinds:
-        return None
-    from app.pipelines.clutter.evaluation.removal_metrics import removal_metrics
-
-    references = [f.reference_labels() for f in survey.frames]
-    semantic = np.concatenate([r["semantic"] for r in references])
-    moving = None
-    if "moving" in survey.reference_label_kinds:  # the simulator's per-point flag
-        moving = np.concatenate([r["moving"] for r in references])
-    return removal_metrics(semantic, np.concatenate(removed), np.concatenate(in_view), moving)
-
-
-def write_maps(out: Path, kept: AccumulatedMap, removed: AccumulatedMap) -> dict[str, str]:
-    """cleaned.laz and removed.laz in `out`; returns {name: file name}."""
-    written = {}
-    for name, world, label in (("cleaned.laz", kept, 0), ("removed.laz", removed, 1)):
-        n = len(world.xyz)
-        write_laz(
-            out / name,
-            world.xyz,
-            mmsclean_label=np.full(n, label, dtype=np.uint8),
-            classification=np.full(n, REMOVED_CLUTTER_ASPRS if label else 1, dtype=np.uint8),
-            source_frame=world.source_frame,
-            source_index=world.source_index,
-            intensity=None if world.intensity is None else reflectance(world.intensity),
-            creation_date=datetime.date.today(),
-        )
-        written[name.removesuffix(".laz")] = name
-    return written
+    labels, frame by frame; None when it has none."""
+    frames = np.arange(len(survey.frames))
+    counts = survey_removal_counts(survey, frames, removed, in_view)
+    return None if counts is None else metrics_from_counts(counts)
 
 
 def _write_overlays(

@@ -16,11 +16,11 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from app.io.las import LasAppender
+from app.io.las import LasAppender, write_laz
 from app.pipelines.clutter.evaluation.removal_metrics import add_removal_counts
+from app.pipelines.clutter.maps import MAPS
 from app.pipelines.tiling import TILES, tile_name
 
-MAPS = ("cleaned", "removed")
 # a (frame, cluster) observation as one integer: clusters per frame stay below 2^24
 _CLUSTERS = np.int64(1 << 24)
 
@@ -45,7 +45,10 @@ class ClutterAssembly:
     def finish(self) -> dict:
         """The maps completed; returns {"files", "counts", "metric_counts", "timings",
         "worker_peak_mb", "segmentation", "rows"} (rows with joined track ids)."""
-        files = {kind: f"{kind}.laz" for kind in MAPS if self.maps[kind].close()}
+        files = {kind: f"{kind}.laz" for kind in MAPS}
+        for kind in MAPS:
+            if not self.maps[kind].close():  # no tile had a point of this map
+                write_laz(self.out / files[kind], np.zeros((0, 3)))
         tiles = sorted(self.summaries)
         track_of = join_tracks(self.folder, tiles)
         counts = {"frames": 0, "points": 0, "points_in_view": 0, "removed_points": 0,

@@ -22,17 +22,15 @@ from pathlib import Path
 import numpy as np
 
 from app.core.progress import Progress
-from app.geometry.voxels import voxel_indices
-from app.io.asprs import REMOVED_CLUTTER_ASPRS
 from app.io.frame_tiles import FrameTiles
-from app.io.las import LasAppender, write_laz
-from app.io.survey import Camera, PointCloud, Survey
+from app.io.survey import Camera, Survey
 from app.pipelines.clutter.config import ClutterConfig
-from app.pipelines.clutter.evaluation.removal_metrics import add_removal_counts, removal_counts
+from app.pipelines.clutter.evaluation.removal_metrics import survey_removal_counts
+from app.pipelines.clutter.maps import maps_offset, write_frame_maps
 from app.pipelines.clutter.pipeline import ClutterPipeline, ClutterResult
 from app.pipelines.clutter.review_units import write_review_units
 from app.pipelines.clutter.segmenter import CachedSegmenter, Segmenter, segmented_class_maps
-from app.pipelines.clutter.tile_assembly import MAPS, ClutterAssembly
+from app.pipelines.clutter.tile_assembly import ClutterAssembly
 from app.pipelines.outputs import write_frame_labels
 from app.pipelines.tiling import (
     TILES,
@@ -44,7 +42,11 @@ from app.pipelines.tiling import (
     write_summary,
 )
 
-TILE_LENGTH = 100.0  # metres of trajectory per tile
+TILE_LENGTH = 100.0  # metres of trajectory per tile, at most
+# frames a tile reads at most (its own and their halo's): DUFOMap's map grows with them, by about
+# 5.5 MB per frame of a profile scanner, whose thin planes of free space do not merge in its
+# octree (a rotating scanner's do: a 100 m tile of a simulated HDL-64E peaked at 0.5 GB)
+TILE_FRAMES = 250
 # share of a tile's time at the start and end of each step (for progress within a tile)
 TILE_STEPS = {
     "segmentation": (0.0, 0.4),
@@ -86,7 +88,8 @@ class ClutterTileSpec:
         return {
             "survey": [self.survey_source, self.survey_format],
             "config": self.config, "offset": list(self.offset), "review": self.review,
-            "tiles": [tiles.count, layout.length, layout.halo, len(tiles.owner)],
+            "tiles": [tiles.count, layout.length, layout.halo, len(tiles.owner),
+                      list(layout.edges)],
         }  # fmt: skip
 
 
@@ -111,6 +114,7 @@ def clutter_tile(
     survey = open_survey(Path(spec.survey_source), spec.survey_format)
     config = ClutterConfig.model_validate_json(spec.config)
     if len(own) == 0:  # a stretch of trajectory between two frames
+        _write_tracks(out, tile, None, own)
         return write_summary(out, tile, _summary({}, None, {}, None, [], {}, started))
     pipeline = ClutterPipeline(config)
     camera = pipeline.camera(survey)
@@ -147,7 +151,10 @@ def _keep_own(
     out = Path(spec.out)
     keep = np.searchsorted(tiles.frames[tile], own)  # own frames' places in the result
     write_frame_labels(out, {result.frame_ids[i]: result.removed[i] for i in keep})
-    maps = _write_maps(out, survey, own, [result.removed[i] for i in keep], config, spec, tile)
+    removed = [result.removed[i] for i in keep]
+    maps = write_frame_maps(
+        out / TILES, tile_name(tile), survey, own, removed, config.voxel_dedup, spec.offset
+    )
     counts = {
         "frames": len(own),
         "points": int(sum(len(result.removed[i]) for i in keep)),
@@ -161,7 +168,7 @@ def _keep_own(
             survey, result, config, camera, cached, out / "instances", keep=keep
         )
     _write_tracks(out, tile, result, keep)
-    metrics = _error_counts(survey, result, keep)
+    metrics = survey_removal_counts(survey, own, removed, [result.in_view[i] for i in keep])
     return write_summary(
         out, tile, _summary(counts, cached, maps, metrics, rows, result.timings, started)
     )
@@ -192,113 +199,12 @@ def _summary(
     }
 
 
-def _write_maps(
-    out: Path,
-    survey: Survey,
-    own: np.ndarray,
-    removed: list[np.ndarray],
-    config: ClutterConfig,
-    spec: ClutterTileSpec,
-    tile: int,
-) -> dict:
-    """The own frames' kept and removed points as this tile's LAZ parts, a frame at a time
-    (each frame's part appended, then dropped). `voxel_dedup` keeps the first kept point of
-    each voxel of a grid fixed for the run (`spec.offset`): one key per kept point is held,
-    and within the tile only (a voxel on a tile border may keep one point from each side)."""
-    folder = out / TILES
-    folder.mkdir(parents=True, exist_ok=True)
-    name = tile_name(tile)
-    first = None
-    if config.voxel_dedup:
-        first = _first_in_voxel(survey, own, removed, config.voxel_dedup, np.asarray(spec.offset))
-    appenders = {kind: LasAppender(folder / f"{name}.{kind}.laz") for kind in MAPS}
-    kept_points = 0
-    try:
-        for n, (k, gone) in enumerate(zip(own.tolist(), removed, strict=True)):
-            cloud = survey.frames[k].world_points()
-            if len(cloud.xyz) != len(gone):
-                raise ValueError(f"frame {survey.frames[k].frame_id}: {len(cloud.xyz)} points, "
-                                 f"{len(gone)} decisions")  # fmt: skip
-            keep = ~gone if first is None else ~gone & first[n]
-            kept_points += int(keep.sum())
-            for kind, which, label in (("cleaned", keep, 0), ("removed", gone, 1)):
-                if which.any():
-                    part = folder / f"{name}.{kind}.frame.laz"
-                    _write_points(part, cloud, np.flatnonzero(which), k, label, spec)
-                    appenders[kind].append(part)
-                    part.unlink()
-        maps: dict = {"map_points": kept_points}
-        for kind in MAPS:
-            if appenders[kind].close():
-                maps[kind] = f"{name}.{kind}.laz"
-        return maps
-    except BaseException:
-        for appender in appenders.values():
-            appender.abort()
-        raise
-
-
-def _write_points(
-    path: Path, cloud: PointCloud, index: np.ndarray, frame: int, label: int, spec
-) -> None:
-    n = len(index)
-    write_laz(
-        path,
-        cloud.xyz[index],
-        mmsclean_label=np.full(n, label, dtype=np.uint8),
-        classification=np.full(n, REMOVED_CLUTTER_ASPRS if label else 1, dtype=np.uint8),
-        source_frame=np.full(n, frame, dtype=np.uint32),
-        source_index=index.astype(np.uint32),
-        intensity=None if cloud.intensity is None else reflectance(cloud.intensity[index]),
-        offset=np.asarray(spec.offset),
-    )
-
-
-_HALF = 1 << 20  # voxel indices from the run's origin within +-2^20 pack into one int64
-
-
-def _voxel_key(ijk: np.ndarray) -> np.ndarray:
-    """(N,) int64 key of voxel indices (N, 3), the same in every frame (unlike
-    `geometry.voxels.voxel_keys`, whose keys hold within one call)."""
-    if len(ijk) and int(np.abs(ijk).max()) >= _HALF:
-        raise ValueError("voxel_dedup: the survey reaches over 2^20 voxels from its first "
-                         "sensor position; use larger voxels")  # fmt: skip
-    shifted = ijk.astype(np.int64) + _HALF
-    return (shifted[:, 0] << 42) | (shifted[:, 1] << 21) | shifted[:, 2]
-
-
-def _first_in_voxel(
-    survey: Survey, own: np.ndarray, removed: list[np.ndarray], voxel: float, origin: np.ndarray
-) -> list[np.ndarray]:
-    """Per own frame, (N,) bool: the point is the first kept point of its voxel (frame order)."""
-    keys, sizes = [], []
-    for k, gone in zip(own.tolist(), removed, strict=True):
-        xyz = survey.frames[k].world_points().xyz
-        keys.append(_voxel_key(voxel_indices(xyz[~gone], voxel, origin)))
-        sizes.append(len(gone))
-    flat = np.concatenate(keys) if keys else np.zeros(0, dtype=np.int64)
-    chosen = np.zeros(len(flat), dtype=bool)
-    chosen[np.unique(flat, return_index=True)[1]] = True
-    out, start = [], 0
-    for gone, part in zip(removed, keys, strict=True):
-        flags = np.zeros(len(gone), dtype=bool)
-        flags[~gone] = chosen[start : start + len(part)]
-        start += len(part)
-        out.append(flags)
-    return out
-
-
-def reflectance(values: np.ndarray) -> np.ndarray:
-    """Reflectance 0..1 to the LAS 16-bit range; values already above 1 are kept as they are."""
-    values = np.asarray(values, dtype=np.float64)
-    return values * 65535.0 if values.size and values.max() <= 1.0 else values
-
-
-def _write_tracks(out: Path, tile: int, result: ClutterResult, keep: np.ndarray) -> None:
+def _write_tracks(out: Path, tile: int, result: ClutterResult | None, keep: np.ndarray) -> None:
     """The observations (survey frame, cluster) of every track that touches the tile's own
-    frames, so that `tile_assembly.join_tracks` can join a track seen by several tiles."""
+    frames (none without a result), so that `tile_assembly.join_tracks` can join a track seen
+    by several tiles."""
     track, frame, cluster = [], [], []
-    if result.tracks is not None and result.frame_numbers is not None:
+    if result is not None and result.tracks is not None and result.frame_numbers is not None:
         own_numbers = set(result.frame_numbers[keep].tolist())
         for t, trk in enumerate(result.tracks.tracks):
             if own_numbers.isdisjoint(trk.frames):
@@ -312,20 +218,6 @@ def _write_tracks(out: Path, tile: int, result: ClutterResult, keep: np.ndarray)
         frame=np.asarray(frame, dtype=np.int64),
         cluster=np.asarray(cluster, dtype=np.int64),
     )
-
-
-def _error_counts(survey: Survey, result: ClutterResult, keep: np.ndarray) -> dict | None:
-    """The own frames' error matrices against the reference labels, added frame by frame;
-    None without them."""
-    if "semantic" not in survey.reference_label_kinds or result.frame_numbers is None:
-        return None
-    total = None
-    for i in keep.tolist():
-        reference = survey.frames[int(result.frame_numbers[i])].reference_labels()
-        moving = reference.get("moving") if "moving" in survey.reference_label_kinds else None
-        counts = removal_counts(reference["semantic"], result.removed[i], result.in_view[i], moving)
-        total = add_removal_counts(total, counts)
-    return total
 
 
 def cached_segmentation(cache_dir: Path | None, weights_dir: Path | None) -> CachedSegmenter:
@@ -361,16 +253,17 @@ def run_clutter_tiled(
     review: bool = False,
     cache_dir: Path | None = None,
     weights_dir: Path | None = None,
+    max_reads: int | None = TILE_FRAMES,
 ) -> ClutterTiledRun:
     """The survey tile by tile into `out`: each tile's files as it finishes, the maps and
     totals assembled from them. Tiles an earlier attempt finished with the same plan are not
-    run again; `map_tiles` may run the tiles side by side on a cluster."""
+    run again; `map_tiles` may run the tiles side by side on a cluster. A tile ends at
+    `length` metres or before it would read more than `max_reads` frames."""
     halo = clutter_halo(config) if halo is None else halo
-    tiles = FrameTiles.build(survey, length, halo)
-    first = survey.frames[0].pose[:3, 3]
+    tiles = FrameTiles.build(survey, length, halo, max_reads)
     spec = ClutterTileSpec(  # absolute paths: a cluster's workers run elsewhere
         str(Path(survey.source).resolve()), survey.format, config.model_dump_json(),
-        str(Path(out).resolve()), tuple(np.floor(first).tolist()),
+        str(Path(out).resolve()), tuple(maps_offset(survey).tolist()),
         None if cache_dir is None else str(Path(cache_dir).resolve()),
         None if weights_dir is None else str(Path(weights_dir).resolve()), review,
     )  # fmt: skip

@@ -3,6 +3,7 @@ tiles, and a rerun keeps the finished tiles (synthetic streets)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import laspy
@@ -10,13 +11,14 @@ import numpy as np
 import pytest
 
 from app.io import open_survey
+from app.io.frame_tiles import FrameTiles
 from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.evaluation.removal_metrics import removal_metrics
 from app.pipelines.clutter.pipeline import ClutterPipeline
 from app.pipelines.clutter.run import run_clutter_report
 from app.pipelines.clutter.segmenter import ESPNetv2Segmenter, segmented_class_maps
 from app.pipelines.clutter.tile_assembly import join_tracks
-from app.pipelines.clutter.tiled import clutter_halo
+from app.pipelines.clutter.tiled import clutter_halo, run_clutter_tiled
 from app.pipelines.tiling import TILES
 from app.simulate.survey import SimulationConfig, simulate
 
@@ -119,3 +121,31 @@ def test_tiles_share_the_segmentation_cache(weights_dir: Path, tmp_path: Path) -
     b = _labels(tmp_path / "out", survey).astype(bool)
     assert (a == b).mean() >= 0.999 and b.sum() > 0
     assert report["counts"]["points_in_view"] > 0
+
+
+def test_a_tile_without_frames_is_empty(street: Path, tmp_path: Path) -> None:
+    """Frames far apart (a gap in the recording) leave tiles that own no frame: they finish
+    empty, and the others' results are whole."""
+    survey = open_survey(street, "sim")
+    frames = list(survey.frames)[:4]
+    far = frames[3].pose.copy()
+    far[0, 3] += 250.0  # the last frame 250 m further on
+    frames[3] = replace(frames[3], pose=far)
+    gap = replace(survey, frames=frames)
+    run = run_clutter_tiled(CONFIG, gap, tmp_path, 100.0, max_reads=None)  # tiles by length
+    assert run.tiles.count == 3 and len(run.tiles.own(1)) == 0
+    assert run.counts["frames"] == 4
+    assert run.counts["points"] == sum(len(f.points()) for f in frames)
+
+
+def test_a_frame_budget_cuts_tiles_shorter(street: Path) -> None:
+    """Read frames are bounded: a tile ends before it would read more than the budget, its
+    own frames' halo included."""
+    survey = open_survey(street, "sim")
+    free = FrameTiles.build(survey, 100.0, 5.0)
+    bounded = FrameTiles.build(survey, 100.0, 5.0, max_reads=20)
+    assert free.count == 1 and bounded.count > 1
+    assert max(len(f) for f in bounded.frames) <= 20
+    assert sorted(np.concatenate([bounded.own(t) for t in range(bounded.count)])) == list(
+        range(len(survey.frames))
+    )

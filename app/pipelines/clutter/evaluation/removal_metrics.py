@@ -16,6 +16,7 @@ from dataclasses import asdict
 import numpy as np
 
 from app.core.labels import MOVABLE_IDS, MOVING_IDS, UNSCORED_IDS
+from app.io.survey import Survey
 from app.metrics.removal import DynamicScores, ErrorMatrix, error_matrix
 
 
@@ -92,3 +93,18 @@ def metrics_from_counts(counts: dict) -> dict[str, dict[str, dict]]:
             )
             out[scope][kind] = {"error_matrix": matrix.as_dict(), "scores": scores.as_dict()}
     return out
+
+
+def survey_removal_counts(
+    survey: Survey, frames: np.ndarray, removed: list[np.ndarray], in_view: list[np.ndarray]
+) -> dict | None:
+    """`removal_counts` of the survey's frames `frames` (indices) against their reference
+    labels, added frame by frame (nothing holds the survey's labels); None without them."""
+    if "semantic" not in survey.reference_label_kinds:
+        return None
+    total = None
+    for k, gone, seen in zip(np.asarray(frames).tolist(), removed, in_view, strict=True):
+        reference = survey.frames[k].reference_labels()
+        moving = reference["moving"] if "moving" in survey.reference_label_kinds else None
+        total = add_removal_counts(total, removal_counts(reference["semantic"], gone, seen, moving))
+    return total
