@@ -4,6 +4,7 @@ Prints a table and appends it to RESULTS.md.
   phantom   per length (--lengths, km): wall time, time per km, peak resident memory of each
   clutter   tile worker and of the run's own process (which assembles the outputs); then 1 vs 2
             tile workers on one survey (--speedup-km), same run: the speed-up
+  agreement tiled against whole-drive clutter labels on a 150 m rotating-scanner street
   viewer    the viewer's map of the longest survey (--lengths' last): building its cache, then in
             a fresh process what a first scene needs (open the cache, the overview's points and
             pillars) and a tile in focus, and the memory while every tile is read in turn, as a
@@ -14,7 +15,7 @@ are that run's: a worker's is its whole life (`ru_maxrss` after each tile, in th
 Surveys are synthetic (app.simulate, `--scanner` profile or hdl64, scene mixed, seed 901),
 cached under $MMSCLEAN_DATA_DIR/cache/bench.
 
-Usage: python -m bench.scale phantom|clutter|viewer [--lengths 0.25,0.5,1,2,4]
+Usage: python -m bench.scale phantom|clutter|agreement|viewer [--lengths 0.25,0.5,1,2,4]
        [--scanner profile] [--tile-length 100] [--workers 2] [--speedup-km 2] [--no-record]
 """
 
@@ -188,6 +189,51 @@ def part_viewer(args) -> tuple[str, str, str]:
     return "Scale: the viewer's map of a long survey", table, notes
 
 
+def part_agreement(args) -> tuple[str, str, str]:
+    """Tiled against whole-drive clutter labels on a rotating-scanner street, by halo."""
+    import numpy as np
+
+    from app.io import open_survey
+    from app.pipelines.clutter.config import ClutterConfig
+    from app.pipelines.clutter.pipeline import ClutterPipeline
+    from app.pipelines.clutter.tiled import run_clutter_tiled
+    from bench.common import markdown_table
+    from bench.phantom import simulated
+
+    metres, tile = 150.0, 50.0
+    source = simulated("urban", metres, 3, "hdl64")
+    survey = open_survey(source, "sim")
+    config = ClutterConfig(mode="dynamic", use_camera=False)
+    started = time.perf_counter()
+    whole = ClutterPipeline(config).run(survey)
+    whole_s = time.perf_counter() - started
+    truth = np.concatenate(whole.removed)
+    rows = [["whole drive", "-", "1", f"{whole_s:.0f}", f"{int(truth.sum()):,}", "100",
+             str(len(whole.tracks.tracks))]]  # fmt: skip
+    for halo in (config.max_range / 2, config.max_range):
+        with tempfile.TemporaryDirectory() as out:
+            started = time.perf_counter()
+            run = run_clutter_tiled(config, survey, Path(out), tile, halo)
+            tiled_s = time.perf_counter() - started
+            labels = np.concatenate(
+                [np.load(Path(out) / "labels" / f"{f.frame_id}.npy") for f in survey.frames]
+            ).astype(bool)
+        rows.append([f"{tile:g} m tiles", f"{halo:g}", str(run.tiles.count), f"{tiled_s:.0f}",
+                     f"{int(labels.sum()):,}", f"{100 * (labels == truth).mean():.4f}",
+                     str(run.counts["tracks"])])  # fmt: skip
+    table = markdown_table(
+        ["run", "halo m", "tiles", "s", "removed points", "labels equal to whole %", "tracks"],
+        rows,
+    )
+    notes = (
+        f"Synthetic: a simulated {metres:g} m urban street, HDL-64E-like scanner, seed 3 "
+        f"({len(truth):,} points, {len(survey.frames)} frames), clutter pipeline in dynamic mode "
+        f"without the camera, in this process (no cluster). The tiled run's labels against the "
+        f"whole drive's, at half the sensor's reach (the default halo) and the full reach."
+    )
+    return "Scale: tiled against whole-drive clutter labels", table, notes
+
+
 def part_pipeline(args) -> tuple[str, str, str]:
     """The phantom or clutter rows (`args.part`)."""
     from bench.common import markdown_table
@@ -244,7 +290,8 @@ def part_pipeline(args) -> tuple[str, str, str]:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
-        "part", choices=["phantom", "clutter", "viewer", "one", "viewer-build", "viewer-open"]
+        "part",
+        choices=["phantom", "clutter", "agreement", "viewer", "one", "viewer-build", "viewer-open"],
     )
     parser.add_argument("--pipeline", default="phantom", choices=["phantom", "clutter"],
                         help="one: the pipeline")  # fmt: skip
@@ -269,7 +316,8 @@ def main() -> int:
         return 0
     from bench.common import append_results
 
-    title, table, notes = (part_viewer if args.part == "viewer" else part_pipeline)(args)
+    parts = {"viewer": part_viewer, "agreement": part_agreement}
+    title, table, notes = parts.get(args.part, part_pipeline)(args)
     print(table)
     print(notes)
     if not args.no_record:
