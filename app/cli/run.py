@@ -100,7 +100,9 @@ def run_clutter(
     dufomap_resolution: Annotated[
         float, typer.Option(help="metres: voxel edge of the free-space map (0.02-5)")
     ] = 0.1,
-    threads: Annotated[int, typer.Option(help="worker threads, 0 = all cores")] = 0,
+    threads: Annotated[
+        int, typer.Option(help="threads per tile worker, 0 = the cores shared among them")
+    ] = 0,
     overlays: Annotated[int, typer.Option(help="write mask overlays of the first N frames")] = 0,
     tile_length: TileLengthOption = 100.0,
     scheduler: SchedulerOption = None,
@@ -108,10 +110,11 @@ def run_clutter(
     """Clutter removal (Lee et al.): camera masks, 3D expansion, free space, tracking, tile by
     tile. Rerun into the same folder, it keeps the tiles an interrupted run finished."""
     from app.io import open_survey
-    from app.jobs.cluster import close_clients, tile_map
+    from app.jobs.cluster import close_clients, shared_threads, tile_map
     from app.pipelines.clutter.config import ClutterConfig
     from app.pipelines.clutter.run import run_clutter_to_folder
 
+    settings = cluster_settings(scheduler)
     config = config_from_options(
         ClutterConfig,
         {"mask_padding_px": "padding"},
@@ -123,14 +126,14 @@ def run_clutter(
         use_tracking=tracking,
         voxel_dedup=voxel_dedup,
         dufomap_resolution=dufomap_resolution,
-        threads=threads,
+        threads=threads or shared_threads(settings),
     )
     survey = open_survey(source, fmt)
     try:
         with stage_progress("clutter") as progress:
             report = run_clutter_to_folder(
                 survey, out, config=config, overlays=overlays, progress=progress,
-                tile_length=tile_length, map_tiles=tile_map(cluster_settings(scheduler)),
+                tile_length=tile_length, map_tiles=tile_map(settings),
             )  # fmt: skip
     finally:
         close_clients()

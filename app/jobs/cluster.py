@@ -16,6 +16,7 @@ Dask.
 
 from __future__ import annotations
 
+import os
 import threading
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -93,6 +94,11 @@ def close_clients() -> None:
             if cluster is not None:
                 cluster.close()
         _clients.clear()
+
+
+def shared_threads(settings: Settings) -> int:
+    """Threads a tile may use when the local tile workers share this machine's cores."""
+    return max(1, (os.cpu_count() or 1) // max(settings.workers, 1))
 
 
 def tile_map(settings: Settings) -> Callable[..., Iterator[Any]]:

@@ -25,7 +25,7 @@ from app.core.errors import ConfigError, ConflictError, InputError
 from app.core.settings import Settings
 from app.io import open_survey
 from app.io.survey import Survey
-from app.jobs.cluster import tile_map, tile_progress
+from app.jobs.cluster import shared_threads, tile_map, tile_progress
 from app.jobs.memory import (
     MEAN_RAY_M,
     SENSOR_REACH_M,
@@ -114,6 +114,8 @@ def run_clutter_task(context: JobContext, config: dict[str, Any]) -> dict[str, A
     contract files in the workdir, and its instances (each pending) in the store in place of
     the previous run's. A resumed job keeps the tiles its earlier attempt finished."""
     cfg, tile_length = clutter_job_config(config)
+    if cfg.threads == 0:  # the tile workers share the cores
+        cfg = cfg.model_copy(update={"threads": shared_threads(context.settings)})
     survey = _open_survey(context)
     report, run = run_clutter_report(
         survey, context.workdir, cfg, progress=tile_progress(context), tile_length=tile_length,

@@ -8,7 +8,6 @@ replaced in the same transaction that writes the new, so a reader never sees hal
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +19,7 @@ from app.core.bounds import RecordId
 from app.core.errors import ConfigError
 from app.core.settings import Settings
 from app.io import open_survey
-from app.jobs.cluster import tile_map, tile_progress
+from app.jobs.cluster import shared_threads, tile_map, tile_progress
 from app.jobs.memory import MemoryEstimate, points_mb, survey_text
 from app.jobs.model_choice import model_for_job
 from app.jobs.registry import JobContext, task
@@ -124,7 +123,7 @@ def run_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
     context.log.info("survey %s (%s, %s), model %s", context.survey_id, fmt, source, checkpoint)
     context.progress(0.0, "opening the survey")
     survey = open_survey(source, fmt)
-    threads = max(1, (os.cpu_count() or 1) // context.settings.workers)  # share the cores
+    threads = shared_threads(context.settings)
     if choice.off_domain:
         context.log.warning("%s", choice.report()["warning"])
     report = run_phantom_to_folder(

@@ -88,6 +88,7 @@ class ClutterTileSpec:
         return {
             "survey": [self.survey_source, self.survey_format],
             "config": self.config, "offset": list(self.offset), "review": self.review,
+            "segmentation": [self.cache_dir, self.weights_dir],
             "tiles": [tiles.count, layout.length, layout.halo, len(tiles.owner),
                       list(layout.edges)],
         }  # fmt: skip
