@@ -63,8 +63,8 @@ def clutter_halo(cfg: ClutterConfig) -> float:
     reach (`max_range`). Frames that near saw the tile's own points through their rays (free
     space) and saw the same objects (tracks); what frames farther away add is the far end of
     their rays: on a simulated 150 m rotating-scanner street in 50 m tiles, 99.997 % of the
-    labels agree with the untiled run at this halo, 99.999 % at the full reach, which reads
-    twice as many frames (bench/RESULTS.md)."""
+    labels agreed with the untiled run at this halo, 99.999 % at the full reach, which reads
+    twice as many frames (a one-off check, bench/RESULTS.md; `bench.scale agreement`)."""
     return float(cfg.max_range) / 2
 
 
