@@ -39,11 +39,12 @@ from app.jobs.memory import (
 from app.jobs.registry import JobContext, task
 from app.jobs.task_config import validated
 from app.pipelines.clutter.config import ClutterConfig
-from app.pipelines.clutter.maps import MAPS, maps_offset, write_frame_maps
+from app.pipelines.clutter.maps import maps_offset, write_frame_maps
 from app.pipelines.clutter.review_units import apply_decisions
 from app.pipelines.clutter.run import reference_metrics, run_clutter_report
 from app.pipelines.clutter.tiled import TILE_LENGTH, clutter_halo
 from app.pipelines.outputs import write_frame_labels, write_report
+from app.pipelines.tiling import MAPS
 from app.store import clutter_review
 from app.store.models import Decision
 from app.store.surveys import get_survey, survey_footprint

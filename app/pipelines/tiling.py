@@ -18,10 +18,12 @@ from pathlib import Path
 from typing import Any
 
 from app.core.progress import Progress
+from app.io.las import LasAppender
 from app.pipelines.outputs import write_json
 
 TILES = "tiles"
 PLAN = "plan.json"
+MAPS = ("cleaned", "removed")  # the maps a removing pipeline writes, OUT/<map>.laz
 
 # runs `fn(spec, index, tile)` for the tiles given and yields the summaries as they finish, in
 # any order: in this process by default, on a Dask cluster from `app.jobs.cluster`
@@ -66,6 +68,33 @@ def write_summary(out: Path, tile: int, summary: dict) -> dict:
     """A tile's summary, written last: it marks the tile done."""
     write_json(Path(out) / TILES / f"{tile_name(tile)}.json", {"tile": tile, **summary})
     return {"tile": tile, **summary}
+
+
+class TileMaps:
+    """The run's maps appended from the tiles' LAZ parts (a summary's "maps": {map: part file
+    under OUT/tiles/}) as soon as every tile before them is in: the maps keep tile order
+    whatever order tiles finish in."""
+
+    def __init__(self, out: Path):
+        self.folder = Path(out) / TILES
+        self.appenders = {kind: LasAppender(Path(out) / f"{kind}.laz") for kind in MAPS}
+        self.summaries: dict[int, dict] = {}
+        self._next = 0  # the first tile whose maps are not appended yet
+
+    def add(self, summary: dict) -> None:
+        self.summaries[int(summary["tile"])] = summary
+        while self._next in self.summaries:
+            for kind, part in self.summaries[self._next]["maps"].items():
+                self.appenders[kind].append(self.folder / part)
+            self._next += 1
+
+    def close(self) -> dict[str, int]:
+        """{map: points written} (0: nothing appended, and no file made)."""
+        return {kind: appender.close() for kind, appender in self.appenders.items()}
+
+    def abort(self) -> None:
+        for appender in self.appenders.values():
+            appender.abort()
 
 
 def drive_tiles(

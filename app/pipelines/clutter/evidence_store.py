@@ -7,7 +7,7 @@ a time. A list of `FrameEvidence` and a `SpilledEvidence` are used alike: `appen
 from __future__ import annotations
 
 import shutil
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import fields
 from pathlib import Path
 
@@ -49,10 +49,6 @@ class SpilledEvidence(Sequence[FrameEvidence]):
 
     def __len__(self) -> int:
         return self._count
-
-    def __iter__(self) -> Iterator[FrameEvidence]:
-        for i in range(self._count):
-            yield self[i]
 
     def close(self) -> None:
         shutil.rmtree(self.folder, ignore_errors=True)

@@ -16,8 +16,7 @@ from app.geometry.voxels import voxel_indices
 from app.io.asprs import REMOVED_CLUTTER_ASPRS
 from app.io.las import LasAppender, write_laz
 from app.io.survey import PointCloud, Survey
-
-MAPS = ("cleaned", "removed")
+from app.pipelines.tiling import MAPS
 
 
 def maps_offset(survey: Survey) -> np.ndarray:

@@ -16,10 +16,9 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from app.io.las import LasAppender, write_laz
+from app.io.las import write_laz
 from app.pipelines.clutter.evaluation.removal_metrics import add_removal_counts
-from app.pipelines.clutter.maps import MAPS
-from app.pipelines.tiling import TILES, tile_name
+from app.pipelines.tiling import MAPS, TILES, TileMaps, tile_name
 
 # a (frame, cluster) observation as one integer: clusters per frame stay below 2^24
 _CLUSTERS = np.int64(1 << 24)
@@ -31,23 +30,18 @@ class ClutterAssembly:
 
     def __init__(self, out: Path):
         self.out, self.folder = Path(out), Path(out) / TILES
-        self.summaries: dict[int, dict] = {}
-        self.maps = {kind: LasAppender(self.out / f"{kind}.laz") for kind in MAPS}
-        self._next = 0  # the first tile whose maps are not appended yet
+        self.maps = TileMaps(self.out)
+        self.summaries = self.maps.summaries
 
     def add(self, summary: dict) -> None:
-        self.summaries[int(summary["tile"])] = summary
-        while self._next in self.summaries:
-            for kind, part in self.summaries[self._next]["maps"].items():
-                self.maps[kind].append(self.folder / part)
-            self._next += 1
+        self.maps.add(summary)
 
     def finish(self) -> dict:
         """The maps completed; returns {"files", "counts", "metric_counts", "timings",
         "worker_peak_mb", "segmentation", "rows"} (rows with joined track ids)."""
         files = {kind: f"{kind}.laz" for kind in MAPS}
-        for kind in MAPS:
-            if not self.maps[kind].close():  # no tile had a point of this map
+        for kind, written in self.maps.close().items():
+            if not written:  # no tile had a point of this map
                 write_laz(self.out / files[kind], np.zeros((0, 3)))
         tiles = sorted(self.summaries)
         track_of = join_tracks(self.folder, tiles)
@@ -77,8 +71,7 @@ class ClutterAssembly:
         }  # fmt: skip
 
     def abort(self) -> None:
-        for appender in self.maps.values():
-            appender.abort()
+        self.maps.abort()
 
 
 def join_tracks(folder: Path, tiles: list[int]) -> dict[int, dict[int, int]]:

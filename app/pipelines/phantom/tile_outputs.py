@@ -18,7 +18,7 @@ import numpy as np
 
 from app.core.labels import PillarClass
 from app.io.asprs import PHANTOM_LABEL_TO_ASPRS, to_asprs
-from app.io.las import LasAppender, write_laz
+from app.io.las import write_laz
 from app.pipelines.outputs import (
     commit_frame_labels,
     fill_frame_labels,
@@ -27,9 +27,7 @@ from app.pipelines.outputs import (
 )
 from app.pipelines.phantom.evaluation.classification_metrics import add_counts
 from app.pipelines.phantom.point_labels import kept
-from app.pipelines.tiling import TILES, tile_name
-
-MAPS = ("cleaned", "removed")
+from app.pipelines.tiling import MAPS, TILES, TileMaps, tile_name
 
 
 @dataclass
@@ -105,9 +103,7 @@ class Assembly:
         self.out, self.folder, self.frame_ids = Path(out), Path(out) / TILES, frame_ids
         start_frame_labels(self.out, dict(zip(frame_ids, frame_sizes.tolist(), strict=True)))
         self.columns: dict[str, list[tuple[int, np.ndarray]]] = {}
-        self.summaries: dict[int, dict] = {}
-        self.maps = {kind: LasAppender(self.out / f"{kind}.laz") for kind in MAPS}
-        self._next = 0  # the first tile whose maps are not appended yet
+        self.maps = TileMaps(self.out)
 
     def add(self, summary: dict) -> None:
         tile = int(summary["tile"])
@@ -123,17 +119,13 @@ class Assembly:
                     self.columns.setdefault(key.removeprefix("pillar_"), []).append(
                         (tile, data[key])
                     )
-        self.summaries[tile] = summary
-        while self._next in self.summaries:
-            for kind, part in self.summaries[self._next]["maps"].items():
-                self.maps[kind].append(self.folder / part)
-            self._next += 1
+        self.maps.add(summary)
 
     def finish(self) -> dict:
         """The files completed; returns {"files", "counts", "metric_counts", "timings",
         "worker_peak_mb"}."""
         commit_frame_labels(self.out, self.frame_ids)
-        files = {kind: f"{kind}.laz" for kind in MAPS if self.maps[kind].close()}
+        files = {kind: f"{kind}.laz" for kind, n in self.maps.close().items() if n}
         pillars = {
             key: np.concatenate([values for _, values in sorted(parts, key=lambda p: p[0])])
             for key, parts in self.columns.items()
@@ -141,11 +133,10 @@ class Assembly:
         cell_size = float(pillars.pop("cell_size")[0]) if "cell_size" in pillars else 0.0
         np.savez_compressed(self.out / "pillars.npz", cell_size=cell_size, **pillars)
         files["pillars"] = "pillars.npz"
-        return {"files": files, **_totals(list(self.summaries.values()))}
+        return {"files": files, **_totals(list(self.maps.summaries.values()))}
 
     def abort(self) -> None:
-        for appender in self.maps.values():
-            appender.abort()
+        self.maps.abort()
 
 
 def _totals(summaries: list[dict]) -> dict:
