@@ -254,6 +254,7 @@ def part_pipeline(args) -> tuple[str, str, str]:
         rows.append([f"{km:g}", f"{run['points']:,}", str(run["tiles"]), str(args.workers),
                      f"{run['wall_s']:.1f}", f"{run['wall_s'] / km:.1f}",
                      f"{run['worker_peak_mb']:.0f}", f"{run['run_peak_mb']:.0f}"])  # fmt: skip
+        print(json.dumps(run), flush=True)  # a long series shows each length as it finishes
     per_km = [r["wall_s"] / r["km"] for r in runs]
     spread = (max(per_km) - min(per_km)) / min(per_km) * 100
     table = markdown_table(
@@ -262,7 +263,9 @@ def part_pipeline(args) -> tuple[str, str, str]:
         rows,
     )  # fmt: skip
     one = timed(args.speedup_km, 1)
+    print(json.dumps(one), flush=True)
     two = timed(args.speedup_km, 2)
+    print(json.dumps(two), flush=True)
     speed = markdown_table(
         ["km", "1 worker s", "2 workers s", "speed-up"],
         [[f"{args.speedup_km:g}", f"{one['wall_s']:.1f}", f"{two['wall_s']:.1f}",
