@@ -71,13 +71,13 @@ def write_summary(out: Path, tile: int, summary: dict) -> dict:
 
 
 class TileMaps:
-    """The run's maps appended from the tiles' LAZ parts (a summary's "maps": {map: part file
-    under OUT/tiles/}) as soon as every tile before them is in: the maps keep tile order
-    whatever order tiles finish in."""
+    """The run's maps (`kinds`: OUT/<kind>.laz) appended from the tiles' LAZ parts (a summary's
+    "maps": {kind: part file under OUT/tiles/}) as soon as every tile before them is in: the
+    maps keep tile order whatever order tiles finish in."""
 
-    def __init__(self, out: Path):
+    def __init__(self, out: Path, kinds: tuple[str, ...] = MAPS):
         self.folder = Path(out) / TILES
-        self.appenders = {kind: LasAppender(Path(out) / f"{kind}.laz") for kind in MAPS}
+        self.appenders = {kind: LasAppender(Path(out) / f"{kind}.laz") for kind in kinds}
         self.summaries: dict[int, dict] = {}
         self._next = 0  # the first tile whose maps are not appended yet
 

@@ -141,7 +141,7 @@ def euclidean_edges(xyz: np.ndarray, tolerance: float = 0.3) -> tuple[np.ndarray
     if n < 2:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     voxel = tolerance / 2.0
-    local = xyz - xyz.min(axis=0)
+    local = xyz - np.floor(xyz.min(axis=0) / voxel) * voxel  # voxels on whole steps (tiles)
     ijk = np.floor(local / voxel).astype(np.int64)
     _, first, inverse = np.unique(ijk, axis=0, return_index=True, return_inverse=True)
     inverse = inverse.reshape(-1)

@@ -47,6 +47,7 @@ FEATURE_NAMES: list[str] = [
     "normal_z",
     "context_count",
 ]
+CONTEXT_SLICES = 2  # neighbouring slices each way the shape features look at
 
 
 def _grouped_quantiles(values: np.ndarray, offsets: np.ndarray, qs: list[float]) -> np.ndarray:
@@ -69,7 +70,7 @@ def slice_features(
     *,
     above_ground: np.ndarray | None = None,
     ground_cell: float = 1.0,
-    context_slices: int = 2,
+    context_slices: int = CONTEXT_SLICES,
 ) -> tuple[np.ndarray, list[str]]:
     """(K, D) float32 features of the slices and their column names (`FEATURE_NAMES`).
 

@@ -186,6 +186,10 @@ def group_guardrails(
     for members in sorted(groups, key=lambda m: float(s.station[m].min())):
         if len(members) < min_slices:
             continue
+        # along the road, then across it: the points in the same order however the slices
+        # were numbered (a tiled run's components are numbered per tile), so the seeded
+        # reconstruction sees the same input
+        members = members[np.lexsort((s.lateral[members], s.station_index[members]))]
         points = np.concatenate([s.points(int(k)) for k in members])
         points = points[above_ground[points] > cfg.ground_clearance]
         out.append(GuardrailInstance(f"guardrail_{len(out):03d}", members, points))
@@ -217,25 +221,62 @@ class ReconstructionInput:
     config: GuardrailConfig
 
     @classmethod
-    def of(cls, stage: SliceStage, config: GuardrailConfig) -> ReconstructionInput:
+    def of(
+        cls, stage: SliceStage, config: GuardrailConfig, slices: np.ndarray | None = None
+    ) -> ReconstructionInput:
+        """The stage's slices (`slices`: these only, in this order) with their points."""
         s = stage.slices
-        m = len(s.indices)
-        counts = np.diff(s.offsets)
+        picked = np.arange(len(s)) if slices is None else np.asarray(slices, dtype=np.int64)
+        counts = np.diff(s.offsets)[picked]
+        offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        # the picked slices' runs of `s.indices`, one after the other
+        within = np.arange(offsets[-1]) - np.repeat(offsets[:-1], counts)
+        points = s.indices[np.repeat(s.offsets[picked], counts) + within]
         compact = SliceSet(
             spacing=s.spacing,
-            point_slice=np.repeat(np.arange(len(s), dtype=np.int64), counts),
-            indices=np.arange(m, dtype=np.int64),
-            offsets=s.offsets.copy(),
-            component=s.component, station_index=s.station_index, station=s.station,
-            centre=s.centre, lateral=s.lateral, side=s.side, direction=s.direction,
-            point_station=s.point_station[s.indices], point_lateral=s.point_lateral[s.indices],
+            point_slice=np.repeat(np.arange(len(picked), dtype=np.int64), counts),
+            indices=np.arange(len(points), dtype=np.int64),
+            offsets=offsets,
+            component=s.component[picked], station_index=s.station_index[picked],
+            station=s.station[picked], centre=s.centre[picked], lateral=s.lateral[picked],
+            side=s.side[picked], direction=s.direction[picked],
+            point_station=s.point_station[points], point_lateral=s.point_lateral[points],
         )  # fmt: skip
         return cls(
             compact,
-            stage.points.xyz[s.indices].astype(np.float64),
-            stage.road.above_ground[s.indices].astype(np.float64),
+            stage.points.xyz[points].astype(np.float64),
+            stage.road.above_ground[points].astype(np.float64),
             np.asarray(stage.trajectory, dtype=np.float64)[:, :3],
             config,
+        )
+
+    @classmethod
+    def concatenate(cls, parts: list[ReconstructionInput]) -> ReconstructionInput:
+        """Parts (a tiled run's tiles, components already numbered apart) as one; they share
+        the trajectory and the configuration."""
+        first = parts[0]
+        sizes = [len(p.xyz) for p in parts]
+        starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+        slice_starts = np.concatenate([[0], np.cumsum([len(p.slices) for p in parts])[:-1]])
+
+        def joined(key: str) -> np.ndarray:
+            return np.concatenate([getattr(p.slices, key) for p in parts])
+
+        offsets = [p.slices.offsets[:-1] + a for p, a in zip(parts, starts, strict=True)]
+        point_slice = [p.slices.point_slice + b for p, b in zip(parts, slice_starts, strict=True)]
+        slices = SliceSet(
+            spacing=first.slices.spacing,
+            point_slice=np.concatenate(point_slice).astype(np.int64),
+            indices=np.arange(sum(sizes), dtype=np.int64),
+            offsets=np.concatenate([*offsets, [sum(sizes)]]).astype(np.int64),
+            **{key: joined(key) for key in _SLICE_ARRAYS[3:]},
+        )
+        return cls(
+            slices,
+            np.concatenate([p.xyz for p in parts]).reshape(-1, 3),
+            np.concatenate([p.above_ground for p in parts]),
+            first.trajectory,
+            first.config,
         )
 
     def save(self, path: Path) -> Path:

@@ -33,6 +33,9 @@ from scipy.spatial import cKDTree
 from app.geometry.ground import estimate_ground
 from app.geometry.trajectory import StationIndex, arc_length
 
+EDGE_WINDOW = 5.0  # metres of station each way over which the road edge is the outermost
+STATION_BIN = 1.0  # metres of station per road height (a 3-bin median smooths them)
+
 
 def as_positions(trajectory: np.ndarray) -> np.ndarray:
     """(M, 3) float64 positions from (M, 3) positions or (M, 4, 4) sensor poses."""
@@ -70,7 +73,8 @@ def point_normals(
     if len(query) == 0 or len(xyz) == 0:
         return normals, reliable
     origin = xyz[query].mean(axis=0)
-    if voxel:
+    if voxel:  # voxels on whole steps: the same whatever part of the survey is in (tiles)
+        origin = np.floor(origin / voxel) * voxel
         ijk = np.floor((xyz - origin) / voxel).astype(np.int64)
         ijk -= ijk.min(axis=0)
         keys = np.ravel_multi_index(tuple(ijk.T), tuple(ijk.max(axis=0) + 1))
@@ -204,8 +208,8 @@ def road_removal(
     ground_cell: float = 1.0,
     road_margin: float | None = 2.0,  # paper: "points away from road surfaces" (no number)
     max_lateral: float = 15.0,  # hard cap from the trajectory (m)
-    edge_window: float = 5.0,  # metres of station over which the road edge is the outermost
-    station_bin: float = 1.0,
+    edge_window: float = EDGE_WINDOW,  # metres of station: the road edge is the outermost there
+    station_bin: float = STATION_BIN,
     corridor: float = 1.5,
     road_percentile: float = 10.0,
     mount_height: float = 2.0,  # only when no road point is seen near the trajectory at all
@@ -228,7 +232,8 @@ def road_removal(
     road_z = model.height(station)
     low = xyz[:, 2] <= road_z + road_tolerance
     candidate = low.copy()
-    origin = xyz.mean(axis=0)
+    # on whole cells: the ground grid is the same whatever part of the survey is in (tiles)
+    origin = np.floor(xyz.mean(axis=0) / ground_cell) * ground_cell
     ground = estimate_ground(xyz - origin, cell=ground_cell)
     above_ground = (xyz[:, 2] - origin[2]) - ground.height(xyz - origin)
     if ground_tolerance is not None:

@@ -4,15 +4,13 @@ reference labels (simulator: guardrail index; SemanticKITTI: the fence class).""
 
 from __future__ import annotations
 
-import datetime
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from app.core.sensors import SensorKind
-from app.io.asprs import GUARDRAIL_ASPRS
-from app.io.las import write_laz
 from app.io.survey import Survey
 from app.metrics.classification import binary_scores
 from app.pipelines.guardrail.classifier import read_classifier_card
@@ -24,9 +22,23 @@ from app.pipelines.guardrail.evaluation.reference import (
     reference_kind,
     slice_truth,
 )
-from app.pipelines.guardrail.pipeline import SHIPPED, GuardrailPipeline, GuardrailResult, Progress
-from app.pipelines.outputs import write_frame_labels, write_report
+from app.pipelines.guardrail.pipeline import (
+    SHIPPED,
+    GuardrailInstance,
+    GuardrailPipeline,
+    GuardrailResult,
+    Progress,
+    group_guardrails,
+    rebuild_guardrails,
+)
+from app.pipelines.guardrail.tile_assembly import slice_metrics_from_counts
+from app.pipelines.guardrail.tiled import TILE_LENGTH, GuardrailTiledRun, run_guardrail_tiled
+from app.pipelines.outputs import write_report
 from app.pipelines.sensor_models import ModelChoice, choose_model
+from app.pipelines.tiling import TileMap, in_process
+
+STAGE_FILE = "guardrail_slices.npz"  # every slice with its points: what a rebuild needs
+FEATURES_FILE = "slice_features.npz"  # classifier inputs per slice: what retraining reads
 
 
 def reference_points(survey: Survey, result: GuardrailResult) -> tuple[np.ndarray, str] | None:
@@ -59,82 +71,120 @@ def run_guardrail_to_folder(
     progress: Progress | None = None,
     sensor: SensorKind | None = None,
     model: ModelChoice | None = None,
+    tile_length: float = TILE_LENGTH,
+    map_tiles: TileMap = in_process,
 ) -> dict:
-    """`model` as a job chose it; else `model_path` forced by hand; else the shipped classifier
-    of the survey's sensor kind (`sensor` declared, else detected): `sensor_models`."""
+    """`run_guardrail_report`'s report."""
+    return run_guardrail_report(
+        survey, out, config, model_path, progress, sensor, model, tile_length, map_tiles
+    ).report
+
+
+@dataclass
+class GuardrailRun:
+    """A run's report with what the web app's store keeps of it."""
+
+    report: dict
+    pipeline: GuardrailPipeline
+    run: GuardrailTiledRun
+    guardrails: list[GuardrailInstance]  # their slices index `run.rails`
+    model_files: list[dict[str, str] | None]  # per guardrail, its meshes (paths under out)
+
+
+def run_guardrail_report(
+    survey: Survey,
+    out: Path,
+    config: GuardrailConfig | None = None,
+    model_path: Path | None = None,
+    progress: Progress | None = None,
+    sensor: SensorKind | None = None,
+    model: ModelChoice | None = None,
+    tile_length: float = TILE_LENGTH,
+    map_tiles: TileMap = in_process,
+    keep_stage: bool = False,
+) -> GuardrailRun:
+    """The survey tile by tile (`tiled`) into `out`: labels, guardrail points, then the
+    guardrails grouped over the whole survey and reconstructed, their meshes and the report.
+    `model` as a job chose it; else `model_path` forced by hand; else the shipped classifier
+    of the survey's sensor kind (`sensor` declared, else detected): `sensor_models`. Tiles an
+    earlier attempt in `out` finished are kept; `map_tiles` may spread them over a cluster.
+    `keep_stage`: also `STAGE_FILE` and `FEATURES_FILE` (every slice: the web app's review)."""
     started = time.perf_counter()
+    out = Path(out)
     if model is None:
         model = choose_model("guardrail", SHIPPED, survey, read_classifier_card, model_path, sensor)
     pipeline = GuardrailPipeline(config, model.path)
-    result = pipeline.run(survey, progress)
-    return write_guardrail_folder(survey, pipeline, result, out, started, model)
-
-
-def write_guardrail_folder(
-    survey: Survey,
-    pipeline: GuardrailPipeline,
-    result: GuardrailResult,
-    out: Path,
-    started: float,
-    model: ModelChoice,
-) -> dict:
-    """The run's outputs from its result (callers that keep the result, e.g. the web app's job,
-    run the pipeline themselves); `started` is the perf_counter at the start of the run."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    write_frame_labels(out, result.frame_labels())
-    files = {}
-    pts = result.stage.points
-    on_rail = result.point_labels == 1
-    write_laz(
-        out / "guardrail_points.laz",
-        pts.xyz[on_rail],
-        mmsclean_label=np.ones(int(on_rail.sum()), dtype=np.uint8),
-        classification=np.full(int(on_rail.sum()), GUARDRAIL_ASPRS, dtype=np.uint8),
-        source_frame=pts.frame[on_rail].astype(np.uint32),
-        source_index=pts.index[on_rail].astype(np.uint32),
-        creation_date=datetime.date.today(),
-    )
-    files["guardrail_points"] = "guardrail_points.laz"
-    guardrails = []
-    for g in result.guardrails:
+    cfg = pipeline.config
+    run = run_guardrail_tiled(
+        pipeline, survey, out, tile_length, progress=progress, map_tiles=map_tiles,
+        keep_stage=keep_stage, stage_path=out / STAGE_FILE, features_path=out / FEATURES_FILE,
+    )  # fmt: skip
+    guardrails: list[GuardrailInstance] = []
+    clock = time.perf_counter()
+    if run.rails is not None:  # every slice in `rails` is a guardrail slice
+        every = np.ones(len(run.rails.slices), dtype=bool)
+        if cfg.reconstruct:
+            guardrails = rebuild_guardrails(run.rails, every, cfg, _reconstruction(progress))
+        else:
+            guardrails = group_guardrails(run.rails.slices, run.rails.above_ground, every, cfg)
+    timings = {**run.timings, "reconstruction": round(time.perf_counter() - clock, 3)}
+    files = write_guardrail_models(out, guardrails)
+    entries = []
+    for g, written in zip(guardrails, files, strict=True):
         entry: dict = {"id": g.id, "slices": int(len(g.slices)), "points": int(len(g.points))}
-        if g.model is not None:
-            from app.pipelines.guardrail.reconstruction import export_guardrail
-
-            written = export_guardrail(g.model, out / "guardrails", g.id)
-            entry["files"] = {k: str(Path("guardrails") / Path(v).name) for k, v in written.items()}
-            entry["model"] = g.model.model
+        if written is not None:
+            entry["files"] = {k: str(Path(v).relative_to(out)) for k, v in written.items()}
+            entry["model"] = g.model.model  # type: ignore[union-attr]
         if g.error:
             entry["error"] = g.error
-        guardrails.append(entry)
+        entries.append(entry)
+    index = run.index
     report: dict = {
         "pipeline": "guardrail",
         "survey": {"name": survey.name, "format": survey.format, "source": str(survey.source)},
-        "config": pipeline.config.model_dump(),
+        "config": cfg.model_dump(),
         "model": {
             "path": str(pipeline.model_path),
             "created": pipeline.card.get("created"),
             "head": pipeline.head,
             **model.report(),
         },
-        "counts": {
-            "frames": len(result.frame_ids),
-            "points": int(len(pts)),
-            "slices": int(len(result.slice_labels)),
-            "slices_with_crop": int(result.stage.has_crop.sum()),
-            "guardrail_slices": int(result.slice_labels.sum()),
-            "guardrail_points": int(on_rail.sum()),
-            "guardrails": len(result.guardrails),
+        "tiles": {
+            "count": index.count,
+            "length_m": index.layout.length,
+            "halo_m": index.layout.halo,
+            "run": run.tiles_run,
+            "kept_from_earlier_attempt": index.count - run.tiles_run,
+            "worker_peak_mb": run.worker_peak_mb,
         },
-        "guardrails": guardrails,
-        "timings": dict(result.timings),
-        "files": files,
+        "counts": {"frames": len(survey.frames), **run.counts, "guardrails": len(guardrails)},
+        "guardrails": entries,
+        "timings": timings,
+        "files": {**run.files},
     }
-    reference = reference_points(survey, result)
-    if reference is not None:
-        truth, what = reference
-        report["metrics"] = {"reference": what, **slice_metrics(result, truth)}
+    if run.metric_counts is not None:
+        kind = reference_kind(survey.reference_label_kinds)
+        report["metrics"] = {
+            "reference": DESCRIPTIONS[kind] if kind else None,
+            **slice_metrics_from_counts(run.metric_counts, int(run.counts["slices"])),
+        }
     report["timings"]["total"] = round(time.perf_counter() - started, 3)
     write_report(out, report)
-    return report
+    return GuardrailRun(report, pipeline, run, guardrails, files)
+
+
+def _reconstruction(progress: Progress | None) -> Progress:
+    """The reconstruction's progress, after the tiles' (which end at 1)."""
+    return lambda stage, fraction: progress(stage, 1.0) if progress is not None else None
+
+
+def write_guardrail_models(
+    out: Path, guardrails: list[GuardrailInstance]
+) -> list[dict[str, str] | None]:
+    """Each reconstructed guardrail's meshes under OUT/guardrails/ (None where it has none)."""
+    from app.pipelines.guardrail.reconstruction import export_guardrail
+
+    return [
+        export_guardrail(g.model, Path(out) / "guardrails", g.id) if g.model is not None else None
+        for g in guardrails
+    ]

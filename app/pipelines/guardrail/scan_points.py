@@ -30,6 +30,7 @@ Lattices:
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -43,6 +44,7 @@ HDL64_COLUMNS = 4000  # azimuth steps of 0.09 degrees
 HDL64_RATE_HZ = 10.0
 PROFILE_RATE_HZ = 100.0  # profiles per second (RIEGL VQ-250 in the paper: 100 Hz)
 PROFILE_POINTS_PER_S = 300_000.0  # measurements per second (paper: 300,000)
+CLOCK_FRAMES = 5  # frames the points' clock offset is measured on (`_clock_offset`)
 
 
 @dataclass
@@ -76,6 +78,16 @@ class ScanPoints:
 
     def __len__(self) -> int:
         return len(self.xyz)
+
+    def take(self, sel: np.ndarray) -> ScanPoints:
+        """The points `sel` picks (bool mask or indices), lattice cells and all."""
+
+        def pick(values: np.ndarray | None) -> np.ndarray | None:
+            return None if values is None else values[sel]
+
+        lattice = None if self.lattice is None else self.lattice.take(sel)
+        return ScanPoints(self.xyz[sel], self.frame[sel], self.index[sel], pick(self.time),
+                          lattice, pick(self.intensity))  # fmt: skip
 
 
 def profile_lattice(
@@ -210,13 +222,16 @@ def load_scan_points(
     columns: int | None = None,
     rate_hz: float | None = None,
     motion_compensated: bool = True,
+    keep: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> ScanPoints:
     """Every point of the survey in world coordinates, with its lattice cell when recoverable.
 
     `scanner` defaults to `survey.scanner`. Profile: needs per-point times. HDL-64 (or an
     unknown scanner on a multi-frame survey): rings from point order or elevation, columns from
     time or azimuth; the beams, columns and rate not given come from `rotating_layout`. A
-    single accumulated map without a profile scanner's times gets no lattice.
+    single accumulated map without a profile scanner's times gets no lattice. `keep` (world
+    xyz -> bool mask, e.g. a tile's window) drops points frame by frame, after their lattice
+    cells are known: a frame's rings come from all its points.
     """
     scanner = scanner or survey.scanner  # type: ignore[assignment]
     layout = rotating_layout(survey)
@@ -224,26 +239,35 @@ def load_scan_points(
     columns = layout[1] if columns is None else columns
     rate_hz = layout[2] if rate_hz is None else rate_hz
     picked = list(range(len(survey))) if frames is None else list(frames)
-    clouds = [survey.frames[i].points() for i in picked]
-    times = [c.time for c in clouds]
-    has_time = all(t is not None for t in times) and len(clouds) > 0
+    # the clock offset from the first frames (it is one per survey); the frames are then read
+    # one at a time: a tile's frames together can hold far more points than its window keeps
+    first = [survey.frames[i] for i in picked[:CLOCK_FRAMES]]
+    times = [f.points().time for f in first]
+    has_time = all(t is not None for t in times) and len(picked) > 0
     xyz, fr, idx, tt, inten = [], [], [], [], []
     rows, cols, sweeps = [], [], []
     rotating = scanner == "hdl64" or (scanner is None and not survey.is_map)
     rotating = rotating and scanner != "profile"
-    offset = _clock_offset([survey.frames[i] for i in picked], times) if has_time else 0.0
+    offset = _clock_offset(first, times) if has_time else 0.0
     poses = survey.poses()
     stamps = [f.timestamp for f in survey.frames]
     frame_times = np.array(stamps, dtype=np.float64) if None not in stamps else None
-    for j, (i, cloud) in enumerate(zip(picked, clouds, strict=True)):
+    for j, i in enumerate(picked):
+        cloud = survey.frames[i].points()
+        if has_time and cloud.time is None:
+            raise ValueError(f"{survey.source}: frame {survey.frames[i].frame_id} has no point "
+                             "times where the frames before it have")  # fmt: skip
         pose = survey.frames[i].pose
-        xyz.append(cloud.xyz @ pose[:3, :3].T + pose[:3, 3])
-        fr.append(np.full(len(cloud), i, dtype=np.int32))
-        idx.append(np.arange(len(cloud), dtype=np.int64))
+        world = cloud.xyz @ pose[:3, :3].T + pose[:3, 3]
+        sel = slice(None) if keep is None else np.asarray(keep(world), dtype=bool)
+        xyz.append(world[sel])
+        n = len(xyz[-1])
+        fr.append(np.full(n, i, dtype=np.int32))
+        idx.append(np.arange(len(cloud), dtype=np.int64)[sel])
         if has_time:
-            tt.append(np.asarray(cloud.time, dtype=np.float64))
+            tt.append(np.asarray(cloud.time, dtype=np.float64)[sel])
         if cloud.intensity is not None:
-            inten.append(np.asarray(cloud.intensity, dtype=np.float32))
+            inten.append(np.asarray(cloud.intensity, dtype=np.float32)[sel])
         if rotating:
             origin = None
             sweep_start = None
@@ -259,15 +283,15 @@ def load_scan_points(
                 ring, col = rotating_frame_lattice(
                     cloud.xyz, None, None, None, elevations_deg, columns, rate_hz
                 )
-            rows.append(ring)
-            cols.append(col)
-            sweeps.append(np.full(len(cloud), j, dtype=np.int64))
+            rows.append(ring[sel])
+            cols.append(col[sel])
+            sweeps.append(np.full(n, j, dtype=np.int64))
     points = ScanPoints(
         xyz=np.concatenate(xyz) if xyz else np.zeros((0, 3)),
         frame=np.concatenate(fr) if fr else np.zeros(0, np.int32),
         index=np.concatenate(idx) if idx else np.zeros(0, np.int64),
         time=np.concatenate(tt) if has_time else None,
-        intensity=np.concatenate(inten) if len(inten) == len(clouds) and inten else None,
+        intensity=np.concatenate(inten) if len(inten) == len(picked) and inten else None,
     )
     if rotating and rows:
         points.lattice = Lattice(

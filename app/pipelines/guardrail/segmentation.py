@@ -4,6 +4,7 @@ embeddings and geometric features."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -50,6 +51,26 @@ def prepare_slices(
         report("points", 0.0)
         points = load_scan_points(survey)
         trajectory = survey.poses()[:, :3, 3]
+    stage = slice_stage(survey, points, trajectory, encoder, spacing, report, min_slice_points)
+    stage.timings = {**clock.rounded(), **stage.timings}
+    return stage
+
+
+def slice_stage(
+    survey: Survey,
+    points: ScanPoints,
+    trajectory: np.ndarray,
+    encoder: CropEncoder | None,
+    spacing: float = 0.5,
+    progress: Progress | None = None,
+    min_slice_points: int = 5,
+    crop_only: Callable[[SliceSet], np.ndarray] | None = None,
+) -> SliceStage:
+    """`prepare_slices` on points already loaded (a tile's: `trajectory` is the whole drive's,
+    so stations are the survey's). `crop_only` picks the slices worth a camera crop (default
+    all): a tile crops the slices whose labels it keeps, not its halo's."""
+    report = progress or no_progress
+    clock = Stopwatch()
     with clock("road"):
         report("road removal", 0.1)
         road = road_removal(points.xyz, trajectory)
@@ -68,7 +89,8 @@ def prepare_slices(
     if encoder is not None and survey.cameras and k:
         with clock("crops"):
             report("crops", 0.4)
-            crops = slice_crops(survey, slices, points.xyz)
+            wanted = None if crop_only is None else crop_only(slices)
+            crops = slice_crops(survey, slices, points.xyz, slices=wanted)
         with clock("embeddings"):
             report("crop embeddings", 0.6)
             if crops:
@@ -83,19 +105,20 @@ def prepare_slices(
     )  # fmt: skip
 
 
-def save_slice_features(path: Path, stage: SliceStage) -> Path:
-    """Per slice: its key (component, slice index), the classifier's inputs (image embedding
-    as float16, geometric features) and whether a camera crop showed it: what retraining the
-    classifier on reviewed slices reads."""
+def save_slice_features(path: Path, stage: SliceStage, slices: np.ndarray | None = None) -> Path:
+    """Per slice (`slices`: these only): its key (component, slice index), the classifier's
+    inputs (image embedding as float16, geometric features) and whether a camera crop showed
+    it: what retraining the classifier on reviewed slices reads."""
+    picked = np.arange(len(stage.slices)) if slices is None else np.asarray(slices, np.int64)
     partial = path.with_suffix(".partial.npz")
     np.savez(
         partial,
-        component=stage.slices.component,
-        slice_index=stage.slices.station_index,
-        embedding=stage.embedding.astype(np.float16),
-        geometry=stage.geometry.astype(np.float32),
+        component=stage.slices.component[picked],
+        slice_index=stage.slices.station_index[picked],
+        embedding=stage.embedding[picked].astype(np.float16),
+        geometry=stage.geometry[picked].astype(np.float32),
         geometry_names=np.array(stage.geometry_names),
-        has_crop=stage.has_crop,
+        has_crop=stage.has_crop[picked],
     )
     partial.replace(path)
     return path
