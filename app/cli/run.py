@@ -204,18 +204,27 @@ def run_guardrail(
     ] = None,
     reconstruct: Annotated[bool, typer.Option(help="model the guardrails as meshes")] = True,
     sensor: SensorOption = None,
+    tile_length: TileLengthOption = 100.0,
+    scheduler: SchedulerOption = None,
 ) -> None:
-    """Guardrails (Matsumoto et al.): slices, camera-crop classifier, poles, unit shapes, meshes."""
+    """Guardrails (Matsumoto et al.): slices, camera-crop classifier, poles, unit shapes, meshes.
+    Tile by tile, each guardrail one model whatever the tiles; rerun into the same folder, it
+    keeps the tiles an interrupted run finished."""
     from app.io import open_survey
+    from app.jobs.cluster import close_clients, tile_map
     from app.pipelines.guardrail.config import GuardrailConfig
     from app.pipelines.guardrail.run import run_guardrail_to_folder
 
     config = config_from_options(GuardrailConfig, head=head, reconstruct=reconstruct)
     survey = open_survey(source, fmt)
-    with stage_progress("guardrail") as progress:
-        report = run_guardrail_to_folder(
-            survey, out, config, model, progress=progress, sensor=sensor_kind(sensor)
-        )
+    try:
+        with stage_progress("guardrail") as progress:
+            report = run_guardrail_to_folder(
+                survey, out, config, model, progress=progress, sensor=sensor_kind(sensor),
+                tile_length=tile_length, map_tiles=tile_map(cluster_settings(scheduler)),
+            )  # fmt: skip
+    finally:
+        close_clients()
     print_report("guardrail", report, out=out)
 
 

@@ -11,7 +11,6 @@
 from __future__ import annotations
 
 import math
-import time
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +22,8 @@ from app.core.bounds import RecordId
 from app.core.errors import ConfigError
 from app.core.settings import Settings
 from app.io import open_survey
-from app.jobs.memory import MemoryEstimate, per_point_estimate
+from app.jobs.cluster import tile_map, tile_progress
+from app.jobs.memory import MemoryEstimate, points_mb, survey_text
 from app.jobs.model_choice import model_for_job
 from app.jobs.registry import JobContext, task
 from app.jobs.task_config import refuse_model_path, validated
@@ -32,12 +32,11 @@ from app.pipelines.guardrail.config import GuardrailConfig
 from app.pipelines.guardrail.pipeline import (
     SHIPPED,
     GuardrailInstance,
-    GuardrailPipeline,
     ReconstructionInput,
     rebuild_guardrails,
 )
-from app.pipelines.guardrail.run import write_guardrail_folder
-from app.pipelines.guardrail.segmentation import save_slice_features
+from app.pipelines.guardrail.run import STAGE_FILE, run_guardrail_report
+from app.pipelines.guardrail.tiled import TILE_LENGTH, guardrail_halo
 from app.pipelines.outputs import write_report
 from app.pipelines.sensor_models import ModelChoice
 from app.review.guardrails import current_run, load_stage, stage_rows
@@ -49,34 +48,42 @@ from app.store.guardrail_runs import (
     replace_guardrail_run,
 )
 from app.store.models import GuardrailKind, ModelVersion, Pipeline, Survey
-from app.store.surveys import get_survey
+from app.store.surveys import get_survey, survey_footprint
 
-STAGE_FILE = "guardrail_slices.npz"
-FEATURES_FILE = "slice_features.npz"  # classifier inputs per slice: what retraining reads
 REBUILD_FIELDS = ("min_guardrail_length", "join_gap", "join_lateral", "ground_clearance")
 GUARDRAIL_BYTES_PER_POINT = 200.0  # points, road / component / slice labels, crops' features
+# the review's slice stage (every slice's points: xyz, height, station, offset, indices),
+# assembled in one file once the tiles are done; about half of a survey's points are in slices
+STAGE_BYTES_PER_POINT = 32.0
 
 
 # --- configuration ------------------------------------------------------------------------
 
 
-class ModelIdOption(BaseModel):
+class GuardrailJobOptions(BaseModel):
+    """What a run:guardrail job sets beside the pipeline's parameters (GuardrailConfig's)."""
+
     model_config = ConfigDict(protected_namespaces=())
 
     model_id: RecordId | None = Field(
         None, description="classifier version to run (GET /models); default: the promoted one"
     )
+    tile_length: float = Field(
+        TILE_LENGTH, ge=20.0, le=1000.0, description="metres of trajectory per tile"
+    )
 
 
 def guardrail_options(
     config: dict[str, Any], settings: Settings | None = None
-) -> tuple[GuardrailConfig, int | None]:
-    """`run:guardrail`'s config: GuardrailConfig fields plus an optional `model_id`."""
+) -> tuple[GuardrailConfig, GuardrailJobOptions]:
+    """`run:guardrail`'s config: GuardrailConfig fields plus `model_id` and `tile_length`."""
     values = dict(config or {})
     refuse_model_path(values)
-    option = validated(ModelIdOption, {"model_id": values.pop("model_id", None)})
-    cfg = validated(GuardrailConfig, values, known=(*GuardrailConfig.model_fields, "model_id"))
-    return cfg, option.model_id
+    own = {k: values.pop(k) for k in GuardrailJobOptions.model_fields if k in values}
+    option = validated(GuardrailJobOptions, own)
+    known = (*GuardrailConfig.model_fields, *GuardrailJobOptions.model_fields)
+    cfg = validated(GuardrailConfig, values, known=known)
+    return cfg, option
 
 
 def classifier_for_job(
@@ -157,9 +164,31 @@ def check_run_config(config: dict[str, Any], settings: Settings) -> None:
 
 
 def estimate_run(session: Session, survey: int | None, config: dict[str, Any]) -> MemoryEstimate:
-    """run:guardrail's memory: the survey's points with their slice and component arrays."""
-    guardrail_options(config)
-    return per_point_estimate(session, survey, GUARDRAIL_BYTES_PER_POINT, "")
+    """run:guardrail's memory: one tile's points with their slice and component arrays (tiles
+    run one at a time per worker; a tile holds its share of the survey's points by trajectory
+    length, the length taken as the trajectory's bounding-box diagonal, so the share comes out
+    generous), and the review's slice stage, which the job assembles whole."""
+    cfg, option = guardrail_options(config)
+    if survey is None:
+        return MemoryEstimate("no survey")
+    footprint = survey_footprint(session, survey)
+    low, high = np.asarray(footprint.trajectory_min), np.asarray(footprint.trajectory_max)
+    reach = option.tile_length + 2 * guardrail_halo(cfg.with_correction({}))
+    share = min(1.0, reach / max(float(np.linalg.norm(high - low)), 1.0))
+    # shorter tiles need less while the survey spans several; a survey within one tile cannot
+    field = "config.tile_length" if share < 1.0 else "survey_id"
+    estimate = MemoryEstimate(survey_text(footprint))
+    estimate.add(
+        field,
+        points_mb(footprint, GUARDRAIL_BYTES_PER_POINT * share),
+        f"{GUARDRAIL_BYTES_PER_POINT:.0f} bytes per point of a {reach:.0f} m tile "
+        f"({share:.0%} of the survey)",
+    )
+    return estimate.add(
+        "survey_id",
+        points_mb(footprint, STAGE_BYTES_PER_POINT),
+        f"the review's slice stage, about {STAGE_BYTES_PER_POINT:.0f} bytes per point",
+    )
 
 
 def check_rebuild_config(config: dict[str, Any], settings: Settings) -> None:
@@ -168,55 +197,61 @@ def check_rebuild_config(config: dict[str, Any], settings: Settings) -> None:
 
 @task("run:guardrail", check=check_run_config, model="guardrail", estimate=estimate_run)
 def run_guardrail(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
-    cfg, model_id = guardrail_options(config, context.settings)
+    """The pipeline on the job's survey tile by tile (on the server's tile cluster), its
+    contract files and the review's slice stage in the workdir, then the slices and the
+    reconstructed guardrails into the store in one transaction. A resumed job keeps the tiles
+    its earlier attempt finished."""
+    cfg, option = guardrail_options(config, context.settings)
     survey_id = _survey_id(context)
     with Session(context.engine) as session:
         record = get_survey(session, survey_id)
         source, fmt = record.source_path, record.format
-        _, choice = classifier_for_job(session, record, model_id)
+        _, choice = classifier_for_job(session, record, option.model_id)
     if choice.off_domain:
         context.log.warning("%s", choice.report()["warning"])
-    started = time.perf_counter()
     survey = open_survey(source, fmt)
-    context.progress(0.0, "loading the slice classifier")
-    pipeline = GuardrailPipeline(cfg, choice.path)
-    result = pipeline.run(survey, lambda stage, f: context.progress(0.9 * f, stage))
-    context.progress(0.9, "writing outputs")
     out = context.workdir
-    report = write_guardrail_folder(survey, pipeline, result, out, started, choice)
-    saved = ReconstructionInput.of(result.stage, pipeline.config)
-    stage_path = saved.save(out / STAGE_FILE)
-    save_slice_features(out / FEATURES_FILE, result.stage)
-    entries = {e["id"]: e for e in report["guardrails"]}
+    done = run_guardrail_report(
+        survey, out, cfg, model=choice, progress=tile_progress(context),
+        tile_length=option.tile_length, map_tiles=tile_map(context.settings), keep_stage=True,
+    )  # fmt: skip
+    report, run = done.report, done.run
+    tiles = report["tiles"]
+    context.log.info(
+        "%d tiles of %.0f m: %d run, %d kept from an earlier attempt",
+        tiles["count"], tiles["length_m"], tiles["run"], tiles["kept_from_earlier_attempt"],
+    )  # fmt: skip
     files = [
-        {k: str(out / v) for k, v in entries[g.id]["files"].items()}
-        if "files" in entries[g.id]
-        else None
-        for g in result.guardrails
+        None if w is None else {k: str(Path(v).resolve()) for k, v in w.items()}
+        for w in done.model_files
     ]
-    models = model_records(saved, result.guardrails, files, pipeline.config)
-    s = result.stage.slices
+    models = []
+    if run.rails is not None:
+        models = model_records(run.rails, done.guardrails, files, done.pipeline.config)
+    s = run.slices
     rows = SliceRows(
         component=s.component,
-        slice_index=s.station_index,
+        slice_index=s.slice_index,
         station=s.station,
-        predicted=result.raw_labels.astype(np.int64),
-        probability=result.probability,
-        corrected=result.slice_labels.astype(np.int64),
+        predicted=s.raw.astype(np.int64),
+        probability=s.probability,
+        corrected=s.corrected.astype(np.int64),
     )
     context.progress(0.95, "storing slices and models")
+    stage_path = out / STAGE_FILE
     with Session(context.engine) as session:
         stored = replace_guardrail_run(
             session, survey_id, rows, models, stage_path=str(stage_path),
-            config=pipeline.config.model_dump(), job_id=context.job_id, user_id=context.user_id,
+            config=done.pipeline.config.model_dump(), job_id=context.job_id,
+            user_id=context.user_id,
         )  # fmt: skip
     context.progress(1.0, f"{stored['slices']} slices, {stored['models']} guardrail models")
     output = {
-        "guardrail_points": str(out / report["files"]["guardrail_points"]),
         "slice_stage": str(stage_path),
         "report": str(out / "report.json"),
+        **{name: str(out / path) for name, path in report["files"].items()},
     }
-    for g, written in zip(result.guardrails, files, strict=True):
+    for g, written in zip(done.guardrails, files, strict=True):
         for fmt_name, path in (written or {}).items():
             output[f"{g.id}.{fmt_name}"] = path
     return {

@@ -23,10 +23,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from sqlmodel import Session
-
 from app.core.errors import ConfigError
-from app.store.surveys import SurveyFootprint, survey_footprint
+from app.store.surveys import SurveyFootprint
 
 MB = 1024**2
 WORKER_BASE_MB = 500.0  # a worker after importing the pipelines (measured ~380 MB) plus a network
@@ -81,21 +79,6 @@ def extent_text(footprint: SurveyFootprint) -> str:
 
 def points_mb(footprint: SurveyFootprint, bytes_per_point: float) -> float:
     return footprint.points * bytes_per_point / MB
-
-
-def per_point_estimate(
-    session: Session, survey: int | None, bytes_per_point: float, of: str
-) -> MemoryEstimate:
-    """The estimate of a run whose memory grows with the survey's points alone, `of` saying
-    which points (e.g. " of the accumulated map")."""
-    if survey is None:
-        return MemoryEstimate("no survey")
-    footprint = survey_footprint(session, survey)
-    return MemoryEstimate(survey_text(footprint)).add(
-        "survey_id",
-        points_mb(footprint, bytes_per_point),
-        f"{bytes_per_point:.0f} bytes per point{of}",
-    )
 
 
 def dufomap_mb(footprint: SurveyFootprint, resolution: float) -> float:

@@ -18,7 +18,6 @@ from app.core.errors import ConfigError
 from app.core.settings import Settings
 from app.io import open_survey
 from app.io.accumulate import accumulate
-from app.jobs.guardrail_tasks import FEATURES_FILE
 from app.jobs.memory import MB, MemoryEstimate
 from app.jobs.model_choice import current_version, retraining_kind
 from app.jobs.phantom_training_data import (
@@ -39,6 +38,7 @@ from app.pipelines.guardrail.classifier import (
     save_heads,
 )
 from app.pipelines.guardrail.pipeline import SHIPPED as GUARDRAIL_SHIPPED
+from app.pipelines.guardrail.run import FEATURES_FILE
 from app.pipelines.guardrail.training.dataset import SliceSamples
 from app.pipelines.guardrail.training.train import fit_head
 from app.pipelines.phantom.config import PhantomConfig
