@@ -34,10 +34,13 @@ def test_run_guardrail_cli_on_a_simulated_street(sim_dir: Path, tmp_path: Path) 
         "sim",
         "--out",
         str(out),
+        "--tile-length",
+        "20",
         timeout=900,
     )
     assert result.returncode == 0, result.stderr
     report = json.loads((out / "report.json").read_text())
+    assert report["tiles"]["count"] == 2  # 30 m in 20 m tiles: the image head over both
     survey = open_survey(sim_dir, "sim")
     total = 0
     for frame in survey.frames:
