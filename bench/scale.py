@@ -3,8 +3,10 @@ Prints a table and appends it to RESULTS.md.
 
   phantom   per length (--lengths, km): wall time, time per km, peak resident memory of each
   clutter   tile worker and of the run's own process (which assembles the outputs); then 1 vs 2
-            tile workers on one survey (--speedup-km), same run: the speed-up
+  guardrail tile workers on one survey (--speedup-km), same run: the speed-up
   agreement tiled against whole-drive clutter labels on a 150 m rotating-scanner street
+  guardrail-agreement  tiled against whole-survey guardrails (labels, guardrails, poles) on a
+            150 m profile and a 150 m rotating-scanner street
   viewer    the viewer's map of the longest survey (--lengths' last): building its cache, then in
             a fresh process what a first scene needs (open the cache, the overview's points and
             pillars) and a tile in focus, and the memory while every tile is read in turn, as a
@@ -15,8 +17,9 @@ are that run's: a worker's is its whole life (`ru_maxrss` after each tile, in th
 Surveys are synthetic (app.simulate, `--scanner` profile or hdl64, scene mixed, seed 901),
 cached under $MMSCLEAN_DATA_DIR/cache/bench.
 
-Usage: python -m bench.scale phantom|clutter|agreement|viewer [--lengths 0.25,0.5,1,2,4]
-       [--scanner profile] [--tile-length 100] [--workers 2] [--speedup-km 2] [--no-record]
+Usage: python -m bench.scale phantom|clutter|guardrail|agreement|guardrail-agreement|viewer
+       [--lengths 0.25,0.5,1,2,4] [--scanner profile] [--tile-length 100] [--workers 2]
+       [--speedup-km 2] [--no-record]
 """
 
 from __future__ import annotations
@@ -47,6 +50,7 @@ def run_one(km: float, scanner: str, workers: int, pipeline: str, tile_length: f
     from app.jobs.cluster import close_clients, tile_client, tile_map
     from app.pipelines.clutter.config import ClutterConfig
     from app.pipelines.clutter.run import run_clutter_to_folder
+    from app.pipelines.guardrail.run import run_guardrail_to_folder
     from app.pipelines.phantom.run import run_phantom_to_folder
     from bench.phantom import simulated
 
@@ -57,7 +61,11 @@ def run_one(km: float, scanner: str, workers: int, pipeline: str, tile_length: f
         client = tile_client(settings)
         client.wait_for_workers(workers)
         started = time.perf_counter()
-        if pipeline == "clutter":  # threads: one per worker, as the job gives it
+        if pipeline == "guardrail":
+            report = run_guardrail_to_folder(
+                survey, Path(out), tile_length=tile_length, map_tiles=tile_map(settings)
+            )
+        elif pipeline == "clutter":  # threads: one per worker, as the job gives it
             config = ClutterConfig(mode="dynamic", threads=1)
             report = run_clutter_to_folder(
                 survey, Path(out), config, tile_length=tile_length, map_tiles=tile_map(settings)
@@ -234,6 +242,64 @@ def part_agreement(args) -> tuple[str, str, str]:
     return "Scale: tiled against whole-drive clutter labels", table, notes
 
 
+def part_guardrail_agreement(args) -> tuple[str, str, str]:
+    """Tiled against whole-survey guardrails on a profile and a rotating-scanner street."""
+    import numpy as np
+
+    from app.io import open_survey
+    from app.pipelines.guardrail.classifier import read_classifier_card
+    from app.pipelines.guardrail.pipeline import SHIPPED, GuardrailPipeline
+    from app.pipelines.guardrail.run import run_guardrail_report
+    from app.pipelines.sensor_models import choose_model
+    from bench.common import markdown_table
+    from bench.phantom import simulated
+
+    metres, tile, rows = 150.0, 50.0, []
+    streets = [("profile", 7), ("hdl64", 3)]  # seeds outside both classifiers' training sets
+    for scanner, seed in streets:
+        survey = open_survey(simulated("urban", metres, seed, scanner), "sim")
+        model = choose_model("guardrail", SHIPPED, survey, read_classifier_card, None, None)
+        started = time.perf_counter()
+        whole = GuardrailPipeline(None, model.path).run(survey)
+        whole_s = time.perf_counter() - started
+        truth = whole.frame_labels()
+        with tempfile.TemporaryDirectory() as out:
+            started = time.perf_counter()
+            done = run_guardrail_report(survey, Path(out), model=model, tile_length=tile)
+            tiled_s = time.perf_counter() - started
+            equal = sum(
+                int((np.load(Path(out) / "labels" / f"{f}.npy") == v).sum())
+                for f, v in truth.items()
+            )  # fmt: skip
+        points = sum(len(v) for v in truth.values())
+        moved, poles = 0.0, [0, 0]
+        for a, b in zip(whole.guardrails, done.guardrails, strict=False):
+            pa = [] if a.model is None else [p.centre for p in a.model.poles]
+            pb = [] if b.model is None else [p.centre for p in b.model.poles]
+            poles[0] += len(pa)
+            poles[1] += len(pb)
+            if len(pa) == len(pb) and pa:
+                moved = max(moved, float(np.abs(np.array(pa) - np.array(pb)).max()))
+        rows.append([scanner, f"{points:,}", str(done.run.index.count), f"{whole_s:.0f}",
+                     f"{tiled_s:.0f}", f"{100 * equal / points:.4f}",
+                     f"{len(whole.guardrails)} / {len(done.guardrails)}",
+                     f"{poles[0]} / {poles[1]}", f"{100 * moved:.2f}"])  # fmt: skip
+    table = markdown_table(
+        ["scanner", "points", "tiles", "whole s", "tiled s", "labels equal to whole %",
+         "guardrails whole / tiled", "poles whole / tiled", "largest pole shift cm"],
+        rows,
+    )  # fmt: skip
+    notes = (
+        f"Synthetic: simulated {metres:g} m urban streets (profile scanner seed 7, HDL-64E-like "
+        f"seed 3, with the camera), the guardrail pipeline with the shipped classifier of each "
+        f"sensor kind and its default head, in this process (no cluster): the whole survey "
+        f"against {tile:g} m tiles with the pipeline's halo. Pole shift: the largest distance "
+        f"between a pole of the whole run and the same pole of the tiled run (guardrails "
+        f"paired in order of station)."
+    )
+    return "Scale: tiled against whole-survey guardrails", table, notes
+
+
 def part_pipeline(args) -> tuple[str, str, str]:
     """The phantom or clutter rows (`args.part`)."""
     from bench.common import markdown_table
@@ -276,6 +342,9 @@ def part_pipeline(args) -> tuple[str, str, str]:
         "sensor kind",
         "clutter": "clutter pipeline tile by tile (dynamic mode, free space and tracking: the "
         "surveys have no images; 40 m halo of frames, one DUFOMap thread per worker)",
+        "guardrail": "guardrail pipeline tile by tile (shipped classifier of the survey's "
+        "sensor kind; the surveys have no images, so every slice takes the geometry head), "
+        "guardrails grouped and reconstructed over the whole survey",
     }[pipeline]
     notes = (
         f"Synthetic: simulated {args.scanner} surveys (scene {SCENE}, seed {SEED}, no camera), "
@@ -294,9 +363,20 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
         "part",
-        choices=["phantom", "clutter", "agreement", "viewer", "one", "viewer-build", "viewer-open"],
+        choices=[
+            "phantom",
+            "clutter",
+            "guardrail",
+            "agreement",
+            "guardrail-agreement",
+            "viewer",
+            "one",
+            "viewer-build",
+            "viewer-open",
+        ],  # fmt: skip
     )
-    parser.add_argument("--pipeline", default="phantom", choices=["phantom", "clutter"],
+    pipelines = ["phantom", "clutter", "guardrail"]
+    parser.add_argument("--pipeline", default="phantom", choices=pipelines,
                         help="one: the pipeline")  # fmt: skip
     parser.add_argument("--tile-length", type=float, default=100.0, help="metres per tile")
     parser.add_argument("--lengths", default="0.25,0.5,1,2,4", help="survey lengths in km")
@@ -319,7 +399,8 @@ def main() -> int:
         return 0
     from bench.common import append_results
 
-    parts = {"viewer": part_viewer, "agreement": part_agreement}
+    parts = {"viewer": part_viewer, "agreement": part_agreement,
+             "guardrail-agreement": part_guardrail_agreement}  # fmt: skip
     title, table, notes = parts.get(args.part, part_pipeline)(args)
     print(table)
     print(notes)
