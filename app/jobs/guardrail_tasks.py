@@ -52,9 +52,10 @@ from app.store.surveys import get_survey, survey_footprint
 
 REBUILD_FIELDS = ("min_guardrail_length", "join_gap", "join_lateral", "ground_clearance")
 GUARDRAIL_BYTES_PER_POINT = 200.0  # points, road / component / slice labels, crops' features
-# the review's slice stage (every slice's points: xyz, height, station, offset, indices),
-# assembled in one file once the tiles are done; about half of a survey's points are in slices
-STAGE_BYTES_PER_POINT = 32.0
+# gathered once the tiles are done: the guardrails' points (0.6 % of a simulated urban street's
+# points, 64 bytes each) and every slice's classifier inputs (2.6 kB per slice, 350 slices per
+# million points there): 1.4 bytes per survey point, taken generously for rail-lined roads
+GATHERED_BYTES_PER_POINT = 4.0
 
 
 # --- configuration ------------------------------------------------------------------------
@@ -167,7 +168,8 @@ def estimate_run(session: Session, survey: int | None, config: dict[str, Any]) -
     """run:guardrail's memory: one tile's points with their slice and component arrays (tiles
     run one at a time per worker; a tile holds its share of the survey's points by trajectory
     length, the length taken as the trajectory's bounding-box diagonal, so the share comes out
-    generous), and the review's slice stage, which the job assembles whole."""
+    generous), and what the job gathers once the tiles are done: the guardrails' points and
+    every slice's classifier inputs (the slices' points stay in the tiles' files)."""
     cfg, option = guardrail_options(config)
     if survey is None:
         return MemoryEstimate("no survey")
@@ -186,8 +188,9 @@ def estimate_run(session: Session, survey: int | None, config: dict[str, Any]) -
     )
     return estimate.add(
         "survey_id",
-        points_mb(footprint, STAGE_BYTES_PER_POINT),
-        f"the review's slice stage, about {STAGE_BYTES_PER_POINT:.0f} bytes per point",
+        points_mb(footprint, GATHERED_BYTES_PER_POINT),
+        f"the guardrails' points and every slice's classifier inputs, about "
+        f"{GATHERED_BYTES_PER_POINT:.0f} bytes per point of the survey",
     )
 
 
@@ -273,10 +276,11 @@ def rebuild_guardrail_models(context: JobContext, config: dict[str, Any]) -> dic
         run = current_run(session, survey_id)
         table = slice_table(session, survey_id)
     context.progress(0.02, "loading the slice stage")
-    saved = load_stage(run)
-    at = stage_rows(saved, table.component, table.slice_index)
-    labels = np.zeros(len(saved.slices), dtype=bool)
+    slices = load_stage(run, slices_only=True)
+    at = stage_rows(slices, table.component, table.slice_index)
+    labels = np.zeros(len(slices.slices), dtype=bool)
     labels[at] = table.label.astype(bool)
+    saved = load_stage(run, points_of=labels)  # the guardrail slices' points, not every slice's
     cfg = validated(
         GuardrailConfig,
         {**saved.config.model_dump(), **(config or {})},

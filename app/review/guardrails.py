@@ -19,15 +19,19 @@ from app.store.models import GuardrailSlice
 from app.store.surveys import get_survey
 
 
-def load_stage(run: GuardrailRun, slices_only: bool = False) -> ReconstructionInput:
+def load_stage(
+    run: GuardrailRun, slices_only: bool = False, points_of: np.ndarray | None = None
+) -> ReconstructionInput:
     """The slice stage `run` saved (slices, features, config): what a rebuild or a preview
-    starts from."""
+    starts from (`ReconstructionInput.load`: `points_of` the slices whose points are read)."""
     path = Path(run.stage_path)
-    if not path.is_file():
+    try:
+        return ReconstructionInput.load(path, slices_only=slices_only, points_of=points_of)
+    except FileNotFoundError as exc:
+        missing = exc.filename or path
         raise ConflictError(
-            f"{path}: the slice stage of the last guardrail run is missing; run it again"
-        )
-    return ReconstructionInput.load(path, slices_only=slices_only)
+            f"{missing}: the slice stage of the last guardrail run is missing; run it again"
+        ) from None
 
 
 def current_run(session: Session, survey_id: int) -> GuardrailRun:

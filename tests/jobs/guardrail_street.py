@@ -17,8 +17,9 @@ from app.simulate.survey import SimulationConfig, simulate
 from app.store.db import init_db, make_engine
 from app.store.models import Job, JobStatus, Role, Survey, User
 
-# the geometry head without camera images keeps a run at a few seconds
-CONFIG = {"head": "geometry"}
+# the geometry head without camera images keeps a run at a few seconds; 20 m tiles: the 30 m
+# street runs as two, so the review's stage is read from two tiles' parts
+CONFIG = {"head": "geometry", "tile_length": 20}
 
 
 def simulate_street(root: Path) -> Path:

@@ -119,7 +119,8 @@ def test_each_refusal_names_what_grows(engine: Engine, limited: Settings) -> Non
         ),
         ("run:phantom", {}, dense, "survey_id"),
         ("run:phantom", {"tile_length": 1000.0}, huge, "config.tile_length"),
-        ("run:guardrail", {}, huge, "survey_id"),
+        ("run:guardrail", {}, dense, "survey_id"),
+        ("run:guardrail", {"tile_length": 1000.0}, huge, "config.tile_length"),
         ("train:phantom", {"per_class": 1_000_000}, None, "config.per_class"),
     ):
         error = refused(engine, limited, kind, config, where)
@@ -128,4 +129,5 @@ def test_each_refusal_names_what_grows(engine: Engine, limited: Settings) -> Non
         assert enqueue(session, "run:phantom", {}, huge, None, limited).id
         no_rays = {"use_camera": False, "use_free_space": False}
         assert enqueue(session, "run:clutter", no_rays, huge, None, limited).id
+        assert enqueue(session, "run:guardrail", {}, huge, None, limited).id
         assert "MMSCLEAN_JOB_MEMORY_MB" in str(error)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -295,9 +296,41 @@ class ReconstructionInput:
         return path
 
     @classmethod
-    def load(cls, path: Path, slices_only: bool = False) -> ReconstructionInput:
-        """`slices_only`: the per-slice arrays without the points (cheap: for label previews)."""
+    def save_parts(cls, path: Path, parts: list[Path], components: list[np.ndarray]) -> Path:
+        """An index of stage parts (`save`d files beside it, e.g. a tiled run's tiles): every
+        part's slices, with `components` (per part, the run's component number of each of its
+        slices), while the points stay in the parts (`load` reads them). Small: per slice."""
+        path = Path(path)
+        arrays: dict[str, list[np.ndarray]] = {k: [] for k in _PER_SLICE}
+        counts = []
+        for part, numbers in zip(parts, components, strict=True):
+            with np.load(part, allow_pickle=False) as z:
+                for key in _PER_SLICE:
+                    arrays[key].append(numbers if key == "component" else z[f"slices.{key}"])
+                counts.append(np.diff(z["slices.offsets"]))
+                head = {k: z[k] for k in ("spacing", "config", "trajectory")}
+        sizes = np.concatenate(counts) if counts else np.zeros(0, np.int64)
+        tmp = path.with_name(path.name + ".part")
+        with tmp.open("wb") as f:
+            np.savez(
+                f, **head, parts=np.array([str(Path(p).relative_to(path.parent)) for p in parts]),
+                part_slices=np.array([len(c) for c in counts], dtype=np.int64),
+                **{"slices.offsets": np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)},
+                **{f"slices.{k}": np.concatenate(v) for k, v in arrays.items()},
+            )  # fmt: skip
+        tmp.replace(path)
+        return path
+
+    @classmethod
+    def load(
+        cls, path: Path, slices_only: bool = False, points_of: np.ndarray | None = None
+    ) -> ReconstructionInput:
+        """`slices_only`: the per-slice arrays without the points (cheap: for label previews);
+        `points_of` (K,) bool: every slice, with the points of these only (a rebuild needs the
+        guardrail slices' points, not the survey's)."""
         with np.load(Path(path), allow_pickle=False) as z:
+            if "parts" in z.files:
+                return cls._load_parts(Path(path), z, slices_only, points_of)
             empty = {"slices.point_slice": np.int64, "slices.indices": np.int64,
                      "slices.point_station": np.float64, "slices.point_lateral": np.float64,
                      "above_ground": np.float64}  # fmt: skip
@@ -314,11 +347,51 @@ class ReconstructionInput:
             config = GuardrailConfig.model_validate_json(str(z["config"]))
             return cls(slices, part("xyz"), part("above_ground"), z["trajectory"], config)
 
+    @classmethod
+    def _load_parts(
+        cls, path: Path, z: Any, slices_only: bool, points_of: np.ndarray | None
+    ) -> ReconstructionInput:
+        """`load` of a `save_parts` index: the points read part by part, of the slices asked."""
+        per_slice = {k: z[f"slices.{k}"] for k in _PER_SLICE}
+        k = len(per_slice["component"])
+        wanted = np.zeros(k, bool) if slices_only else np.ones(k, bool)
+        if points_of is not None and not slices_only:
+            wanted = np.asarray(points_of, dtype=bool)
+            if len(wanted) != k:
+                raise ValueError(f"{len(wanted)} slices asked of {k}")
+        counts = np.diff(z["slices.offsets"])
+        columns: dict[str, list[np.ndarray]] = {c: [] for c in _POINT_COLUMNS}
+        start = 0
+        for name, n in zip(z["parts"], z["part_slices"], strict=True):
+            chosen = wanted[start : start + n]
+            if chosen.any():
+                with np.load(path.parent / str(name), allow_pickle=False) as part:
+                    keep = chosen[part["slices.point_slice"]]
+                    for c in _POINT_COLUMNS:
+                        columns[c].append(part[c][keep])
+            start += n
+        counts = np.where(wanted, counts, 0)
+        offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        m = int(offsets[-1])
+        points = {c: np.concatenate(v) if v else np.zeros(0) for c, v in columns.items()}
+        slices = SliceSet(
+            spacing=float(z["spacing"]),
+            point_slice=np.repeat(np.arange(k, dtype=np.int64), counts),
+            indices=np.arange(m, dtype=np.int64), offsets=offsets, **per_slice,
+            point_station=points["slices.point_station"],
+            point_lateral=points["slices.point_lateral"],
+        )  # fmt: skip
+        config = GuardrailConfig.model_validate_json(str(z["config"]))
+        xyz = points["xyz"].reshape(-1, 3)
+        return cls(slices, xyz, points["above_ground"], z["trajectory"], config)
+
 
 _SLICE_ARRAYS = (
     "point_slice", "indices", "offsets", "component", "station_index", "station", "centre",
     "lateral", "side", "direction", "point_station", "point_lateral",
 )  # fmt: skip
+_PER_SLICE = _SLICE_ARRAYS[3:10]  # one value per slice (after the offsets)
+_POINT_COLUMNS = ("xyz", "above_ground", "slices.point_station", "slices.point_lateral")
 
 
 def rebuild_guardrails(

@@ -101,17 +101,22 @@ class GuardrailAssembly:
     def abort(self) -> None:
         self.maps.abort()
 
-    def stage(self, kind: str, numbers: dict[int, np.ndarray]) -> ReconstructionInput | None:
-        """The tiles' stage parts of `kind` ("rails": guardrail slices; "stage": every slice)
-        as one, with the run's component numbers; None when no tile has a slice of that kind."""
+    def rails(self, numbers: dict[int, np.ndarray]) -> ReconstructionInput | None:
+        """The tiles' guardrail slices with their points as one, with the run's component
+        numbers; None without tiles."""
         parts = []
         for tile in sorted(numbers):
-            part = ReconstructionInput.load(self.folder / f"{tile_name(tile)}.{kind}.npz")
-            which = numbers[tile]
-            if kind == "rails":
-                which = which[self.columns[tile]["corrected"].astype(bool)]
+            part = ReconstructionInput.load(self.folder / f"{tile_name(tile)}.rails.npz")
+            which = numbers[tile][self.columns[tile]["corrected"].astype(bool)]
             parts.append(replace(part, slices=replace(part.slices, component=which)))
         return ReconstructionInput.concatenate(parts) if parts else None
+
+    def save_stage(self, path: Path, numbers: dict[int, np.ndarray]) -> Path:
+        """An index of the tiles' stage parts (every slice, with the run's component numbers;
+        the points stay in the parts, under the run's folder)."""
+        tiles = sorted(numbers)
+        parts = [self.folder / f"{tile_name(t)}.stage.npz" for t in tiles]
+        return ReconstructionInput.save_parts(path, parts, [numbers[t] for t in tiles])
 
     def features(self, path: Path, numbers: dict[int, np.ndarray]) -> Path:
         """The tiles' classifier inputs as one file (what retraining reads), keyed by the

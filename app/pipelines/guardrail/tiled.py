@@ -341,7 +341,7 @@ class GuardrailTiledRun:
     worker_peak_mb: float
     slices: SliceTable
     rails: ReconstructionInput | None
-    stage_path: Path | None  # every slice with its points (`keep_stage`)
+    stage_path: Path | None  # every slice, its points in the tiles' parts (`keep_stage`)
     features_path: Path | None  # every slice's classifier inputs (`keep_stage`)
     index: TileIndex
     tiles_run: int
@@ -363,8 +363,9 @@ def run_guardrail_tiled(
     """The survey tile by tile into `out` (see the module docstring): each tile's files as it
     finishes, then the labels, the guardrail points and the slices assembled. Tiles an earlier
     attempt finished with the same plan are not run again; `map_tiles` may run them side by
-    side on a cluster. With `keep_stage`, every slice with its points is written to
-    `stage_path` and their classifier inputs to `features_path` (the web app's review)."""
+    side on a cluster. With `keep_stage`, `stage_path` indexes every slice (their points stay in
+    the tiles' parts: `ReconstructionInput.save_parts`) and `features_path` holds their
+    classifier inputs (the web app's review, rebuild and retraining read them)."""
     halo = guardrail_halo(pipeline.config) if halo is None else halo
     index = TileIndex.build(survey, length, halo, INDEX_CELL, max_points)
     model = pipeline.model_path.resolve()
@@ -386,14 +387,12 @@ def run_guardrail_tiled(
         raise
     numbers = assembled.pop("numbers")
     if keep_stage:
-        stage = assembly.stage("stage", numbers)
-        if stage_path is None or features_path is None or stage is None:
+        if stage_path is None or features_path is None:
             raise ValueError("keep_stage needs a stage_path and a features_path")
-        stage.save(stage_path)
-        del stage
+        assembly.save_stage(stage_path, numbers)
         assembly.features(features_path, numbers)
     return GuardrailTiledRun(
-        **assembled, rails=assembly.stage("rails", numbers),
+        **assembled, rails=assembly.rails(numbers),
         stage_path=stage_path if keep_stage else None,
         features_path=features_path if keep_stage else None, index=index, tiles_run=ran,
     )  # fmt: skip
