@@ -23,7 +23,7 @@ from app.core.errors import ConfigError
 from app.core.settings import Settings
 from app.io import open_survey
 from app.jobs.cluster import tile_map, tile_progress
-from app.jobs.memory import MemoryEstimate, points_mb, survey_text
+from app.jobs.memory import MB, MemoryEstimate, points_mb, survey_text
 from app.jobs.model_choice import model_for_job
 from app.jobs.registry import JobContext, task
 from app.jobs.task_config import refuse_model_path, validated
@@ -36,7 +36,7 @@ from app.pipelines.guardrail.pipeline import (
     rebuild_guardrails,
 )
 from app.pipelines.guardrail.run import STAGE_FILE, run_guardrail_report
-from app.pipelines.guardrail.tiled import TILE_LENGTH, guardrail_halo
+from app.pipelines.guardrail.tiled import TILE_LENGTH, TILE_POINTS, guardrail_halo
 from app.pipelines.outputs import write_report
 from app.pipelines.sensor_models import ModelChoice
 from app.review.guardrails import current_run, load_stage, stage_rows
@@ -180,11 +180,13 @@ def estimate_run(session: Session, survey: int | None, config: dict[str, Any]) -
     # shorter tiles need less while the survey spans several; a survey within one tile cannot
     field = "config.tile_length" if share < 1.0 else "survey_id"
     estimate = MemoryEstimate(survey_text(footprint))
+    # a tile is cut shorter where its window would hold more than TILE_POINTS (`tiled`)
+    tile_points = min(footprint.points * share, TILE_POINTS)
     estimate.add(
         field,
-        points_mb(footprint, GUARDRAIL_BYTES_PER_POINT * share),
+        tile_points * GUARDRAIL_BYTES_PER_POINT / MB,
         f"{GUARDRAIL_BYTES_PER_POINT:.0f} bytes per point of a {reach:.0f} m tile "
-        f"({share:.0%} of the survey)",
+        f"({share:.0%} of the survey, at most {TILE_POINTS:,} points)",
     )
     return estimate.add(
         "survey_id",

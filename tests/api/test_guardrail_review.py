@@ -217,7 +217,8 @@ def test_models_decisions_and_roles(review: Review) -> None:
     response = review.annotator.get(f"{BASE}/models")
     assert response.status_code == 200, response.text
     models = response.json()
-    assert sorted(m["kind"] for m in models) == ["beam", "pipe"]
+    # the sample's pipe rail and its beam rail (a gap can split the beam into two models)
+    assert {m["kind"] for m in models} == {"beam", "pipe"}
     assert all(m["status"] == "pending" and m["formats"] == ["glb", "obj", "ply"] for m in models)
     assert all(m["params"] is None and m["pole_count"] >= 2 for m in models)
     full = review.annotator.get(f"{BASE}/models", params={"params": True}).json()
