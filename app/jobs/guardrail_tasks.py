@@ -36,7 +36,7 @@ from app.pipelines.guardrail.pipeline import (
     rebuild_guardrails,
 )
 from app.pipelines.guardrail.run import STAGE_FILE, run_guardrail_report
-from app.pipelines.guardrail.tiled import TILE_LENGTH, TILE_POINTS, guardrail_halo
+from app.pipelines.guardrail.tiled import INDEX_CELL, TILE_LENGTH, TILE_POINTS, guardrail_halo
 from app.pipelines.outputs import write_report
 from app.pipelines.sensor_models import ModelChoice
 from app.review.guardrails import current_run, load_stage, stage_rows
@@ -175,13 +175,17 @@ def estimate_run(session: Session, survey: int | None, config: dict[str, Any]) -
         return MemoryEstimate("no survey")
     footprint = survey_footprint(session, survey)
     low, high = np.asarray(footprint.trajectory_min), np.asarray(footprint.trajectory_max)
-    reach = option.tile_length + 2 * guardrail_halo(cfg.with_correction({}))
-    share = min(1.0, reach / max(float(np.linalg.norm(high - low)), 1.0))
+    halo = guardrail_halo(cfg.with_correction({}))
+    reach = option.tile_length + 2 * halo
+    length = max(float(np.linalg.norm(high - low)), 1.0)
+    share = min(1.0, reach / length)
+    # a tile is cut shorter where its window would hold more than TILE_POINTS (`tiled`), down
+    # to the shortest tile, whose window is still its halo
+    shortest = min(1.0, (2 * INDEX_CELL + 2 * halo) / length)
+    tile_points = min(footprint.points * share, max(TILE_POINTS, footprint.points * shortest))
     # shorter tiles need less while the survey spans several; a survey within one tile cannot
     field = "config.tile_length" if share < 1.0 else "survey_id"
     estimate = MemoryEstimate(survey_text(footprint))
-    # a tile is cut shorter where its window would hold more than TILE_POINTS (`tiled`)
-    tile_points = min(footprint.points * share, TILE_POINTS)
     estimate.add(
         field,
         tile_points * GUARDRAIL_BYTES_PER_POINT / MB,
