@@ -99,8 +99,10 @@ def measure(
                "--scanner", scanner, "--workers", str(workers), "--cache", cache,
                "--pipeline", pipeline, "--tile-length", str(tile_length)]  # fmt: skip
     done = subprocess.run(command, capture_output=True, text=True, check=False)
-    if done.returncode != 0:
-        raise SystemExit(f"{' '.join(command)} failed:\n{done.stderr[-3000:]}")
+    if done.returncode != 0:  # the last traceback, not the warnings a cluster prints after it
+        at = done.stderr.rfind("Traceback")
+        shown = done.stderr[at : at + 4000] if at >= 0 else done.stderr[-3000:]
+        raise SystemExit(f"{' '.join(command)} failed:\n{shown}")
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
