@@ -127,3 +127,11 @@ def tile_progress(context: JobContext):
         context.progress(start + (end - start) * fraction, message)
 
     return progress
+
+
+def log_tiles(context: JobContext, tiles: dict) -> None:
+    """A tiled job's log line: its tiles (a report's "tiles"), run and kept."""
+    context.log.info(
+        "%d tiles of %.0f m: %d run, %d kept from an earlier attempt",
+        tiles["count"], tiles["length_m"], tiles["run"], tiles["kept_from_earlier_attempt"],
+    )  # fmt: skip

@@ -25,7 +25,7 @@ from app.core.errors import ConfigError, ConflictError, InputError
 from app.core.settings import Settings
 from app.io import open_survey
 from app.io.survey import Survey
-from app.jobs.cluster import shared_threads, tile_map, tile_progress
+from app.jobs.cluster import log_tiles, shared_threads, tile_map, tile_progress
 from app.jobs.memory import (
     MEAN_RAY_M,
     SENSOR_REACH_M,
@@ -124,11 +124,7 @@ def run_clutter_task(context: JobContext, config: dict[str, Any]) -> dict[str, A
         cache_dir=context.settings.cache_dir / "segmentation",
         weights_dir=context.settings.weights_dir,
     )  # fmt: skip
-    tiles = report["tiles"]
-    context.log.info(
-        "%d tiles of %.0f m: %d run, %d kept from an earlier attempt",
-        tiles["count"], tiles["length_m"], tiles["run"], tiles["kept_from_earlier_attempt"],
-    )  # fmt: skip
+    log_tiles(context, report["tiles"])
     context.progress(0.9, "instances for review")  # last chance to cancel
     out = context.workdir
     rows = run.rows

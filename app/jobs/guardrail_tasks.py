@@ -22,7 +22,7 @@ from app.core.bounds import RecordId
 from app.core.errors import ConfigError
 from app.core.settings import Settings
 from app.io import open_survey
-from app.jobs.cluster import tile_map, tile_progress
+from app.jobs.cluster import log_tiles, tile_map, tile_progress
 from app.jobs.memory import MB, MemoryEstimate, points_mb, survey_text
 from app.jobs.model_choice import model_for_job
 from app.jobs.registry import JobContext, task
@@ -225,11 +225,7 @@ def run_guardrail(context: JobContext, config: dict[str, Any]) -> dict[str, Any]
         tile_length=option.tile_length, map_tiles=tile_map(context.settings), keep_stage=True,
     )  # fmt: skip
     report, run = done.report, done.run
-    tiles = report["tiles"]
-    context.log.info(
-        "%d tiles of %.0f m: %d run, %d kept from an earlier attempt",
-        tiles["count"], tiles["length_m"], tiles["run"], tiles["kept_from_earlier_attempt"],
-    )  # fmt: skip
+    log_tiles(context, report["tiles"])
     files = [
         None if w is None else {k: str(Path(v).resolve()) for k, v in w.items()}
         for w in done.model_files

@@ -19,7 +19,7 @@ from app.core.bounds import RecordId
 from app.core.errors import ConfigError
 from app.core.settings import Settings
 from app.io import open_survey
-from app.jobs.cluster import shared_threads, tile_map, tile_progress
+from app.jobs.cluster import log_tiles, shared_threads, tile_map, tile_progress
 from app.jobs.memory import MemoryEstimate, points_mb, survey_text
 from app.jobs.model_choice import model_for_job
 from app.jobs.registry import JobContext, task
@@ -137,11 +137,7 @@ def run_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
         tile_length=options.tile_length,
         map_tiles=tile_map(context.settings),
     )
-    tiles = report["tiles"]
-    context.log.info(
-        "%d tiles of %.0f m: %d run, %d kept from an earlier attempt",
-        tiles["count"], tiles["length_m"], tiles["run"], tiles["kept_from_earlier_attempt"],
-    )  # fmt: skip
+    log_tiles(context, report["tiles"])
     context.progress(INGEST_AT, "storing model pre-labels")  # last chance to cancel
     cells, labels, confidence = model_label_rows(context.workdir / report["files"]["pillars"])
     written = store_model_labels(

@@ -64,6 +64,18 @@ def finished_tiles(out: Path, plan: dict) -> dict[int, dict]:
     return done
 
 
+def tiles_report(layout: Any, tiles_run: int, worker_peak_mb: float) -> dict:
+    """A tiled run's `report.json` "tiles": how it was cut, and what this attempt ran."""
+    return {
+        "count": layout.count,
+        "length_m": layout.length,
+        "halo_m": layout.halo,
+        "run": tiles_run,
+        "kept_from_earlier_attempt": layout.count - tiles_run,
+        "worker_peak_mb": worker_peak_mb,
+    }
+
+
 def write_summary(out: Path, tile: int, summary: dict) -> dict:
     """A tile's summary, written last: it marks the tile done."""
     write_json(Path(out) / TILES / f"{tile_name(tile)}.json", {"tile": tile, **summary})

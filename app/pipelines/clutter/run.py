@@ -25,7 +25,7 @@ from app.pipelines.clutter.tiled import (
     run_clutter_tiled,
 )
 from app.pipelines.outputs import write_report
-from app.pipelines.tiling import TileMap, in_process
+from app.pipelines.tiling import TileMap, in_process, tiles_report
 
 
 def run_clutter_to_folder(
@@ -71,14 +71,7 @@ def run_clutter_report(
         "survey": {"name": survey.name, "format": survey.format, "source": str(survey.source)},
         "config": config.model_dump(),
         "segmenter": segmenter,
-        "tiles": {
-            "count": run.tiles.count,
-            "length_m": run.tiles.layout.length,
-            "halo_m": run.tiles.layout.halo,
-            "run": run.tiles_run,
-            "kept_from_earlier_attempt": run.tiles.count - run.tiles_run,
-            "worker_peak_mb": run.worker_peak_mb,
-        },
+        "tiles": tiles_report(run.tiles.layout, run.tiles_run, run.worker_peak_mb),
         "counts": dict(run.counts),
         "timings": dict(run.timings),  # summed over the tiles
         "files": files,

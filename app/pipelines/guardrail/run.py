@@ -35,7 +35,7 @@ from app.pipelines.guardrail.tile_assembly import slice_metrics_from_counts
 from app.pipelines.guardrail.tiled import TILE_LENGTH, GuardrailTiledRun, run_guardrail_tiled
 from app.pipelines.outputs import write_report
 from app.pipelines.sensor_models import ModelChoice, choose_model
-from app.pipelines.tiling import TileMap, in_process
+from app.pipelines.tiling import TileMap, in_process, tiles_report
 
 STAGE_FILE = "guardrail_slices.npz"  # every slice with its points: what a rebuild needs
 FEATURES_FILE = "slice_features.npz"  # classifier inputs per slice: what retraining reads
@@ -138,7 +138,6 @@ def run_guardrail_report(
         if g.error:
             entry["error"] = g.error
         entries.append(entry)
-    index = run.index
     report: dict = {
         "pipeline": "guardrail",
         "survey": {"name": survey.name, "format": survey.format, "source": str(survey.source)},
@@ -149,14 +148,7 @@ def run_guardrail_report(
             "head": pipeline.head,
             **model.report(),
         },
-        "tiles": {
-            "count": index.count,
-            "length_m": index.layout.length,
-            "halo_m": index.layout.halo,
-            "run": run.tiles_run,
-            "kept_from_earlier_attempt": index.count - run.tiles_run,
-            "worker_peak_mb": run.worker_peak_mb,
-        },
+        "tiles": tiles_report(run.index.layout, run.tiles_run, run.worker_peak_mb),
         "counts": {"frames": len(survey.frames), **run.counts, "guardrails": len(guardrails)},
         "guardrails": entries,
         "timings": timings,

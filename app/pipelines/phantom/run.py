@@ -16,7 +16,7 @@ from app.pipelines.phantom.outputs import write_confusion_plots
 from app.pipelines.phantom.pipeline import PhantomPipeline
 from app.pipelines.phantom.tiled import TILE_LENGTH, run_phantom_tiled
 from app.pipelines.sensor_models import ModelChoice, choose_model
-from app.pipelines.tiling import TileMap, in_process
+from app.pipelines.tiling import TileMap, in_process, tiles_report
 
 
 def run_phantom_to_folder(
@@ -59,14 +59,7 @@ def run_phantom_to_folder(
             **model.report(),
         },
         "path": "dense" if dense else "per-window",
-        "tiles": {
-            "count": run.index.count,
-            "length_m": run.index.layout.length,
-            "halo_m": run.index.layout.halo,
-            "run": run.tiles_run,
-            "kept_from_earlier_attempt": run.index.count - run.tiles_run,
-            "worker_peak_mb": run.worker_peak_mb,
-        },
+        "tiles": tiles_report(run.index.layout, run.tiles_run, run.worker_peak_mb),
         "counts": {"frames": len(survey.frames), **run.counts},
         "timings": dict(run.timings),  # summed over the tiles
         "files": dict(run.files),
