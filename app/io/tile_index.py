@@ -35,6 +35,8 @@ class TileIndex:
     frame_sizes: np.ndarray  # (F,) int64 points of each frame
     low: np.ndarray  # (3,) float64 the smallest coordinates of any point (an offset for outputs)
     time0: float | None = None  # a map's first point time: every tile bins its passes from it
+    # (3,) float64 the mean of all points: a grid every tile anchors there is the whole survey's
+    centre: np.ndarray | None = None
 
     @property
     def count(self) -> int:
@@ -64,7 +66,7 @@ class TileIndex:
         coarse = cell * FOOTPRINT_CELLS
         cells = _CellCounts()
         footprints, sizes = [], []
-        low = np.full(3, np.inf)
+        low, total = np.full(3, np.inf), np.zeros(3)
         for frame in survey.frames:
             size, footprint = 0, []
             for _, cloud in frame.world_chunks():
@@ -72,6 +74,7 @@ class TileIndex:
                 size += len(xyz)
                 if len(xyz):
                     low = np.minimum(low, xyz.min(axis=0))
+                    total += xyz.sum(axis=0)
                 keys, per_key = np.unique(cell_keys(xyz, cell), return_counts=True)
                 cells.add(keys, per_key)
                 footprint.append(np.unique(cell_keys(_centres(keys, cell), coarse)))
@@ -97,7 +100,10 @@ class TileIndex:
             frames.append(np.unique(frame_of[touched]))
         sizes = np.asarray(sizes, dtype=np.int64)
         low = np.where(np.isfinite(low), low, 0.0)
-        return cls(layout, cell, owned_cells, window_cells, frames, counts, sizes, low, time0)
+        centre = total / max(int(sizes.sum()), 1)
+        return cls(
+            layout, cell, owned_cells, window_cells, frames, counts, sizes, low, time0, centre
+        )
 
     def tile_survey(self, survey: Survey, tile: int) -> Survey:
         """The survey with only the frames tile `tile` reads (same order)."""

@@ -141,7 +141,7 @@ def euclidean_edges(xyz: np.ndarray, tolerance: float = 0.3) -> tuple[np.ndarray
     if n < 2:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     voxel = tolerance / 2.0
-    local = xyz - np.floor(xyz.min(axis=0) / voxel) * voxel  # voxels on whole steps (tiles)
+    local = xyz - np.floor(xyz.min(axis=0) / voxel) * voxel  # whole steps from xyz's origin
     ijk = np.floor(local / voxel).astype(np.int64)
     _, first, inverse = np.unique(ijk, axis=0, return_index=True, return_inverse=True)
     inverse = inverse.reshape(-1)
@@ -215,12 +215,14 @@ def connected_components(
     attach_distance: float = 0.5,
     above_ground: np.ndarray | None = None,
     min_height: float = 0.25,
+    origin: np.ndarray | None = None,
 ) -> Components:
     """Connected components of the kept points (paper 3.1).
 
     `points`: `ScanPoints` from `load_scan_points` (its lattice is used) or an (N, 3) world
     array (then `lattice` may be given, else Euclidean clustering). `keep`: (N,) bool, e.g.
     `remove_road(...)`; removed points get label -1. Labels are 0..count-1, largest first.
+    `origin` (default: the kept points' mean) anchors the Euclidean clustering's voxels.
 
     `above_ground` (N,) (e.g. `RoadRemoval.above_ground`): points lower than `min_height` make
     no edges to higher points; each joins the component of its nearest higher point within
@@ -235,7 +237,8 @@ def connected_components(
     n_all = len(xyz)
     sel = np.arange(n_all) if keep is None else np.flatnonzero(keep)
     sub = xyz[sel]
-    local = sub - sub.mean(axis=0) if len(sub) else sub
+    centre = sub.mean(axis=0) if origin is None and len(sub) else origin
+    local = sub - centre if len(sub) else sub
     method: Literal["lattice", "euclidean"] = "lattice" if lattice is not None else "euclidean"
     if lattice is not None:
         lat = lattice.take(sel)

@@ -56,6 +56,7 @@ def point_normals(
     k: int = 10,
     voxel: float | None = 0.1,
     chunk: int = 200_000,
+    origin: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals (Q, 3) and their reliability (Q,) bool at the `query` indices of `xyz`.
 
@@ -72,9 +73,8 @@ def point_normals(
     reliable = np.zeros(len(query), dtype=bool)
     if len(query) == 0 or len(xyz) == 0:
         return normals, reliable
-    origin = xyz[query].mean(axis=0)
-    if voxel:  # voxels on whole steps: the same whatever part of the survey is in (tiles)
-        origin = np.floor(origin / voxel) * voxel
+    origin = xyz[query].mean(axis=0) if origin is None else np.asarray(origin, np.float64)
+    if voxel:
         ijk = np.floor((xyz - origin) / voxel).astype(np.int64)
         ijk -= ijk.min(axis=0)
         keys = np.ravel_multi_index(tuple(ijk.T), tuple(ijk.max(axis=0) + 1))
@@ -214,8 +214,13 @@ def road_removal(
     road_percentile: float = 10.0,
     mount_height: float = 2.0,  # only when no road point is seen near the trajectory at all
     station_index: StationIndex | None = None,
+    origin: np.ndarray | None = None,
 ) -> RoadRemoval:
-    """Road removal with everything it computed (see the module docstring for the rules)."""
+    """Road removal with everything it computed (see the module docstring for the rules).
+    `origin` (default: the points' mean) anchors the ground cells and the normals' voxels: a
+    tile passes the whole survey's mean, so its cells are the whole survey's. The results
+    depend on where the cells fall (on simulated streets the slice F of the classifier moved by
+    up to 2 points with the anchor), so a tile must not anchor them anywhere else."""
     xyz = np.asarray(xyz_world, dtype=np.float64).reshape(-1, 3)
     positions = as_positions(trajectory_positions)
     n = len(xyz)
@@ -232,14 +237,13 @@ def road_removal(
     road_z = model.height(station)
     low = xyz[:, 2] <= road_z + road_tolerance
     candidate = low.copy()
-    # on whole cells: the ground grid is the same whatever part of the survey is in (tiles)
-    origin = np.floor(xyz.mean(axis=0) / ground_cell) * ground_cell
+    origin = xyz.mean(axis=0) if origin is None else np.asarray(origin, dtype=np.float64)
     ground = estimate_ground(xyz - origin, cell=ground_cell)
     above_ground = (xyz[:, 2] - origin[2]) - ground.height(xyz - origin)
     if ground_tolerance is not None:
         candidate |= above_ground <= ground_tolerance
     cand = np.flatnonzero(candidate)
-    normals, reliable = point_normals(xyz, cand, k=normal_k, voxel=normal_voxel)
+    normals, reliable = point_normals(xyz, cand, k=normal_k, voxel=normal_voxel, origin=origin)
     flat = np.zeros(n, dtype=bool)
     flat[cand] = reliable & (normals[:, 2] >= np.cos(np.radians(normal_angle_deg)))
     road = flat & low

@@ -65,18 +65,23 @@ def slice_stage(
     progress: Progress | None = None,
     min_slice_points: int = 5,
     crop_only: Callable[[SliceSet], np.ndarray] | None = None,
+    origin: np.ndarray | None = None,
 ) -> SliceStage:
     """`prepare_slices` on points already loaded (a tile's: `trajectory` is the whole drive's,
     so stations are the survey's). `crop_only` picks the slices worth a camera crop (default
-    all): a tile crops the slices whose labels it keeps, not its halo's."""
+    all): a tile crops the slices whose labels it keeps, not its halo's. `origin` anchors the
+    ground cells and voxels (default: the points' mean; a tile passes the survey's mean)."""
     report = progress or no_progress
     clock = Stopwatch()
     with clock("road"):
         report("road removal", 0.1)
-        road = road_removal(points.xyz, trajectory)
+        road = road_removal(points.xyz, trajectory, origin=origin)
     with clock("components"):
         report("components", 0.2)
-        components = connected_components(points, road.keep, above_ground=road.above_ground)
+        origin = points.xyz.mean(axis=0) if origin is None and len(points) else origin
+        components = connected_components(
+            points, road.keep, above_ground=road.above_ground, origin=origin
+        )
     with clock("slices"):
         slices = cut_slices(points.xyz, components.label, trajectory, spacing,
                             min_points=min_slice_points)  # fmt: skip

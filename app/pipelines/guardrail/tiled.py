@@ -149,8 +149,9 @@ def run_tile(
     uses_image = "image" in pipeline.head
     encoder = _worker_encoder() if uses_image and survey.cameras else None
     stage = slice_stage(
-        survey, points, trajectory, encoder, cfg.spacing, progress, crop_only=near_own
-    )
+        survey, points, trajectory, encoder, cfg.spacing, progress, crop_only=near_own,
+        origin=index.centre,
+    )  # fmt: skip
     timings = {"load": round(time.perf_counter() - started, 3) - sum(stage.timings.values())}
     clock = time.perf_counter()
     if progress is not None:
