@@ -68,6 +68,20 @@ def fill_frame_labels(out: Path, frame_id: str, index: np.ndarray, values: np.nd
     del labels
 
 
+def fill_labels_of_frames(
+    out: Path, frame_ids: list[str], frame: np.ndarray, index: np.ndarray, values: np.ndarray
+) -> None:
+    """`fill_frame_labels` for points of many frames: point k is `index[k]` of frame
+    `frame_ids[frame[k]]`."""
+    if len(frame) == 0:
+        return
+    order = np.argsort(frame, kind="stable")
+    frame, index, values = frame[order], index[order], values[order]
+    starts = np.flatnonzero(np.r_[True, frame[1:] != frame[:-1]])
+    for a, b in zip(starts, np.r_[starts[1:], len(frame)], strict=True):
+        fill_frame_labels(out, frame_ids[int(frame[a])], index[a:b], values[a:b])
+
+
 def commit_frame_labels(out: Path, frame_ids: list[str]) -> None:
     for frame_id in frame_ids:
         target, partial = _label_paths(out, frame_id)

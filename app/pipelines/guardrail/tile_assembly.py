@@ -25,7 +25,7 @@ from scipy.sparse.csgraph import connected_components
 
 from app.metrics.classification import binary_from_counts
 from app.pipelines.guardrail.pipeline import ReconstructionInput
-from app.pipelines.outputs import commit_frame_labels, fill_frame_labels, start_frame_labels
+from app.pipelines.outputs import commit_frame_labels, fill_labels_of_frames, start_frame_labels
 from app.pipelines.tiling import TILES, TileMaps, tile_name
 
 SLICE_COLUMNS = ("component", "slice_index", "station", "probability", "raw", "corrected",
@@ -65,12 +65,8 @@ class GuardrailAssembly:
         tile = int(summary["tile"])
         with np.load(self.folder / f"{tile_name(tile)}.npz") as data:
             frame, index = data["rail_frame"], data["rail_index"]
-            order = np.argsort(frame, kind="stable")
-            frame, index = frame[order], index[order]
-            starts = np.flatnonzero(np.r_[True, frame[1:] != frame[:-1]]) if len(frame) else []
-            for a, b in zip(starts, np.r_[starts[1:], len(frame)], strict=True):
-                ones = np.ones(b - a, dtype=np.uint8)
-                fill_frame_labels(self.out, self.frame_ids[int(frame[a])], index[a:b], ones)
+            ones = np.ones(len(frame), dtype=np.uint8)
+            fill_labels_of_frames(self.out, self.frame_ids, frame, index, ones)
             self.links[tile] = {key: data[key] for key in LINKS}
             self.columns[tile] = {key: data[key] for key in SLICE_COLUMNS}
         self.maps.add(summary)

@@ -21,7 +21,7 @@ from app.io.asprs import PHANTOM_LABEL_TO_ASPRS, to_asprs
 from app.io.las import write_laz
 from app.pipelines.outputs import (
     commit_frame_labels,
-    fill_frame_labels,
+    fill_labels_of_frames,
     start_frame_labels,
     write_json,
 )
@@ -108,12 +108,9 @@ class Assembly:
     def add(self, summary: dict) -> None:
         tile = int(summary["tile"])
         with np.load(self.folder / f"{tile_name(tile)}.npz") as data:
-            frame, index, labels = data["frame"], data["index"], data["labels"]
-            order = np.argsort(frame, kind="stable")
-            frame, index, labels = frame[order], index[order], labels[order]
-            starts = np.flatnonzero(np.r_[True, frame[1:] != frame[:-1]])
-            for a, b in zip(starts, np.r_[starts[1:], len(frame)], strict=True):
-                fill_frame_labels(self.out, self.frame_ids[int(frame[a])], index[a:b], labels[a:b])
+            fill_labels_of_frames(
+                self.out, self.frame_ids, data["frame"], data["index"], data["labels"]
+            )
             for key in data.files:
                 if key.startswith("pillar_"):
                     self.columns.setdefault(key.removeprefix("pillar_"), []).append(

@@ -96,3 +96,19 @@ def test_components_are_joined_across_tile_edges() -> None:
     assert numbers[0].tolist() == [0, 1, 1]
     assert numbers[1][0] == 1 and numbers[1][2] == 1  # joined with tile 0's component 1
     assert numbers[1][1] not in (0, 1)  # (1, 7) is taken: a number of its own
+
+
+def test_a_tile_without_guardrail_points_fills_no_labels(tmp_path: Path) -> None:
+    """Tiles hand their labelled points to the frames' label files on disk; a tile with none
+    (a stretch without guardrails) leaves them as they are."""
+    from app.pipelines.outputs import commit_frame_labels, fill_labels_of_frames, start_frame_labels
+
+    start_frame_labels(tmp_path, {"a": 3, "b": 2})
+    empty = np.zeros(0, np.int64)
+    fill_labels_of_frames(tmp_path, ["a", "b"], empty, empty, np.zeros(0, np.uint8))
+    fill_labels_of_frames(
+        tmp_path, ["a", "b"], np.array([1, 0, 1]), np.array([1, 2, 0]), np.ones(3, np.uint8)
+    )
+    commit_frame_labels(tmp_path, ["a", "b"])
+    assert np.load(tmp_path / "labels" / "a.npy").tolist() == [0, 0, 1]
+    assert np.load(tmp_path / "labels" / "b.npy").tolist() == [1, 1]
