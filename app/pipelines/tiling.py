@@ -17,6 +17,8 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from app.core.progress import Progress
 from app.io.las import LasAppender
 from app.pipelines.outputs import write_json
@@ -74,6 +76,15 @@ def tiles_report(layout: Any, tiles_run: int, worker_peak_mb: float) -> dict:
         "kept_from_earlier_attempt": layout.count - tiles_run,
         "worker_peak_mb": worker_peak_mb,
     }
+
+
+def save_tile_arrays(out: Path, tile: int, **arrays: Any) -> Path:
+    """A tile's arrays as OUT/tiles/NNNNN.npz, whole or not at all."""
+    folder = Path(out) / TILES
+    folder.mkdir(parents=True, exist_ok=True)
+    partial = folder / f"{tile_name(tile)}.partial.npz"
+    np.savez(partial, **arrays)
+    return partial.replace(folder / f"{tile_name(tile)}.npz")
 
 
 def write_summary(out: Path, tile: int, summary: dict) -> dict:

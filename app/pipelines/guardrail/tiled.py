@@ -58,6 +58,7 @@ from app.pipelines.tiling import (
     file_stamp,
     finished_tiles,
     in_process,
+    save_tile_arrays,
     tile_name,
     write_summary,
 )
@@ -266,7 +267,6 @@ def write_tile(spec: GuardrailTileSpec, cfg: GuardrailConfig, r: GuardrailTileRe
     what grouping and reconstruction read), `NNNNN.stage.npz` and `NNNNN.features.npz` with
     `keep_stage`, and `NNNNN.guardrail_points.laz`."""
     folder = Path(spec.out) / TILES
-    folder.mkdir(parents=True, exist_ok=True)
     name = tile_name(r.tile)
     s, pts = r.stage.slices, r.stage.points
     columns = {
@@ -281,9 +281,7 @@ def write_tile(spec: GuardrailTileSpec, cfg: GuardrailConfig, r: GuardrailTileRe
         "rail_index": pts.index[r.rail_points],
         **r.links,
     }
-    partial = folder / f"{name}.partial.npz"
-    np.savez(partial, **columns)
-    partial.replace(folder / f"{name}.npz")
+    save_tile_arrays(spec.out, r.tile, **columns)
     rails = r.owned_slices[r.corrected]
     ReconstructionInput.of(r.stage, cfg, rails).save(folder / f"{name}.rails.npz")
     if spec.keep_stage:

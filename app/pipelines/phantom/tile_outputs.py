@@ -23,11 +23,17 @@ from app.pipelines.outputs import (
     commit_frame_labels,
     fill_labels_of_frames,
     start_frame_labels,
-    write_json,
 )
 from app.pipelines.phantom.evaluation.classification_metrics import add_counts
 from app.pipelines.phantom.point_labels import kept
-from app.pipelines.tiling import MAPS, TILES, TileMaps, tile_name
+from app.pipelines.tiling import (
+    MAPS,
+    TILES,
+    TileMaps,
+    save_tile_arrays,
+    tile_name,
+    write_summary,
+)
 
 
 @dataclass
@@ -49,17 +55,11 @@ class TileResult:
 def write_tile(out: Path, result: TileResult, offset: np.ndarray) -> dict:
     """The tile's files, its summary last (what marks it done); returns the summary."""
     folder = Path(out) / TILES
-    folder.mkdir(parents=True, exist_ok=True)
     name = tile_name(result.tile)
-    partial = folder / f"{name}.partial.npz"
-    np.savez(
-        partial,
-        frame=result.frame,
-        index=result.index,
-        labels=result.labels,
+    save_tile_arrays(
+        out, result.tile, frame=result.frame, index=result.index, labels=result.labels,
         **{f"pillar_{k}": v for k, v in result.pillars.items()},
-    )
-    partial.replace(folder / f"{name}.npz")
+    )  # fmt: skip
     keep = kept(result.labels)
     maps = {}
     for kind, which in zip(MAPS, (keep, ~keep), strict=True):
@@ -76,8 +76,7 @@ def write_tile(out: Path, result: TileResult, offset: np.ndarray) -> dict:
             maps[kind] = f"{name}.{kind}.laz"
     labels = result.labels
     pillar_labels = result.pillars.get("labels", np.zeros(0, dtype=np.uint8))
-    summary = {
-        "tile": result.tile,
+    return write_summary(out, result.tile, {
         "points": int(len(labels)),
         "points_in_layer": result.in_layer,
         "pillars": int(len(pillar_labels)),
@@ -88,9 +87,7 @@ def write_tile(out: Path, result: TileResult, offset: np.ndarray) -> dict:
         "metric_counts": result.metric_counts,
         "timings": result.timings,
         "worker_peak_mb": round(result.peak_mb, 1),
-    }
-    write_json(folder / f"{name}.json", summary)
-    return summary
+    })  # fmt: skip
 
 
 class Assembly:
