@@ -162,11 +162,10 @@ def run_tile(
     s = stage.slices
     owner = slice_owner(index, s)
     own = np.flatnonzero(owner == tile)
-    mine = np.where(
-        s.point_slice >= 0,
-        owner[np.maximum(s.point_slice, 0)] == tile,
-        index.owned(stage.points.xyz, tile),
-    )
+    # a point in a slice goes with its slice; one in none, with its cell
+    in_slice = s.point_slice >= 0
+    mine = index.owned(stage.points.xyz, tile)
+    mine[in_slice] = owner[s.point_slice[in_slice]] == tile
     labels = slice_point_labels(s, corrected)
     rail_points = np.flatnonzero(mine & (labels == 1))
     counts = None
@@ -199,9 +198,10 @@ def _edge_links(
     out = {}
     edges = {"start": layout.edges[tile] if tile > 0 else None,
              "end": layout.edges[tile + 1] if tile + 1 < layout.count else None}  # fmt: skip
+    in_slice = np.flatnonzero(s.point_slice >= 0)
     for name, edge in edges.items():
         near = np.zeros(len(s), dtype=bool) if edge is None else np.abs(station - edge) <= LINK_BAND
-        members = np.flatnonzero(near[np.maximum(s.point_slice, 0)] & (s.point_slice >= 0))
+        members = in_slice[near[s.point_slice[in_slice]]]
         pts = stage.points
         out[f"{name}_keys"] = point_keys(pts.frame[members], pts.index[members])
         out[f"{name}_components"] = s.component[s.point_slice[members]].astype(np.int64)
