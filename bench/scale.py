@@ -293,11 +293,11 @@ def part_guardrail_agreement(args) -> tuple[str, str, str]:
     )  # fmt: skip
     notes = (
         f"Synthetic: simulated {metres:g} m urban streets (profile scanner seed 7, HDL-64E-like "
-        f"seed 3, with the camera), the guardrail pipeline with the shipped classifier of each "
-        f"sensor kind and its default head, in this process (no cluster): the whole survey "
-        f"against {tile:g} m tiles with the pipeline's halo. Pole shift: the largest distance "
-        f"between a pole of the whole run and the same pole of the tiled run (guardrails "
-        f"paired in order of station)."
+        f"seed 3, no camera: every slice takes the geometry head), the guardrail pipeline with "
+        f"the shipped classifier of each sensor kind, in this process (no cluster): the whole "
+        f"survey against {tile:g} m tiles with the pipeline's halo. Pole shift: the largest "
+        f"distance between a pole of the whole run and the same pole of the tiled run "
+        f"(guardrails paired in order of station)."
     )
     return "Scale: tiled against whole-survey guardrails", table, notes
 
