@@ -19,7 +19,7 @@ street, and a point's foot must not jump between the sweeps of a steep ramp.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -84,6 +84,18 @@ class TileLayout:
             edges.append(end)
             start = end
         return TileLayout(self.stations_of, self.length, self.halo, tuple(edges))
+
+    def halved(self, tiles: list[int], min_length: float) -> TileLayout:
+        """The same layout with each of `tiles` cut in two halves, where the halves are at least
+        `min_length` long (a window that holds more than its stations say, e.g. where the drive
+        comes back along a street, is cut again after `cut_by_points`)."""
+        ends = [*self.edges[1:], self.total]
+        middles = [
+            0.5 * (self.edges[t] + ends[t])
+            for t in tiles
+            if ends[t] - self.edges[t] >= 2 * min_length
+        ]
+        return replace(self, edges=tuple(sorted([*self.edges, *middles])))
 
     @property
     def total(self) -> float:

@@ -55,7 +55,9 @@ class TileIndex:
         frames' sensor positions, a map's recorded one, or else the one its points trace
         (`map_trajectory`, one more pass). Tiles are `length` metres long, shorter where they
         would own more than `max_points` points (`TileLayout.cut_by_points`): a dense scanner's
-        tile fits a worker as a sparse one's does."""
+        tile fits a worker as a sparse one's does. The windows are then counted as they are on
+        the ground, and a tile whose window still holds more (the drive came back along the
+        street: both passes are in it) is halved until it fits or is as short as it may be."""
         poses = survey.poses()
         if len(poses) == 0:
             raise ValueError(f"{survey.source}: no frames to cut into tiles")
@@ -84,14 +86,24 @@ class TileIndex:
         stations = layout.stations(_centres(keys, cell))
         if max_points is not None:
             layout = layout.cut_by_points(stations, per_key, max_points, min_length=2 * cell)
-        tile = layout.owner(stations)  # a cell belongs to the tile of its centre's station
+        while True:  # the windows as they are on the ground, cut again where still too full
+            tile = layout.owner(stations)  # a cell belongs to the tile of its centre's station
+            order = np.argsort(tile, kind="stable")
+            starts = np.searchsorted(tile[order], np.arange(layout.count + 1))
+            owned_cells = [
+                np.sort(keys[order[a:b]]) for a, b in zip(starts[:-1], starts[1:], strict=True)
+            ]
+            window_cells = [halo_cells(c, halo, cell) for c in owned_cells]
+            if max_points is None:
+                break
+            full = [
+                t for t, w in enumerate(window_cells) if _points_in(w, keys, per_key) > max_points
+            ]
+            split = layout.halved(full, min_length=2 * cell)
+            if split.count == layout.count:
+                break
+            layout = split
         counts = np.bincount(tile, weights=per_key, minlength=layout.count).astype(np.int64)
-        order = np.argsort(tile, kind="stable")
-        starts = np.searchsorted(tile[order], np.arange(layout.count + 1))
-        owned_cells = [
-            np.sort(keys[order[a:b]]) for a, b in zip(starts[:-1], starts[1:], strict=True)
-        ]
-        window_cells = [halo_cells(c, halo, cell) for c in owned_cells]
         frame_of = np.repeat(np.arange(len(footprints)), [len(fp) for fp in footprints])
         footprint = np.concatenate(footprints)
         frames = []
@@ -116,6 +128,14 @@ class TileIndex:
     def owned(self, xyz: np.ndarray, tile: int) -> np.ndarray:
         """(N,) bool: tile `tile` owns the point (it owns the point's cell)."""
         return np.isin(cell_keys(xyz, self.cell), self.owned_cells[tile])
+
+
+def _points_in(window: np.ndarray, keys: np.ndarray, per_key: np.ndarray) -> int:
+    """Points in the cells `window` (`keys` sorted, `per_key` their points)."""
+    if len(keys) == 0:
+        return 0
+    at = np.minimum(np.searchsorted(keys, window), len(keys) - 1)
+    return int(per_key[at][keys[at] == window].sum())
 
 
 def _centres(keys: np.ndarray, cell: float) -> np.ndarray:

@@ -8,6 +8,7 @@ from pathlib import Path
 import laspy
 import numpy as np
 
+from app.geometry.tiles import cell_keys
 from app.io import open_survey
 from app.io.survey import Frame, PointCloud, Survey
 from app.io.tile_index import TileIndex
@@ -164,3 +165,23 @@ def test_a_point_budget_cuts_dense_tiles_shorter() -> None:
     keys = np.concatenate(bounded.owned_cells)
     assert len(keys) == len(np.unique(keys))  # a cell has one owner
     assert np.all(np.diff(bounded.layout.edges) <= 12.0)
+
+
+def test_a_window_over_both_passes_is_cut_again() -> None:
+    """Where the drive comes back along its street, a tile's window holds both passes' points,
+    more than its stations say: such a tile is cut again until its window keeps to the budget
+    (or the tile is as short as it may be)."""
+    survey = _there_and_back()
+    budget = 4_000
+    index = TileIndex.build(survey, length=41.0, halo=4.0, max_points=budget)
+    flat = TileIndex.build(survey, length=41.0, halo=4.0)
+    assert index.count > flat.count
+    assert int(index.owned_points.sum()) == 61 * 400
+    for tile, window in enumerate(index.window_cells):
+        held = sum(
+            int(np.isin(cell_keys(f.world_points().xyz, index.cell), window).sum())
+            for f in survey.frames
+        )
+        start, end = index.layout.bounds(tile)
+        short = min(end, index.layout.total) - max(start, 0.0) < 4 * index.cell
+        assert held <= budget or short, (tile, held)
