@@ -35,6 +35,8 @@ from app.jobs.memory import (
     frame_grid_mb,
     points_mb,
     survey_text,
+    tile_field,
+    tile_share,
 )
 from app.jobs.registry import JobContext, task
 from app.jobs.task_config import validated
@@ -74,11 +76,9 @@ def estimate_run(session: Session, survey: int | None, config: dict[str, Any]) -
     if survey is None:
         return MemoryEstimate("no survey")
     footprint = survey_footprint(session, survey)
-    low, high = np.asarray(footprint.trajectory_min), np.asarray(footprint.trajectory_max)
     tile_reach = tile_length + 2 * clutter_halo(cfg)
-    share = min(1.0, tile_reach / max(float(np.linalg.norm(high - low)), 1.0))
-    # shorter tiles need less while the survey spans several; a survey within one tile cannot
-    field = "config.tile_length" if share < 1.0 else "survey_id"
+    share = tile_share(footprint, tile_reach)
+    field = tile_field(share)
     reach = 2 * SENSOR_REACH_M
     estimate = MemoryEstimate(survey_text(footprint))
     estimate.add(

@@ -23,7 +23,7 @@ from app.core.errors import ConfigError
 from app.core.settings import Settings
 from app.io import open_survey
 from app.jobs.cluster import log_tiles, tile_map, tile_progress
-from app.jobs.memory import MB, MemoryEstimate, points_mb, survey_text
+from app.jobs.memory import MB, MemoryEstimate, points_mb, survey_text, tile_field, tile_share
 from app.jobs.model_choice import model_for_job
 from app.jobs.registry import JobContext, task
 from app.jobs.task_config import refuse_model_path, validated
@@ -176,20 +176,16 @@ def estimate_run(session: Session, survey: int | None, config: dict[str, Any]) -
     if survey is None:
         return MemoryEstimate("no survey")
     footprint = survey_footprint(session, survey)
-    low, high = np.asarray(footprint.trajectory_min), np.asarray(footprint.trajectory_max)
     halo = guardrail_halo(cfg.with_correction({}))
     reach = option.tile_length + 2 * halo
-    length = max(float(np.linalg.norm(high - low)), 1.0)
-    share = min(1.0, reach / length)
+    share = tile_share(footprint, reach)
     # a tile is cut shorter where its window would hold more than TILE_POINTS (`tiled`), down
     # to the shortest tile, whose window is still its halo
-    shortest = min(1.0, (2 * INDEX_CELL + 2 * halo) / length)
+    shortest = tile_share(footprint, 2 * INDEX_CELL + 2 * halo)
     tile_points = min(footprint.points * share, max(TILE_POINTS, footprint.points * shortest))
-    # shorter tiles need less while the survey spans several; a survey within one tile cannot
-    field = "config.tile_length" if share < 1.0 else "survey_id"
     estimate = MemoryEstimate(survey_text(footprint))
     estimate.add(
-        field,
+        tile_field(share),
         tile_points * GUARDRAIL_BYTES_PER_POINT / MB,
         f"{GUARDRAIL_BYTES_PER_POINT:.0f} bytes per point of a {reach:.0f} m tile "
         f"({share:.0%} of the survey, at most {TILE_POINTS:,} points)",

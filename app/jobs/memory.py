@@ -23,6 +23,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from app.core.errors import ConfigError
 from app.store.surveys import SurveyFootprint
 
@@ -75,6 +77,20 @@ def extent_text(footprint: SurveyFootprint) -> str:
         for lo, hi in zip(footprint.trajectory_min[:2], footprint.trajectory_max[:2], strict=True)
     )
     return f"{x:,.0f} x {y:,.0f} m"
+
+
+def tile_share(footprint: SurveyFootprint, metres: float) -> float:
+    """The share of the survey's points a tiled run reads for `metres` of trajectory (a tile
+    and its halo): the length is taken as the trajectory's bounding-box diagonal, shorter than
+    a winding drive, so the share comes out generous."""
+    low, high = np.asarray(footprint.trajectory_min), np.asarray(footprint.trajectory_max)
+    return min(1.0, metres / max(float(np.linalg.norm(high - low)), 1.0))
+
+
+def tile_field(share: float) -> str:
+    """The config field a tile's memory answers to: shorter tiles need less while the survey
+    spans several; a survey within one tile cannot."""
+    return "config.tile_length" if share < 1.0 else "survey_id"
 
 
 def points_mb(footprint: SurveyFootprint, bytes_per_point: float) -> float:

@@ -20,7 +20,7 @@ from app.core.errors import ConfigError
 from app.core.settings import Settings
 from app.io import open_survey
 from app.jobs.cluster import log_tiles, shared_threads, tile_map, tile_progress
-from app.jobs.memory import MemoryEstimate, points_mb, survey_text
+from app.jobs.memory import MemoryEstimate, points_mb, survey_text, tile_field, tile_share
 from app.jobs.model_choice import model_for_job
 from app.jobs.registry import JobContext, task
 from app.jobs.task_config import validated
@@ -71,13 +71,10 @@ def estimate_memory(session: Session, survey: int | None, config: dict[str, Any]
     if survey is None:
         return MemoryEstimate("no survey")
     footprint = survey_footprint(session, survey)
-    low, high = np.asarray(footprint.trajectory_min), np.asarray(footprint.trajectory_max)
     reach = parse_config(config).tile_length + 2 * phantom_halo(PhantomConfig())
-    share = min(1.0, reach / max(float(np.linalg.norm(high - low)), 1.0))
-    # shorter tiles need less while the survey spans several; a survey within one tile cannot
-    field = "config.tile_length" if share < 1.0 else "survey_id"
+    share = tile_share(footprint, reach)
     return MemoryEstimate(survey_text(footprint)).add(
-        field,
+        tile_field(share),
         points_mb(footprint, PHANTOM_BYTES_PER_POINT * share),
         f"{PHANTOM_BYTES_PER_POINT:.0f} bytes per point of a {reach:.0f} m tile "
         f"({share:.0%} of the survey)",
