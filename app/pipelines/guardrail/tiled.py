@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from app.core.progress import Progress
+from app.geometry.tiles import TileLayout
 from app.io.las import write_laz
 from app.io.survey import Survey
 from app.io.tile_index import TileIndex
@@ -115,12 +116,6 @@ class GuardrailTileResult:
     peak_mb: float
 
 
-def slice_owner(index: TileIndex, s: SliceSet) -> np.ndarray:
-    """(K,) tile owning each slice: the tile of its centre's station."""
-    layout = index.layout
-    return layout.owner(layout.stations(s.centre))
-
-
 def point_keys(frame: np.ndarray, point: np.ndarray) -> np.ndarray:
     """One int64 per point of the survey: (frame, index in the frame)."""
     return (frame.astype(np.int64) << 32) | point.astype(np.int64)
@@ -162,7 +157,8 @@ def run_tile(
     probability, raw, corrected = pipeline.label(stage)
     timings = {**timings, **stage.timings, "classify": round(time.perf_counter() - clock, 3)}
     s = stage.slices
-    owner = slice_owner(index, s)
+    station = layout.stations(s.centre)  # a slice belongs to the tile of its centre's station
+    owner = layout.owner(station)
     own = np.flatnonzero(owner == tile)
     # a point in a slice goes with its slice; one in none, with its cell
     in_slice = s.point_slice >= 0
@@ -183,20 +179,18 @@ def run_tile(
         }
     return GuardrailTileResult(
         tile, own, stage, probability[own], raw[own], corrected[own], int(mine.sum()),
-        rail_points, _edge_links(stage, owner, index, tile), counts, timings,
+        rail_points, _edge_links(stage, station, layout, tile), counts, timings,
         resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,  # Linux: kilobytes
     )  # fmt: skip
 
 
 def _edge_links(
-    stage: SliceStage, owner: np.ndarray, index: TileIndex, tile: int
+    stage: SliceStage, station: np.ndarray, layout: TileLayout, tile: int
 ) -> dict[str, np.ndarray]:
-    """The points of the slices within `LINK_BAND` of the tile's start and end, with their
-    components: the next tile sees the same points, and a component that crosses the edge is
-    one (`tile_assembly`)."""
+    """The points of the slices within `LINK_BAND` of the tile's start and end (`station`: of
+    each slice's centre), with their components: the next tile sees the same points, and a
+    component that crosses the edge is one (`tile_assembly`)."""
     s = stage.slices
-    layout = index.layout
-    station = layout.stations(s.centre)
     out = {}
     edges = {"start": layout.edges[tile] if tile > 0 else None,
              "end": layout.edges[tile + 1] if tile + 1 < layout.count else None}  # fmt: skip
