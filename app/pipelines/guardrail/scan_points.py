@@ -79,16 +79,6 @@ class ScanPoints:
     def __len__(self) -> int:
         return len(self.xyz)
 
-    def take(self, sel: np.ndarray) -> ScanPoints:
-        """The points `sel` picks (bool mask or indices), lattice cells and all."""
-
-        def pick(values: np.ndarray | None) -> np.ndarray | None:
-            return None if values is None else values[sel]
-
-        lattice = None if self.lattice is None else self.lattice.take(sel)
-        return ScanPoints(self.xyz[sel], self.frame[sel], self.index[sel], pick(self.time),
-                          lattice, pick(self.intensity))  # fmt: skip
-
 
 def profile_lattice(
     time: np.ndarray,
