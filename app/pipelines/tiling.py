@@ -78,6 +78,17 @@ def tiles_report(layout: Any, tiles_run: int, worker_peak_mb: float) -> dict:
     }
 
 
+def tile_totals(summaries: list[dict]) -> dict:
+    """What every tiled run adds up from its tiles' summaries: the seconds per step, summed,
+    and the largest peak memory of a process that ran a tile."""
+    timings: dict[str, float] = {}
+    for s in summaries:
+        for step, seconds in s["timings"].items():
+            timings[step] = round(timings.get(step, 0.0) + seconds, 3)
+    peak = max((s.get("worker_peak_mb", 0.0) for s in summaries), default=0.0)
+    return {"timings": timings, "worker_peak_mb": peak}
+
+
 def save_tile_arrays(out: Path, tile: int, **arrays: Any) -> Path:
     """A tile's arrays as OUT/tiles/NNNNN.npz, whole or not at all."""
     folder = Path(out) / TILES

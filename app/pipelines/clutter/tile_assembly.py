@@ -18,7 +18,7 @@ from scipy.sparse.csgraph import connected_components
 
 from app.io.las import write_laz
 from app.pipelines.clutter.evaluation.removal_metrics import add_removal_counts
-from app.pipelines.tiling import MAPS, TILES, TileMaps, tile_name
+from app.pipelines.tiling import MAPS, TILES, TileMaps, tile_name, tile_totals
 
 # a (frame, cluster) observation as one integer: clusters per frame stay below 2^24
 _CLUSTERS = np.int64(1 << 24)
@@ -47,24 +47,21 @@ class ClutterAssembly:
         track_of = join_tracks(self.folder, tiles)
         counts = {"frames": 0, "points": 0, "points_in_view": 0, "removed_points": 0,
                   "map_points": 0}  # fmt: skip
-        metric_counts, timings, rows = None, {}, []
+        metric_counts, rows = None, []
         for tile in tiles:
             s = self.summaries[tile]
             for key in counts:
                 counts[key] += s["counts"][key]
             if s["metric_counts"] is not None:
                 metric_counts = add_removal_counts(metric_counts, s["metric_counts"])
-            for step, seconds in s["timings"].items():
-                timings[step] = round(timings.get(step, 0.0) + seconds, 3)
             for row in s["rows"]:
                 local = row["track_id"]
                 rows.append({**row, "track_id": None if local is None else track_of[tile][local]})
         counts["tracks"] = int(max((max(t.values(), default=-1) for t in track_of.values()),
                                    default=-1) + 1)  # fmt: skip
         return {
-            "files": files, "counts": counts, "metric_counts": metric_counts, "timings": timings,
-            "worker_peak_mb": max((s["worker_peak_mb"] for s in self.summaries.values()),
-                                  default=0.0),
+            "files": files, "counts": counts, "metric_counts": metric_counts,
+            **tile_totals([self.summaries[t] for t in tiles]),
             "segmentation": {key: sum(s["segmentation"][key] for s in self.summaries.values())
                              for key in ("cache_hits", "segmented")},
             "rows": rows,

@@ -26,7 +26,7 @@ from scipy.sparse.csgraph import connected_components
 from app.metrics.classification import binary_from_counts
 from app.pipelines.guardrail.pipeline import ReconstructionInput
 from app.pipelines.outputs import commit_frame_labels, fill_labels_of_frames, start_frame_labels
-from app.pipelines.tiling import TILES, TileMaps, tile_name
+from app.pipelines.tiling import TILES, TileMaps, tile_name, tile_totals
 
 SLICE_COLUMNS = ("component", "slice_index", "station", "probability", "raw", "corrected",
                  "has_crop")  # fmt: skip
@@ -176,15 +176,11 @@ def slice_components(
 def _totals(summaries: list[dict]) -> dict:
     keys = ("points", "slices", "slices_with_crop", "guardrail_slices", "guardrail_points")
     counts = {key: sum(int(s[key]) for s in summaries) for key in keys}
-    metric_counts, timings = None, {}
+    metric_counts = None
     for s in summaries:
         if s["metric_counts"] is not None:
             metric_counts = add_metric_counts(metric_counts, s["metric_counts"])
-        for step, seconds in s["timings"].items():
-            timings[step] = round(timings.get(step, 0.0) + seconds, 3)
-    peak = max((s.get("worker_peak_mb", 0.0) for s in summaries), default=0.0)
-    return {"counts": counts, "metric_counts": metric_counts, "timings": timings,
-            "worker_peak_mb": peak}  # fmt: skip
+    return {"counts": counts, "metric_counts": metric_counts, **tile_totals(summaries)}
 
 
 def add_metric_counts(total: dict | None, part: dict) -> dict:

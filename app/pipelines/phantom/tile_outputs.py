@@ -32,6 +32,7 @@ from app.pipelines.tiling import (
     TileMaps,
     save_tile_arrays,
     tile_name,
+    tile_totals,
     write_summary,
 )
 
@@ -137,7 +138,7 @@ def _totals(summaries: list[dict]) -> dict:
     counts = {"points": 0, "points_in_layer": 0, "pillars": 0, "pillars_classified": 0,
               "phantom_points": 0}  # fmt: skip
     per_class = {c.name.lower(): 0 for c in PillarClass}
-    metric_counts, timings = None, {}
+    metric_counts = None
     for s in summaries:
         for key in counts:
             counts[key] += s[key]
@@ -145,9 +146,5 @@ def _totals(summaries: list[dict]) -> dict:
             per_class[key] += n
         if s["metric_counts"] is not None:
             metric_counts = add_counts(metric_counts, s["metric_counts"])
-        for step, seconds in s["timings"].items():
-            timings[step] = round(timings.get(step, 0.0) + seconds, 3)
     counts["pillars_per_class"] = per_class
-    peak = max((s.get("worker_peak_mb", 0.0) for s in summaries), default=0.0)
-    return {"counts": counts, "metric_counts": metric_counts, "timings": timings,
-            "worker_peak_mb": peak}  # fmt: skip
+    return {"counts": counts, "metric_counts": metric_counts, **tile_totals(summaries)}
