@@ -1,13 +1,16 @@
 """Frames cut into tiles along the trajectory, for pipelines whose unit is the frame (clutter:
 labels per frame, rays per frame, tracks from frame to frame).
 
-A frame belongs to the tile of its sensor position's station (`geometry.tiles.TileLayout`). A
-tile reads its own frames and, as context, every frame whose sensor was within `halo` metres
-(horizontally) of one of its own frames' sensors: the frames whose rays and objects reach its
-own. The halo is spatial, not a stretch of stations, so a drive that comes back along a street
-sees its first pass there too. A tile may also be cut shorter so that it reads at most a number
-of frames (where the drive comes back, or the frames are dense). Only poses are read: building
-the tiles costs nothing per point.
+A frame belongs to the tile of its station, the arc length at which its sensor was there (the
+sensor positions are the trajectory: a frame is never projected onto it, which would give a
+drive's way back its way out's stations). A tile reads its own frames and, as context, every
+frame whose sensor was within `halo` metres (horizontally) of one of its own frames' sensors: the
+frames whose rays and objects reach its own. The halo is spatial, not a stretch of stations, so a
+drive that comes back along a street sees its first pass there too. A tile may also be cut
+shorter so that it reads at most a number of frames where the frames are dense, or half as many
+again as one of its frames needs where that is more (where the drive comes back along a street,
+one frame's context holds both passes, which share their space and so the free-space map's
+voxels). Only poses are read: building the tiles costs nothing per point.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from app.geometry.tiles import TileLayout
+from app.geometry.trajectory import arc_length
 from app.io.survey import Survey
 
 
@@ -37,13 +41,13 @@ class FrameTiles:
     ) -> FrameTiles:
         """Tiles of `length` metres; with `max_reads`, a tile also ends before it would read
         more than that many frames (its own and their halo's, a drive's other passes
-        included), but owns at least one frame."""
+        included), or half as many again as one of its frames reads where that is more."""
         poses = survey.poses()
         if len(poses) == 0:
             raise ValueError(f"{survey.source}: no frames to cut into tiles")
         sensors = poses[:, :3, 3]
         layout = TileLayout.along(sensors, length, halo)
-        station = layout.stations(sensors)
+        station = arc_length(np.column_stack([sensors[:, :2], np.zeros(len(sensors))]))
         near = cKDTree(sensors[:, :2]).query_ball_point(sensors[:, :2], r=halo)
         if max_reads is not None:
             layout = _cut_by_reads(layout, station, near, max_reads)
@@ -68,12 +72,15 @@ def _cut_by_reads(
     layout: TileLayout, station: np.ndarray, near: list, max_reads: int
 ) -> TileLayout:
     """`layout`'s trajectory with a tile ending at `length` metres or before the frame that
-    would make it read more than `max_reads` frames. One step per frame (frames, not points)."""
+    would make it read more than `max_reads` frames, or half as many again as that frame reads
+    where that is more (else a frame whose context holds more than `max_reads` would be a tile
+    on its own). One step per frame (frames, not points)."""
     edges, start, reads = [0.0], 0.0, set()
     for k in np.argsort(station, kind="stable").tolist():
         s = max(float(station[k]), 0.0)
         grown = reads.union(near[k])
-        if reads and (s - start >= layout.length or len(grown) > max_reads) and s > start:
+        limit = max(max_reads, 3 * len(near[k]) // 2)
+        if reads and (s - start >= layout.length or len(grown) > limit) and s > start:
             edges.append(s)
             start, grown = s, set(near[k])
         reads = grown

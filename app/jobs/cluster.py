@@ -104,19 +104,27 @@ def shared_threads(settings: Settings) -> int:
 def tile_map(settings: Settings) -> Callable[..., Iterator[Any]]:
     """A `map_tiles` for the tiled runners: `fn(spec, index, tile)` for every tile on the
     settings' cluster (`tile_client`, connected on the first call), results in the order they
-    finish. The tile index travels inside every task (a few MB), not scattered: scattered data
-    is lost with the workers holding it, and a task that needs it could never run again."""
+    finish. The tile index (a few MB) is sent once, as a task of its own that returns it and
+    that every tile task reads: a copy in each of a long survey's thousand tasks had the
+    submitting process serialise gigabytes. Not scattered: scattered data is lost with the
+    workers holding it, while a task's result is computed again by the scheduler."""
 
     def map_tiles(fn: Callable[..., Any], spec: Any, index: Any, tiles: list[int]):
         client = tile_client(settings)
-        futures = [client.submit(fn, spec, index, tile, pure=False) for tile in tiles]
+        shared = client.submit(_the, index, pure=False)
+        futures = [client.submit(fn, spec, shared, tile, pure=False) for tile in tiles]
         try:
             for future in as_completed(futures):
                 yield future.result()
         finally:
-            client.cancel(futures)
+            client.cancel([*futures, shared])
 
     return map_tiles
+
+
+def _the(index: Any) -> Any:
+    """The tile index as a task's result (`tile_map`)."""
+    return index
 
 
 def tile_progress(context: JobContext):

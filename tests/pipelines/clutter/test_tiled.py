@@ -21,6 +21,7 @@ from app.pipelines.clutter.tile_assembly import join_tracks
 from app.pipelines.clutter.tiled import clutter_halo, run_clutter_tiled
 from app.pipelines.tiling import TILES
 from app.simulate.survey import SimulationConfig, simulate
+from tests.io.surveys import there_and_back
 
 # a rotating scanner (its frames overlap: free space and tracks reach across tiles), 40 m reach
 CONFIG = ClutterConfig(mode="dynamic", use_camera=False, max_range=40.0, threads=1)
@@ -158,3 +159,20 @@ def test_a_frame_budget_cuts_tiles_shorter(street: Path) -> None:
     assert sorted(np.concatenate([bounded.own(t) for t in range(bounded.count)])) == list(
         range(len(survey.frames))
     )
+
+
+def test_the_way_back_has_its_own_tiles() -> None:
+    """A drive that comes back along its street: each frame's tile follows its own station
+    (the way back's frames are not put at the way out's stations), each frame's context holds
+    both passes, and a tile owns more than one frame although one frame's context alone is
+    over the budget (half as many again as that context at most)."""
+    survey = there_and_back()
+    tiles = FrameTiles.build(survey, 41.0, 10.0, max_reads=8)
+    assert np.all(np.diff(tiles.owner) >= 0)  # tiles follow the drive
+    assert tiles.owner[-1] == tiles.count - 1 and tiles.owner[30] < tiles.count - 1
+    context = max(len(f) for f in FrameTiles.build(survey, 0.5, 10.0).frames)  # one frame's
+    assert context > 8
+    assert all(len(tiles.own(t)) > 1 for t in range(tiles.count))
+    assert max(len(f) for f in tiles.frames) <= 3 * context // 2
+    way_back = tiles.frames[tiles.owner[-1]]
+    assert (way_back <= 30).any()  # its context reads the way out too

@@ -19,6 +19,7 @@ from app.pipelines.phantom.evaluation.classification_metrics import (
 from app.pipelines.phantom.pillars import phantom_ground
 from app.pipelines.phantom.pipeline import PhantomPipeline
 from app.pipelines.phantom.tiled import phantom_halo, run_phantom_tiled
+from tests.io.surveys import there_and_back
 
 SAMPLE = Path(__file__).resolve().parents[3] / "data_samples" / "urban-60m"
 PROFILE_MODEL = Path(__file__).resolve().parents[3] / "models" / "phantom" / "phantom_cnn.pt"
@@ -83,30 +84,10 @@ def test_a_resumed_run_reruns_only_the_missing_tiles(tmp_path: Path) -> None:
     assert other.index.count == 1 and other.tiles_run == 1
 
 
-def _there_and_back() -> Survey:
-    """A van drives 60 m east between two walls 5 m to either side, turns and drives back
-    0.5 m further left: each frame sees both walls within 10 m of it."""
-    x = np.r_[np.arange(0.0, 61.0, 2.0), np.arange(60.0, -1.0, -2.0)[1:]]
-    y = np.r_[np.zeros(31), np.full(30, 0.5)]
-    along = np.arange(-10.0, 10.0, 0.1)
-    frames = []
-    for k, (px, py) in enumerate(zip(x, y, strict=True)):
-        pose = np.eye(4)
-        pose[:2, 3] = px, py
-        walls = np.vstack([np.column_stack([along, np.full(200, side - py), np.zeros(200)])
-                           for side in (5.0, -5.0)])  # fmt: skip
-
-        def load(w=walls) -> PointCloud:
-            return PointCloud(w.copy())
-
-        frames.append(Frame(k, f"{k:06d}", pose, float(k), 400, _load_points=load))
-    return Survey("there-and-back", Path("there-and-back"), "sim", frames)
-
-
 def test_a_tile_reads_every_frame_with_its_points_whichever_pass_measured_them() -> None:
     """A point belongs to the tile of the nearer pass (the left wall: the way back, the last
     tile near the start); the way out measured it too, so that tile reads the way out's frames."""
-    survey = _there_and_back()
+    survey = there_and_back()
     index = TileIndex.build(survey, length=41.0, halo=4.0)  # 120.5 m: three tiles
     assert index.count == 3 and int(index.owned_points.sum()) == 61 * 400
     for tile in range(index.count):
@@ -122,7 +103,7 @@ def test_a_tile_reads_every_frame_with_its_points_whichever_pass_measured_them()
 def test_a_frame_without_points_is_indexed_and_owns_nothing() -> None:
     """A scanner that returned nothing for a frame (a dropout) leaves an empty frame: it is
     indexed like the others (a 4 km simulated survey has some)."""
-    survey = _there_and_back()
+    survey = there_and_back()
     empty = survey.frames[7]
     survey.frames[7] = Frame(
         empty.index, empty.frame_id, empty.pose, empty.timestamp, 0,
@@ -171,7 +152,7 @@ def test_a_window_over_both_passes_is_cut_again() -> None:
     """Where the drive comes back along its street, a tile's window holds both passes' points,
     more than its stations say: such a tile is cut again until its window keeps to the budget
     (or the tile is as short as it may be)."""
-    survey = _there_and_back()
+    survey = there_and_back()
     budget = 4_000
     index = TileIndex.build(survey, length=41.0, halo=4.0, max_points=budget)
     flat = TileIndex.build(survey, length=41.0, halo=4.0)
