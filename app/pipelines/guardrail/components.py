@@ -26,7 +26,9 @@ clustering: points within `cluster_tolerance` are connected, computed on voxel c
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
+from itertools import chain
 from typing import Literal
 
 import numpy as np
@@ -60,15 +62,17 @@ def wireframe_edges(
     max_edge: float = 0.3,
     col_window: int = 2,
     row_col_window: int = 3,
-) -> tuple[np.ndarray, np.ndarray]:
-    """(i, j) point pairs that are lattice neighbours and within `max_edge` in 3D.
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """(i, j) point pairs that are lattice neighbours and within `max_edge` in 3D, a batch per
+    neighbour offset (`JoinedComponents` takes them batch by batch: all of them at once, ten and more
+    per point, held gigabytes on a tile of four million points).
 
     Cells are looked up in a dense table (one int per lattice cell) when the lattice is not much
     larger than the point count, else by binary search in the sorted cell keys.
     """
     n = len(xyz)
     if n < 2:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        return
     n_cols = lattice.n_cols
     row0 = int(lattice.row.min())
     n_rows = int(lattice.row.max()) - row0 + 2  # one free row: row + 1 never reaches a sweep
@@ -77,14 +81,19 @@ def wireframe_edges(
     base = ((lattice.sweep - sweep0) * n_rows + rows) * n_cols
     key = base + lattice.col
     n_keys = (int(lattice.sweep.max()) - sweep0 + 1) * n_rows * n_cols  # free row included
-    ii, jj = [], []
+
+    def close(i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        diff = xyz[i] - xyz[j]
+        ok = np.einsum("ij,ij->i", diff, diff) <= max_edge**2
+        return i[ok], j[ok]
+
     if n_keys <= max(16 * n, 1 << 24):
-        table = np.full(n_keys, -1, dtype=np.int64)
-        table[key] = np.arange(n)
-        owner = table[key]
+        index = np.int32 if n < np.iinfo(np.int32).max else np.int64
+        table = np.full(n_keys, -1, dtype=index)
+        table[key] = np.arange(n, dtype=index)
+        owner = table[key].astype(np.int64)
         dup = np.flatnonzero(owner != np.arange(n))  # cells holding two points: join them
-        ii.append(dup)
-        jj.append(owner[dup])
+        yield close(dup, owner[dup])
 
         def lookup(nkey: np.ndarray) -> np.ndarray:
             return table[nkey]
@@ -93,8 +102,7 @@ def wireframe_edges(
         order = np.argsort(key, kind="stable")
         skey = key[order]
         same = np.flatnonzero(skey[1:] == skey[:-1])
-        ii.append(order[same])
-        jj.append(order[same + 1])
+        yield close(order[same], order[same + 1])
 
         def lookup(nkey: np.ndarray) -> np.ndarray:
             at = np.minimum(np.searchsorted(skey, nkey), n - 1)
@@ -102,22 +110,16 @@ def wireframe_edges(
 
     for dr, dc in _lattice_offsets(col_window, row_col_window):
         nkey = base + dr * n_cols + np.mod(lattice.col + dc, n_cols)
-        j = lookup(nkey)
+        j = lookup(nkey).astype(np.int64, copy=False)
         src = np.flatnonzero(j >= 0)
-        ii.append(src)
-        jj.append(j[src])
-    i = np.concatenate(ii)
-    j = np.concatenate(jj)
-    diff = xyz[i] - xyz[j]
-    ok = np.einsum("ij,ij->i", diff, diff) <= max_edge**2
-    return i[ok], j[ok]
+        yield close(src, j[src])
 
 
 def _sweep_edges(
     xyz: np.ndarray, sweep: np.ndarray, max_edge: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Each point to its nearest point of the previous sweep, when within max_edge."""
-    ii, jj = [], []
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """Each point to its nearest point of the previous sweep, when within max_edge (a batch
+    per sweep)."""
     ids = np.unique(sweep)
     groups = {int(s): np.flatnonzero(sweep == s) for s in ids}
     for a, b in zip(ids[:-1], ids[1:], strict=True):
@@ -127,11 +129,7 @@ def _sweep_edges(
         tree = cKDTree(xyz[prev])
         d, nb = tree.query(xyz[cur], k=1, distance_upper_bound=max_edge, workers=-1)
         ok = np.isfinite(d)
-        ii.append(cur[ok])
-        jj.append(prev[nb[ok]])
-    if not ii:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    return np.concatenate(ii), np.concatenate(jj)
+        yield cur[ok], prev[nb[ok]]
 
 
 def euclidean_edges(xyz: np.ndarray, tolerance: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
@@ -154,10 +152,35 @@ def euclidean_edges(xyz: np.ndarray, tolerance: float = 0.3) -> tuple[np.ndarray
     return i, j
 
 
-def _label(n: int, i: np.ndarray, j: np.ndarray) -> np.ndarray:
-    graph = coo_matrix((np.ones(len(i), dtype=np.int8), (i, j)), shape=(n, n))
-    _, label = _csgraph_components(graph, directed=False)
-    return label.astype(np.int64)
+class JoinedComponents:
+    """Connected components of `n` points from edges given batch by batch: each batch joins
+    the components found so far (its edges taken between them, repeats dropped), so memory is
+    that of one batch. A component is known by its smallest point index."""
+
+    def __init__(self, n: int):
+        self.root = np.arange(n, dtype=np.int64)
+
+    def add(self, i: np.ndarray, j: np.ndarray) -> None:
+        a, b = self.root[i], self.root[j]
+        apart = a != b
+        if not apart.any():
+            return
+        a, b = a[apart], b[apart]
+        roots, inverse = np.unique(np.concatenate([a, b]), return_inverse=True)
+        m = len(a)
+        graph = coo_matrix(
+            (np.ones(m, dtype=np.int8), (inverse[:m], inverse[m:])), shape=(len(roots),) * 2
+        )
+        _, group = _csgraph_components(graph, directed=False)
+        smallest = np.full(group.max() + 1, len(self.root), dtype=np.int64)
+        np.minimum.at(smallest, group, roots)
+        to = np.arange(len(self.root), dtype=np.int64)
+        to[roots] = smallest[group]
+        self.root = to[self.root]
+
+    def labels(self) -> np.ndarray:
+        """(n,) int64 component ids, numbered in order of their first point (as scipy's)."""
+        return np.unique(self.root, return_inverse=True)[1].reshape(-1).astype(np.int64)
 
 
 def _attach_fragments(
@@ -240,20 +263,24 @@ def connected_components(
     centre = sub.mean(axis=0) if origin is None and len(sub) else origin
     local = sub - centre if len(sub) else sub
     method: Literal["lattice", "euclidean"] = "lattice" if lattice is not None else "euclidean"
+    batches: Iterable[tuple[np.ndarray, np.ndarray]]
     if lattice is not None:
         lat = lattice.take(sel)
-        i, j = wireframe_edges(local, lat, max_edge, col_window, row_col_window)
+        batches = wireframe_edges(local, lat, max_edge, col_window, row_col_window)
         if link_sweeps and lat.kind == "rotating" and len(np.unique(lat.sweep)) > 1:
-            si, sj = _sweep_edges(local, lat.sweep, max_edge)
-            i, j = np.concatenate([i, si]), np.concatenate([j, sj])
+            batches = chain(batches, _sweep_edges(local, lat.sweep, max_edge))
     else:
-        i, j = euclidean_edges(local, cluster_tolerance)
+        batches = [euclidean_edges(local, cluster_tolerance)]
     low = None
     if above_ground is not None and len(sub):
         low = np.asarray(above_ground, dtype=np.float64)[sel] < min_height
-        mixed = low[i] != low[j]
-        i, j = i[~mixed], j[~mixed]
-    label = _label(len(sub), i, j) if len(sub) else np.zeros(0, np.int64)
+    joined = JoinedComponents(len(sub))
+    for i, j in batches:
+        if low is not None:  # no edge between a low point and a higher one
+            same = low[i] == low[j]
+            i, j = i[same], j[same]
+        joined.add(i, j)
+    label = joined.labels()
     if min_points > 1 and len(sub):
         eligible = None if low is None else ~low  # low points are attached below
         label = _attach_fragments(local, label, min_points, attach_distance, eligible)
