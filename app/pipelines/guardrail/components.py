@@ -64,8 +64,8 @@ def wireframe_edges(
     row_col_window: int = 3,
 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """(i, j) point pairs that are lattice neighbours and within `max_edge` in 3D, a batch per
-    neighbour offset (`JoinedComponents` takes them batch by batch: all of them at once, ten and more
-    per point, held gigabytes on a tile of four million points).
+    neighbour offset (`JoinedComponents` takes them batch by batch: all of them at once, ten
+    and more per point, held gigabytes on a tile of four million points).
 
     Cells are looked up in a dense table (one int per lattice cell) when the lattice is not much
     larger than the point count, else by binary search in the sorted cell keys.
