@@ -51,9 +51,9 @@ from app.store.models import GuardrailKind, ModelVersion, Pipeline, Survey
 from app.store.surveys import get_survey, survey_footprint
 
 REBUILD_FIELDS = ("min_guardrail_length", "join_gap", "join_lateral", "ground_clearance")
-# points, road / component / slice labels, crops' features: 335 bytes per point measured
-# (`guardrail.tiled.TILE_POINTS`)
-GUARDRAIL_BYTES_PER_POINT = 350.0
+# points, road / component / slice labels, crops' features: 263 bytes per point measured on the
+# fullest window of `guardrail.tiled.TILE_POINTS`, with a margin
+GUARDRAIL_BYTES_PER_POINT = 300.0
 # gathered once the tiles are done: the guardrails' points (0.6 % of a simulated urban street's
 # points, 64 bytes each) and every slice's classifier inputs (2.6 kB per slice, 350 slices per
 # million points there): 1.4 bytes per survey point, taken generously for rail-lined roads

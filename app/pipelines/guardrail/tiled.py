@@ -66,10 +66,10 @@ from app.pipelines.tiling import (
 
 TILE_LENGTH = 100.0  # metres of trajectory per tile, at most
 # points in a tile's window at most (the tile is cut shorter where they are denser). Measured on
-# the simulated profile surveys of bench.scale: 2 GB workers peaked at 1.4 GB with windows of
-# about 3 M points, about 335 bytes per point beside 0.4 GB of libraries, and at 4 M the 4 km
-# survey's workers died; 2.5 M keep a window near 0.85 GB
-TILE_POINTS = 2_500_000
+# the simulated 4 km profile survey of bench.scale, one tile in its own process: the fullest
+# window (3.98 M points) peaked at 1.36 GB (0.31 GB of it libraries), in the road removal. At
+# 2.5 M the dense half of that survey had tiles of 4-8 m, each reading 36 m of halo
+TILE_POINTS = 4_000_000
 INDEX_CELL = 2.0  # metres: the grid a tile's own points and its halo are kept on
 UNIT_LENGTH = 4.0  # metres: a guardrail unit (post to post), the components' extra context
 LINK_BAND = 1.0  # metres each side of a tile edge whose slice points tie components across
