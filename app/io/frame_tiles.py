@@ -7,10 +7,11 @@ drive's way back its way out's stations). A tile reads its own frames and, as co
 frame whose sensor was within `halo` metres (horizontally) of one of its own frames' sensors: the
 frames whose rays and objects reach its own. The halo is spatial, not a stretch of stations, so a
 drive that comes back along a street sees its first pass there too. A tile may also be cut
-shorter so that it reads at most a number of frames where the frames are dense, or half as many
-again as one of its frames needs where that is more (where the drive comes back along a street,
-one frame's context holds both passes, which share their space and so the free-space map's
-voxels). Only poses are read: building the tiles costs nothing per point.
+shorter so that it reads at most a number of frames where the frames are dense. Where one
+frame's context alone is over that number (the drive comes back along a street: both passes are
+context), a tile may read that context and a third of the number more: else each frame there
+would be a tile of its own, reading its whole context again. Only poses are read: building the
+tiles costs nothing per point.
 """
 
 from __future__ import annotations
@@ -41,7 +42,8 @@ class FrameTiles:
     ) -> FrameTiles:
         """Tiles of `length` metres; with `max_reads`, a tile also ends before it would read
         more than that many frames (its own and their halo's, a drive's other passes
-        included), or half as many again as one of its frames reads where that is more."""
+        included), or one of its frames' context and a third of `max_reads` more where that
+        context alone is over `max_reads`."""
         poses = survey.poses()
         if len(poses) == 0:
             raise ValueError(f"{survey.source}: no frames to cut into tiles")
@@ -72,14 +74,14 @@ def _cut_by_reads(
     layout: TileLayout, station: np.ndarray, near: list, max_reads: int
 ) -> TileLayout:
     """`layout`'s trajectory with a tile ending at `length` metres or before the frame that
-    would make it read more than `max_reads` frames, or half as many again as that frame reads
-    where that is more (else a frame whose context holds more than `max_reads` would be a tile
-    on its own). One step per frame (frames, not points)."""
+    would make it read more than `max_reads` frames, or more than that frame's context and a
+    third of `max_reads` where the context alone is over `max_reads` (else such a frame would
+    be a tile on its own). One step per frame (frames, not points)."""
     edges, start, reads = [0.0], 0.0, set()
     for k in np.argsort(station, kind="stable").tolist():
         s = max(float(station[k]), 0.0)
         grown = reads.union(near[k])
-        limit = max(max_reads, 3 * len(near[k]) // 2)
+        limit = max(max_reads, len(near[k]) + max_reads // 3)
         if reads and (s - start >= layout.length or len(grown) > limit) and s > start:
             edges.append(s)
             start, grown = s, set(near[k])
