@@ -11,13 +11,16 @@ Prints a table and appends it to RESULTS.md.
             a fresh process what a first scene needs (open the cache, the overview's points and
             pillars) and a tile in focus, and the memory while every tile is read in turn, as a
             camera flying along the survey asks for them (server side; no browser)
+  viewer-wire  the longest survey imported into a real server, opened by a client speaking
+            viser's wire format (cold and warm first scene) whose camera flies along the drive
 
 Each measurement runs in a fresh process (`one`) with a fresh local Dask cluster, so the peaks
 are that run's: a worker's is its whole life (`ru_maxrss` after each tile, in the tile's summary).
 Surveys are synthetic (app.simulate, `--scanner` profile or hdl64, scene mixed, seed 901),
 cached under $MMSCLEAN_DATA_DIR/cache/bench.
 
-Usage: python -m bench.scale phantom|clutter|guardrail|agreement|guardrail-agreement|viewer
+Usage: python -m bench.scale phantom|clutter|guardrail|agreement|guardrail-agreement|viewer|
+       viewer-wire
        [--lengths 0.25,0.5,1,2,4] [--scanner profile] [--tile-length 100] [--workers 2]
        [--speedup-km 2] [--no-record]
 """
@@ -199,6 +202,43 @@ def part_viewer(args) -> tuple[str, str, str]:
     return "Scale: the viewer's map of a long survey", table, notes
 
 
+def part_viewer_wire(args) -> tuple[str, str, str]:
+    """The longest survey through a real server and a wire client (`viewer_fly`)."""
+    from bench.common import markdown_table
+    from bench.phantom import simulated
+    from bench.viewer_fly import FLY_STEP_M, measure
+
+    km = float(args.lengths.split(",")[-1])
+    got = measure(simulated(SCENE, km * 1000.0, SEED, args.scanner))
+    cold, warm, flight = got["cold"], got["warm"], got["flight"]
+    table = markdown_table(
+        ["km", "points", "first scene, cache built on open: overview s / tile s",
+         "first scene, cache on disk: overview s / tile s", "overview points",
+         "tiles flown over", "tile in focus s: median / max", "tile points (median)",
+         "server RSS after open MB", "server RSS flying MB (anonymous)"],
+        [[f"{km:g}", f"{got['points']:,}", f"{cold['overview_s']:.1f} / {cold['tile_s']:.1f}",
+          f"{warm['overview_s']:.2f} / {warm['tile_s']:.2f}", f"{warm['overview_points']:,}",
+          f"{flight['tiles']} of {flight['moves']} moves",
+          f"{flight['tile_s_median']:.2f} / {flight['tile_s_max']:.2f}",
+          f"{flight['tile_points_median']:,.0f}", f"{got['after_open_mb'][0]:.0f}",
+          f"{flight['rss_mb_max']:.0f} ({flight['anon_mb_max']:.0f})"]],
+    )  # fmt: skip
+    notes = (
+        f"Synthetic: the simulated {args.scanner} survey of the phantom rows (scene {SCENE}, "
+        f"seed {SEED}), imported into a real `mmsclean serve` on loopback (one job worker). A "
+        f"client speaking viser's wire format through the /viewer/ws relay, as the browser does "
+        f"(tests/viewer/wire.py; nothing is drawn): seconds from opening the websocket to the "
+        f"overview's points and, the camera then sent to the drive's start, to the tile in focus "
+        f"there; on the first open (the viewer's cache is built then) and on a second open with "
+        f"the cache on disk. Then the camera's look-at "
+        f"point moved every {FLY_STEP_M:g} m along the drive, each time waiting for the tile in "
+        f"focus ({flight['no_new_tile']} moves stayed in the tile shown). Server memory: the "
+        f"server process's resident set after each tile (mapped file pages count in it, the "
+        f"kernel can drop them) and, in brackets, its anonymous part."
+    )
+    return "Scale: the viewer on a long survey through a real server", table, notes
+
+
 def part_agreement(args) -> tuple[str, str, str]:
     """Tiled against whole-drive clutter labels on a rotating-scanner street, by halo."""
     import numpy as np
@@ -372,6 +412,7 @@ def main() -> int:
             "agreement",
             "guardrail-agreement",
             "viewer",
+            "viewer-wire",
             "one",
             "viewer-build",
             "viewer-open",
@@ -401,7 +442,7 @@ def main() -> int:
         return 0
     from bench.common import append_results
 
-    parts = {"viewer": part_viewer, "agreement": part_agreement,
+    parts = {"viewer": part_viewer, "viewer-wire": part_viewer_wire, "agreement": part_agreement,
              "guardrail-agreement": part_guardrail_agreement}  # fmt: skip
     title, table, notes = parts.get(args.part, part_pipeline)(args)
     print(table)

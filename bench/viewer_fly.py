@@ -1,0 +1,129 @@
+"""The viewer on a long survey through a real server (`bench.scale viewer-wire`): a real
+`mmsclean serve` on loopback with the survey imported, and a client speaking viser's wire
+format through the `/viewer/ws` relay, as the browser does (`tests/viewer/wire.py`; nothing is
+drawn). Measured: the first scene when the survey's viewer cache is built on that first open
+(cold) and when it is on disk (warm), then a camera flying along the drive: at every 50 m of
+trajectory the look-at point moves there and the client waits for the tile in focus; the
+server process's memory is read after every tile.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bench.viewer import import_survey, login, relay_url
+from tests.api.server import ADMIN_PASSWORD, Server
+from tests.viewer.wire import WireClient, camera_message, is_point_cloud
+
+FLY_STEP_M = 50.0  # metres of trajectory between camera moves (the viewer's tiles are 50 m)
+TILE_TIMEOUT_S = 60.0
+
+
+def _memory_mb(pid: int) -> tuple[float, float]:
+    """(resident, anonymous resident) MB of process `pid` (mapped file pages count in the
+    first only: the kernel can drop them)."""
+    fields = dict(
+        line.split(":", 1)
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines()
+        if ":" in line
+    )
+    return int(fields["VmRSS"].split()[0]) / 1024, int(fields["RssAnon"].split()[0]) / 1024
+
+
+def _stations_along(trajectory: np.ndarray, step: float) -> np.ndarray:
+    """Positions every `step` metres along the trajectory (horizontal arc length)."""
+    along = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(trajectory[:, :2], axis=0), axis=1))]
+    at = np.arange(0.0, along[-1], step)
+    return np.column_stack([np.interp(at, along, trajectory[:, k]) for k in range(3)])
+
+
+async def first_scene(server: Server, token: str, survey_id: int, look: np.ndarray) -> dict:
+    """Seconds from opening the websocket to the overview's points, then (the camera sent to
+    `look`, the drive's start: the map's middle, where the viewer first looks, may hold no
+    point on a drive that loops) to the tile in focus there."""
+    started = time.perf_counter()
+    client = await WireClient.open(relay_url(server, survey_id), token)
+    await client.hello()
+    overview_at, overview = await client.wait_for(is_point_cloud, 600)
+    await client.send(camera_message(*_camera_at(look)))
+    tile_at, tile = await client.wait_for(is_point_cloud, TILE_TIMEOUT_S)
+    await client.close()
+    return {
+        "overview_s": overview_at - started, "tile_s": tile_at - started,
+        "overview_points": len(overview["props"]["points"]) // 3,
+        "tile_points": len(tile["props"]["points"]) // 3,
+    }  # fmt: skip
+
+
+def _camera_at(look: np.ndarray) -> tuple[tuple, tuple]:
+    """(look_at, position): looking down at `look` from behind-left, as the viewer does."""
+    at = tuple(float(v) for v in look)
+    return at, (at[0] - 20.0, at[1] - 20.0, at[2] + 25.0)
+
+
+async def fly(server: Server, token: str, survey_id: int, path_local: np.ndarray) -> dict:
+    """The camera moved along `path_local` (scene coordinates); per move, seconds to the new
+    tile's points (moves that stay in the shown tile get none: counted apart)."""
+    pid = server.process.pid
+    client = await WireClient.open(relay_url(server, survey_id), token)
+    await client.hello()
+    await client.wait_for(is_point_cloud, 600)  # the overview
+    seconds, points, rss, anon, same = [], [], [], [], 0
+    for look in path_local:
+        started = time.perf_counter()
+        await client.send(camera_message(*_camera_at(look)))
+        try:
+            arrived, tile = await client.wait_for(is_point_cloud, TILE_TIMEOUT_S)
+        except TimeoutError:
+            same += 1
+            continue
+        seconds.append(arrived - started)
+        points.append(len(tile["props"]["points"]) // 3)
+        r, a = _memory_mb(pid)
+        rss.append(r)
+        anon.append(a)
+    await client.close()
+    return {
+        "moves": len(path_local), "tiles": len(seconds), "no_new_tile": same,
+        "tile_s_median": statistics.median(seconds), "tile_s_max": max(seconds),
+        "tile_points_median": statistics.median(points),
+        "rss_mb_max": max(rss), "anon_mb_max": max(anon), "anon_mb_first": anon[0],
+    }  # fmt: skip
+
+
+def measure(source: Path) -> dict:
+    """Import `source` (a simulated survey folder) into a fresh server, then the cold and warm
+    first scenes and the flight."""
+    from app.io import open_survey
+
+    trajectory = open_survey(source, "sim").poses()[:, :3, 3]
+    with tempfile.TemporaryDirectory() as tmp:
+        env = {
+            "MMSCLEAN_SAMPLE_DIR": "",
+            "MMSCLEAN_IMPORT_ROOT": str(source.parent),
+            "MMSCLEAN_RETRAIN_EVERY": "0",
+            "MMSCLEAN_WORKERS": "1",
+        }
+        server = Server(Path(tmp) / "var", env=env).start()
+        try:
+            api = server.client()
+            record = import_survey(api, source)
+            survey_id = record["id"]
+            origin = np.asarray(api.get(f"/surveys/{survey_id}").json()["origin"], dtype=float)
+            token = login(server, "admin", ADMIN_PASSWORD)
+            time.sleep(5.0)  # the server's worker processes finish starting
+            path = _stations_along(trajectory, FLY_STEP_M) - origin
+            cold = asyncio.run(first_scene(server, token, survey_id, path[0]))
+            warm = asyncio.run(first_scene(server, token, survey_id, path[0]))
+            after_open = _memory_mb(server.process.pid)
+            flight = asyncio.run(fly(server, token, survey_id, path))
+        finally:
+            server.stop()
+    return {"points": int(record["point_count"]), "cold": cold, "warm": warm,
+            "after_open_mb": after_open, "flight": flight}  # fmt: skip
