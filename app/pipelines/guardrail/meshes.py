@@ -1,6 +1,7 @@
 """Mesh helpers for reconstructed guardrails: plain (vertices (V, 3) float64, faces (F, 3)
 int64) pairs, circles swept along polylines (pipes, poles), a section swept along a path
-(beams), and the export of one guardrail as glTF binary, OBJ and PLY through trimesh.
+(beams), and the export of one guardrail as glTF binary and PLY through trimesh, OBJ text
+written a block of rows at a time.
 
 World coordinates can be large (UTM: millions of metres) and glTF and PLY store float32
 vertices, which would round them to decimetres. Exports therefore keep vertices relative to an
@@ -13,15 +14,18 @@ Files are written under a temporary name and renamed, so a reader never sees hal
 from __future__ import annotations
 
 import os
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
 import trimesh
+from trimesh.util import array_to_string
 
 from app.geometry.mesh_grid import cap_faces, grid_faces
 
 Mesh = tuple[np.ndarray, np.ndarray]  # (vertices (V, 3) float64, faces (F, 3) int64)
 _Z = np.array([0.0, 0.0, 1.0])
+OBJ_ROWS = 100_000  # vertices or faces formatted at a time
 
 
 def empty() -> Mesh:
@@ -114,14 +118,32 @@ def sweep_section(
 # ----------------------------------------------------------------------------- export
 
 
-def _atomic_write(path: Path, data: bytes | str) -> None:
+def _atomic_write(path: Path, data: bytes | str | Iterable[str]) -> None:
+    """`data` (bytes, a string, or strings written one after another) as `path`."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
-        tmp.write_bytes(data if isinstance(data, bytes) else data.encode("utf-8"))
+        if isinstance(data, bytes | str):
+            tmp.write_bytes(data if isinstance(data, bytes) else data.encode("utf-8"))
+        else:
+            with tmp.open("w", encoding="utf-8") as handle:
+                handle.writelines(data)
         os.replace(tmp, path)
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def _obj_lines(V: np.ndarray, F: np.ndarray, rows: int) -> Iterator[str]:
+    """The mesh as OBJ text, `rows` vertices or faces at a time: a guardrail kilometres long
+    has millions of them, and trimesh's export formats the whole file as one string (2 GB
+    of memory on a simulated 4 km survey)."""
+    yield "# mmsclean guardrail (world coordinates)\n"
+    for start in range(0, len(V), rows):
+        block = array_to_string(V[start : start + rows], col_delim=" ", row_delim="\nv ", digits=8)
+        yield f"v {block}\n"
+    for start in range(0, len(F), rows):
+        block = array_to_string(F[start : start + rows] + 1, col_delim=" ", row_delim="\nf ")
+        yield f"f {block}\n"
 
 
 def export_mesh(
@@ -137,7 +159,6 @@ def export_mesh(
         origin = 0.5 * (V.min(0) + V.max(0)) if len(V) else np.zeros(3)
     origin = np.asarray(origin, dtype=np.float64)
     local = trimesh.Trimesh(V - origin, np.asarray(F), process=False)
-    world = trimesh.Trimesh(V, np.asarray(F), process=False)
     T = np.eye(4)
     T[:3, 3] = origin
     scene = trimesh.Scene()
@@ -150,7 +171,7 @@ def export_mesh(
     ply = ply.replace(stamp, stamp + note, 1) if stamp in ply else ply
     files = {
         "glb": (out / f"{name}.glb", scene.export(file_type="glb")),
-        "obj": (out / f"{name}.obj", world.export(file_type="obj")),
+        "obj": (out / f"{name}.obj", _obj_lines(V, np.asarray(F, dtype=np.int64), OBJ_ROWS)),
         "ply": (out / f"{name}.ply", ply),
     }
     for path, data in files.values():

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from app.pipelines.guardrail import meshes
 from app.pipelines.guardrail.beams import looks_like_beam
 from app.pipelines.guardrail.circles import fit_circle_ransac
 from app.pipelines.guardrail.config import SuperimposeConfig
@@ -231,6 +232,19 @@ def test_export_writes_glb_obj_ply(beam_case, tmp_path):
     assert b"comment origin" in Path(files["ply"]).read_bytes()[:400]
     assert len(ply.faces) == len(rg.faces)
     json.dumps(rg.model)  # the model is JSON-ready
+
+
+def test_obj_written_in_blocks_holds_the_mesh(beam_case, tmp_path, monkeypatch):
+    """The OBJ text goes out a block of rows at a time (a long guardrail's mesh does not fit
+    one string): blocks of 7 rows give back every vertex (to the micrometre, at UTM scale)
+    and every face in order."""
+    pts, traj, _ = beam_case
+    rg = reconstruct_guardrail(pts + [500000.0, 4000000.0, 0.0], traj + [500000.0, 4e6, 0.0])
+    monkeypatch.setattr(meshes, "OBJ_ROWS", 7)
+    files = export_guardrail(rg, tmp_path, "rail")
+    obj = trimesh.load(files["obj"], force="mesh", process=False)
+    assert np.allclose(obj.vertices, rg.vertices, rtol=0, atol=1e-6)
+    assert np.array_equal(obj.faces, rg.faces)
 
 
 # ----------------------------------------------------------------------------- steps
