@@ -121,7 +121,7 @@ def _memory_mb() -> tuple[float, float]:
 
 def viewer_source(km: float, scanner: str):
     from app.io import open_survey
-    from app.viewer.survey_map import MapSource
+    from app.review.survey_map import MapSource
     from bench.phantom import simulated
 
     path = simulated(SCENE, km * 1000.0, SEED, scanner)
@@ -130,7 +130,7 @@ def viewer_source(km: float, scanner: str):
 
 
 def viewer_build(km: float, scanner: str, cache: Path) -> dict:
-    from app.viewer.survey_map import load_map
+    from app.review.survey_map import load_map
 
     started = time.perf_counter()
     survey_map = load_map(viewer_source(km, scanner), cache, OVERVIEW_POINTS)
@@ -143,7 +143,7 @@ def viewer_open(km: float, scanner: str, cache: Path) -> dict:
     every tile in turn (a camera flying along)."""
     import numpy as np
 
-    from app.viewer.survey_map import load_map
+    from app.review.survey_map import load_map
 
     source = viewer_source(km, scanner)
     started = time.perf_counter()
@@ -192,7 +192,7 @@ def part_viewer(args) -> tuple[str, str, str]:
     notes = (
         f"Synthetic: the simulated {args.scanner} survey of the phantom rows (scene {SCENE}, "
         f"seed {SEED}). Server side only, each step in a fresh process: building the viewer's "
-        f"cache (app/viewer/survey_map.py, frames read twice, per-point arrays written to "
+        f"cache (app/review/survey_map.py, frames read twice, per-point arrays written to "
         f"memory-mapped files); then opening it as a new client's first scene does (the cache "
         f"opened, the overview's points and pillars read: {OVERVIEW_POINTS:,} points at most) "
         f"and the densest 50 m tile as a tile in focus; then every tile read in turn. RSS counts "

@@ -22,11 +22,11 @@ import numpy as np
 from sqlalchemy.engine import Engine
 from sqlmodel import Session
 
+from app.review.survey_map import MapSource, SurveyMap, load_map
 from app.store.label_arrays import SurveyLabelArrays, survey_label_arrays
 from app.store.pillar_labels import human_columns
 from app.store.surveys import get_survey
 from app.viewer.pillar_colors import display_class, pillar_colors
-from app.viewer.survey_map import MapSource, SurveyMap, load_map
 
 log = logging.getLogger(__name__)
 
@@ -206,14 +206,7 @@ class SurveyViews:
     def _open(self, survey_id: int) -> SurveyView:
         with Session(self.engine) as session:
             record = get_survey(session, survey_id)
-            source = MapSource(
-                survey_id=survey_id,
-                source_path=record.source_path,
-                format=record.format,
-                origin=(record.origin_x, record.origin_y, record.origin_z),
-                point_count=record.point_count,
-                frame_count=record.frame_count,
-            )
+            source = MapSource.of(record)
             name = record.name
         survey_map = load_map(source, self.cache_dir, self.overview_points)
         return SurveyView(self.engine, survey_id, name, survey_map)

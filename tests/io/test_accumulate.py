@@ -13,8 +13,8 @@ from app.io import open_survey
 from app.io.accumulate import accumulate
 from app.io.survey import Survey
 from app.pipelines.clutter.maps import write_frame_maps
+from app.review.survey_map import MapSource, accumulate_local
 from app.simulate.survey import SimulationConfig, simulate
-from app.viewer.survey_map import MapSource, accumulate_local
 
 
 @pytest.fixture(scope="module")

@@ -16,6 +16,7 @@ import tests.jobs.sample_tasks  # noqa: F401  (registers the test:* kinds)
 from app.core.errors import ConfigError
 from app.core.settings import Settings
 from app.jobs.queue import enqueue
+from app.jobs.survey_tasks import queue_viewer_map
 from app.store.models import Frame, Job, Survey
 
 LIMIT_MB = 2000
@@ -131,3 +132,19 @@ def test_each_refusal_names_what_grows(engine: Engine, limited: Settings) -> Non
         # a guardrail tile is cut shorter where it holds too many points, whatever its length
         assert enqueue(session, "run:guardrail", {"tile_length": 1000.0}, huge, None, limited).id
         assert "MMSCLEAN_JOB_MEMORY_MB" in str(error)
+
+
+def test_a_large_import_queues_the_viewer_map(engine: Engine, limited: Settings) -> None:
+    """An imported survey of 5 M points or more gets `prepare:viewer` queued (its first open
+    would wait for the map); a smaller one does not (a first open builds it in seconds), nor
+    one whose map would not fit the job memory limit (the viewer builds it then)."""
+    sizes = {"small": 1_234_476, "large": 60_000_000, "huge": 600_000_000}
+    ids = {name: add_survey(engine, points) for name, points in sizes.items()}
+    with Session(engine) as session:
+        queued = {
+            name: queue_viewer_map(session, session.get(Survey, ids[name]), None, limited)
+            for name in sizes
+        }
+        assert queued["small"] is None and queued["huge"] is None
+        job = session.get(Job, queued["large"])
+        assert job.kind == "prepare:viewer" and job.survey_id == ids["large"]

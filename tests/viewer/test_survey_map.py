@@ -2,27 +2,26 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
+from sqlalchemy.engine import Engine
 
+from app.core.errors import ConfigError
+from app.core.settings import Settings
+from app.jobs.survey_tasks import prepare_viewer
+from app.review import survey_map as survey_map_module
+from app.review.survey_map import TILE_GRID, MapSource, accumulate_local, load_map
 from app.store.models import Survey
 from app.store.pillar_labels import STORE_GRID
-from app.viewer import survey_map as survey_map_module
-from app.viewer.survey_map import TILE_GRID, MapSource, accumulate_local, load_map
+from tests.jobs.conftest import job_context
 from tests.viewer.conftest import street_points
 
 
 def source_of(record: Survey) -> MapSource:
-    return MapSource(
-        survey_id=record.id,
-        source_path=record.source_path,
-        format=record.format,
-        origin=(record.origin_x, record.origin_y, record.origin_z),
-        point_count=record.point_count,
-        frame_count=record.frame_count,
-    )
+    return MapSource.of(record)
 
 
 def test_map_is_recentred_float32_with_exact_pillars(ply_survey: Survey, tmp_path: Path) -> None:
@@ -73,6 +72,44 @@ def test_second_open_reads_the_cache(
     second = load_map(source_of(ply_survey), tmp_path / "cache", overview_points=10_000)
     np.testing.assert_array_equal(first.xyz, second.xyz)
     np.testing.assert_array_equal(first.overview, second.overview)
+
+
+def test_a_build_that_finds_the_map_finished_keeps_that_one(
+    ply_survey: Survey, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two processes build the same map (the prepare:viewer job and a viewer's first open):
+    the one that finishes second finds the other's map under the final name and keeps it."""
+    build = survey_map_module.build_map
+    cache = tmp_path / "cache" / "viewer"
+
+    def build_while_another_finishes(source: MapSource, overview: int, folder: Path) -> None:
+        build(source, overview, folder)
+        other = cache / source.cache_name(overview)
+        shutil.copytree(folder, other)  # the other process's rename
+
+    monkeypatch.setattr(survey_map_module, "build_map", build_while_another_finishes)
+    m = load_map(source_of(ply_survey), tmp_path / "cache", overview_points=10_000)
+    assert len(m) == len(street_points())
+    assert [p.name for p in cache.iterdir()] == [source_of(ply_survey).cache_name(10_000)]
+
+
+def test_the_prepare_job_builds_the_map_the_viewer_opens(
+    ply_survey: Survey, engine: Engine, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`prepare:viewer` (queued when a survey is imported) writes the map; the viewer's open
+    then reads it without building; options are refused."""
+    settings = Settings(data_dir=tmp_path / "var", sample_dir="")
+    result = prepare_viewer(job_context(settings, engine, 1, ply_survey.id), {})
+    assert result["points"] == len(street_points()) and result["tiles"] >= 1
+
+    def no_build(*_: object) -> None:
+        raise AssertionError("the map was rebuilt although the job built it")
+
+    monkeypatch.setattr(survey_map_module, "build_map", no_build)
+    opened = load_map(source_of(ply_survey), settings.cache_dir, settings.viewer_overview_points)
+    assert len(opened) == result["points"]
+    with pytest.raises(ConfigError, match="takes no options"):
+        prepare_viewer(job_context(settings, engine, 2, ply_survey.id), {"tile": 1})
 
 
 def test_another_overview_cap_rebuilds_and_replaces(ply_survey: Survey, tmp_path: Path) -> None:

@@ -30,6 +30,7 @@ from app.api.uploads import check_upload_name, extract_zip, receive_upload, remo
 from app.core.errors import InputError
 from app.core.sensors import SensorKind
 from app.io.import_root import resolve_import_path
+from app.jobs.survey_tasks import queue_viewer_map
 from app.review.surveys import import_source
 from app.store.models import SurveyBase
 from app.store.pillar_reads import label_counts
@@ -120,6 +121,7 @@ def import_survey(
         sensor=declared(body.sensor),
         requested=body.path,
     )
+    queue_viewer_map(session, survey, user.id, settings)  # its first scene ready at once
     return SurveyPublic.model_validate(survey)
 
 

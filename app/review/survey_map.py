@@ -16,7 +16,9 @@ never holds the survey's points), and writes the arrays into one folder per surv
 `<cache_dir>/viewer/`, named after everything that could change them. A later open maps the
 per-point arrays from disk instead of loading them: the first scene needs only the overview's
 points, a tile in focus only its slice, so opening a survey of tens of millions of points takes
-about as long as a small one and the server's memory stays bounded.
+about as long as a small one and the server's memory stays bounded. The map is built by the
+`prepare:viewer` job queued when a survey is imported (`jobs/survey_tasks.py`), or else by the
+first viewer to open the survey; a build that finds the other's finished map keeps that one.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from app.geometry.pillars import PillarGrid
 from app.geometry.voxels import voxel_downsample
 from app.io import open_survey
 from app.io.accumulate import accumulate
+from app.store.models import Survey
 from app.store.pillar_labels import STORE_GRID
 
 CACHE_VERSION = 3  # 3: a folder of arrays, the per-point ones memory-mapped
@@ -54,6 +57,18 @@ class MapSource:
     origin: tuple[float, float, float]
     point_count: int
     frame_count: int
+
+    @classmethod
+    def of(cls, record: Survey) -> MapSource:
+        """The map source of a survey record."""
+        return cls(
+            survey_id=int(record.id),
+            source_path=record.source_path,
+            format=record.format,
+            origin=(record.origin_x, record.origin_y, record.origin_z),
+            point_count=record.point_count,
+            frame_count=record.frame_count,
+        )
 
     def cache_name(self, overview_points: int) -> str:
         """File name that changes whenever the points or the overview would."""
@@ -255,9 +270,27 @@ def load_map(source: MapSource, cache_dir: Path, overview_points: int) -> Survey
     try:
         build_map(source, overview_points, partial)
         for old in cache.glob(f"survey-{source.survey_id}-*"):
-            if old != partial:
+            if old not in (partial, folder) and not _building(old):
                 shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink()
-        os.replace(partial, folder)  # never a half-written cache under the final name
+        try:
+            os.replace(partial, folder)  # never a half-written cache under the final name
+        except OSError:
+            if not folder.is_dir():
+                raise  # else another process (a job, a viewer) finished the same map first
     finally:
         shutil.rmtree(partial, ignore_errors=True)
     return _read_map(folder)
+
+
+def _building(path: Path) -> bool:
+    """A `<name>.<pid>.partial` folder whose process still runs (it is building that map)."""
+    parts = path.name.split(".")
+    if len(parts) < 3 or parts[-1] != "partial" or not parts[-2].isdigit():
+        return False
+    try:
+        os.kill(int(parts[-2]), 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
