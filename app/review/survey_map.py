@@ -17,8 +17,9 @@ never holds the survey's points), and writes the arrays into one folder per surv
 per-point arrays from disk instead of loading them: the first scene needs only the overview's
 points, a tile in focus only its slice, so opening a survey of tens of millions of points takes
 about as long as a small one and the server's memory stays bounded. The map is built by the
-`prepare:viewer` job queued when a survey is imported (`jobs/survey_tasks.py`), or else by the
-first viewer to open the survey; a build that finds the other's finished map keeps that one.
+`prepare:viewer` job queued when a survey of 5 M points or more is imported
+(`jobs/survey_tasks.py`), or else by the first viewer to open the survey; a build that finds
+the other's finished map keeps that one.
 """
 
 from __future__ import annotations
