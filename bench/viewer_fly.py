@@ -1,10 +1,10 @@
 """The viewer on a long survey through a real server (`bench.scale viewer-wire`): a real
 `mmsclean serve` on loopback with the survey imported, and a client speaking viser's wire
 format through the `/viewer/ws` relay, as the browser does (`tests/viewer/wire.py`; nothing is
-drawn). Measured: the first scene when the survey's viewer cache is built on that first open
-(cold) and when it is on disk (warm), then a camera flying along the drive: at every 50 m of
-trajectory the look-at point moves there and the client waits for the tile in focus; the
-server process's memory is read after every tile.
+drawn). Measured: how long the import's `prepare:viewer` job takes to build the viewer's map,
+the first scene of the first open after it and of a second open, then a camera flying along
+the drive: at every 50 m of trajectory the look-at point moves there and the client waits for
+the tile in focus; the server process's memory is read after every tile.
 """
 
 from __future__ import annotations
@@ -98,8 +98,8 @@ async def fly(server: Server, token: str, survey_id: int, path_local: np.ndarray
 
 
 def measure(source: Path) -> dict:
-    """Import `source` (a simulated survey folder) into a fresh server, then the cold and warm
-    first scenes and the flight."""
+    """Import `source` (a simulated survey folder) into a fresh server, wait for the map the
+    import queued, then two first scenes and the flight."""
     from app.io import open_survey
 
     trajectory = open_survey(source, "sim").poses()[:, :3, 3]
@@ -113,17 +113,34 @@ def measure(source: Path) -> dict:
         server = Server(Path(tmp) / "var", env=env).start()
         try:
             api = server.client()
+            imported = time.perf_counter()
             record = import_survey(api, source)
             survey_id = record["id"]
+            prepared_s = _prepared(api, survey_id, imported)
             origin = np.asarray(api.get(f"/surveys/{survey_id}").json()["origin"], dtype=float)
             token = login(server, "admin", ADMIN_PASSWORD)
             time.sleep(5.0)  # the server's worker processes finish starting
             path = _stations_along(trajectory, FLY_STEP_M) - origin
-            cold = asyncio.run(first_scene(server, token, survey_id, path[0]))
-            warm = asyncio.run(first_scene(server, token, survey_id, path[0]))
+            first = asyncio.run(first_scene(server, token, survey_id, path[0]))
+            again = asyncio.run(first_scene(server, token, survey_id, path[0]))
             after_open = _memory_mb(server.process.pid)
             flight = asyncio.run(fly(server, token, survey_id, path))
         finally:
             server.stop()
-    return {"points": int(record["point_count"]), "cold": cold, "warm": warm,
-            "after_open_mb": after_open, "flight": flight}  # fmt: skip
+    return {"points": int(record["point_count"]), "prepared_s": prepared_s, "first": first,
+            "again": again, "after_open_mb": after_open, "flight": flight}  # fmt: skip
+
+
+def _prepared(api, survey_id: int, since: float) -> float | None:
+    """Seconds from the import's request until the `prepare:viewer` job it queued finished
+    (None where it queued none: a small survey's map is built on its first open)."""
+    job = api.get(f"/surveys/{survey_id}").json()["latest_jobs"].get("prepare:viewer")
+    if job is None:
+        return None
+    while True:
+        state = api.get(f"/jobs/{job['id']}").json()
+        if state["status"] == "succeeded":
+            return time.perf_counter() - since
+        if state["status"] in ("failed", "cancelled", "interrupted"):
+            raise RuntimeError(f"prepare:viewer job {job['id']} {state['status']}: {state}")
+        time.sleep(0.5)
