@@ -60,3 +60,14 @@ def append_results(title: str, command: str, table: str, notes: str = "") -> Non
         )
     with RESULTS.open("a") as fh:
         fh.write(section)
+
+
+def process_memory_mb(pid: int | str = "self") -> tuple[float, float]:
+    """(resident, anonymous resident) MB of process `pid`: mapped file pages count in the first,
+    but the kernel can drop them; the second is what the process holds itself."""
+    fields = dict(
+        line.split(":", 1)
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines()
+        if ":" in line
+    )
+    return int(fields["VmRSS"].split()[0]) / 1024, int(fields["RssAnon"].split()[0]) / 1024

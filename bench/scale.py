@@ -110,16 +110,6 @@ def measure(
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
-def _memory_mb() -> tuple[float, float]:
-    """(resident, anonymous resident) MB of this process: mapped file pages count in the first,
-    but the kernel can drop them; the second is what the process holds itself."""
-    fields = dict(
-        line.split(":", 1) for line in Path("/proc/self/status").read_text().splitlines()
-        if ":" in line
-    )  # fmt: skip
-    return (int(fields["VmRSS"].split()[0]) / 1024, int(fields["RssAnon"].split()[0]) / 1024)
-
-
 def viewer_source(km: float, scanner: str):
     from app.io import open_survey
     from app.review.survey_map import MapSource
@@ -145,6 +135,7 @@ def viewer_open(km: float, scanner: str, cache: Path) -> dict:
     import numpy as np
 
     from app.review.survey_map import load_map
+    from bench.common import process_memory_mb
 
     source = viewer_source(km, scanner)
     started = time.perf_counter()
@@ -152,7 +143,7 @@ def viewer_open(km: float, scanner: str, cache: Path) -> dict:
     first = (np.asarray(survey_map.xyz[survey_map.overview]),
              np.asarray(survey_map.cell[survey_map.overview]))  # fmt: skip
     first_s = time.perf_counter() - started
-    opened = _memory_mb()
+    opened = process_memory_mb()
     densest = int(survey_map.tile_ids[np.argmax(np.diff(survey_map.tile_start))])
     started = time.perf_counter()
     points = survey_map.tile_points(densest)
@@ -162,7 +153,7 @@ def viewer_open(km: float, scanner: str, cache: Path) -> dict:
     for tile in survey_map.tile_ids.tolist():
         points = survey_map.tile_points(int(tile))
         shown = (np.asarray(survey_map.xyz[points]), np.asarray(survey_map.cell[points]))
-        rss, anon = _memory_mb()
+        rss, anon = process_memory_mb()
         peak, peak_anon = max(peak, rss), max(peak_anon, anon)
         del shown
     return {

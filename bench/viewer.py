@@ -36,7 +36,13 @@ from app.store.pillar_labels import STORE_GRID
 from app.viewer.pillar_colors import PALETTE
 from bench.common import append_results, markdown_table
 from tests.api.server import ADMIN_PASSWORD, Server
-from tests.viewer.wire import WireClient, click_message, is_color_update, is_point_cloud
+from tests.viewer.wire import (
+    WireClient,
+    camera_message,
+    click_message,
+    is_color_update,
+    is_point_cloud,
+)
 
 LATENCY_TARGET_MS = 200.0
 FIRST_SCENE_TARGET_S = 5.0
@@ -61,14 +67,20 @@ def relay_url(server: Server, survey_id: int) -> str:
     return f"ws://127.0.0.1:{server.port}/viewer/ws?survey={survey_id}"
 
 
-async def first_scene(server: Server, token: str, survey_id: int, deflate: bool) -> dict:
-    """Seconds from opening the websocket to the overview cloud and to the tile cloud."""
+async def first_scene(
+    server: Server, token: str, survey_id: int, deflate: bool, camera: tuple | None = None
+) -> dict:
+    """Seconds from opening the websocket to the overview cloud and to the tile cloud; with
+    `camera` ((look_at, position), scene coordinates) the camera is sent there once the
+    overview is in, and the tile is the one in focus there."""
     started = time.perf_counter()
     client = await WireClient.open(
         relay_url(server, survey_id), token, compression="deflate" if deflate else None
     )
     await client.hello()
     overview_at, overview = await client.wait_for(is_point_cloud, 300)
+    if camera is not None:
+        await client.send(camera_message(*camera))
     tile_at, tile = await client.wait_for(is_point_cloud, 300)
     await client.close()
     return {

@@ -17,7 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.viewer import import_survey, login, relay_url
+from app.geometry.trajectory import arc_length
+from bench.common import process_memory_mb
+from bench.viewer import first_scene, import_survey, login, relay_url
 from tests.api.server import ADMIN_PASSWORD, Server
 from tests.viewer.wire import WireClient, camera_message, is_point_cloud
 
@@ -25,40 +27,11 @@ FLY_STEP_M = 50.0  # metres of trajectory between camera moves (the viewer's til
 TILE_TIMEOUT_S = 60.0
 
 
-def _memory_mb(pid: int) -> tuple[float, float]:
-    """(resident, anonymous resident) MB of process `pid` (mapped file pages count in the
-    first only: the kernel can drop them)."""
-    fields = dict(
-        line.split(":", 1)
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines()
-        if ":" in line
-    )
-    return int(fields["VmRSS"].split()[0]) / 1024, int(fields["RssAnon"].split()[0]) / 1024
-
-
 def _stations_along(trajectory: np.ndarray, step: float) -> np.ndarray:
     """Positions every `step` metres along the trajectory (horizontal arc length)."""
-    along = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(trajectory[:, :2], axis=0), axis=1))]
+    along = arc_length(np.column_stack([trajectory[:, :2], np.zeros(len(trajectory))]))
     at = np.arange(0.0, along[-1], step)
     return np.column_stack([np.interp(at, along, trajectory[:, k]) for k in range(3)])
-
-
-async def first_scene(server: Server, token: str, survey_id: int, look: np.ndarray) -> dict:
-    """Seconds from opening the websocket to the overview's points, then (the camera sent to
-    `look`, the drive's start: the map's middle, where the viewer first looks, may hold no
-    point on a drive that loops) to the tile in focus there."""
-    started = time.perf_counter()
-    client = await WireClient.open(relay_url(server, survey_id), token)
-    await client.hello()
-    overview_at, overview = await client.wait_for(is_point_cloud, 600)
-    await client.send(camera_message(*_camera_at(look)))
-    tile_at, tile = await client.wait_for(is_point_cloud, TILE_TIMEOUT_S)
-    await client.close()
-    return {
-        "overview_s": overview_at - started, "tile_s": tile_at - started,
-        "overview_points": len(overview["props"]["points"]) // 3,
-        "tile_points": len(tile["props"]["points"]) // 3,
-    }  # fmt: skip
 
 
 def _camera_at(look: np.ndarray) -> tuple[tuple, tuple]:
@@ -85,7 +58,7 @@ async def fly(server: Server, token: str, survey_id: int, path_local: np.ndarray
             continue
         seconds.append(arrived - started)
         points.append(len(tile["props"]["points"]) // 3)
-        r, a = _memory_mb(pid)
+        r, a = process_memory_mb(pid)
         rss.append(r)
         anon.append(a)
     await client.close()
@@ -121,9 +94,10 @@ def measure(source: Path) -> dict:
             token = login(server, "admin", ADMIN_PASSWORD)
             time.sleep(5.0)  # the server's worker processes finish starting
             path = _stations_along(trajectory, FLY_STEP_M) - origin
-            first = asyncio.run(first_scene(server, token, survey_id, path[0]))
-            again = asyncio.run(first_scene(server, token, survey_id, path[0]))
-            after_open = _memory_mb(server.process.pid)
+            start = _camera_at(path[0])  # the map's middle may hold no point on a looping drive
+            first = asyncio.run(first_scene(server, token, survey_id, False, start))
+            again = asyncio.run(first_scene(server, token, survey_id, False, start))
+            after_open = process_memory_mb(server.process.pid)
             flight = asyncio.run(fly(server, token, survey_id, path))
         finally:
             server.stop()
