@@ -33,7 +33,7 @@ from app.simulate import objects
 from app.simulate.colors import COLORS
 from app.simulate.guardrails import beam_guardrail, pipe_guardrail
 from app.simulate.meshes import strip
-from app.simulate.road import Centerline, RoadProfile
+from app.simulate.road import Centerline, RoadProfile, bends
 from app.simulate.scene import Body, Mesh, Motion, Scene
 from app.simulate.traffic import SpeedPlan, path_motion
 
@@ -486,7 +486,7 @@ def build_scene(preset: str, length: float, rng: np.random.Generator) -> Scene:
     turn = (1 if rng.random() < 0.5 else -1) / radius
     profile = RoadProfile(
         length,
-        curves=((0.4 * length, 0.9 * length, turn),) if rng.random() < 0.7 else (),
+        curves=bends(0.4 * length, 0.9 * length, turn) if rng.random() < 0.7 else (),
         grade=rng.uniform(-0.04, 0.04),
         hill=rng.uniform(-1.0, 1.0),
     )

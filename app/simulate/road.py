@@ -13,6 +13,26 @@ from dataclasses import dataclass
 import numpy as np
 
 STATION_STEP = 0.5  # metres between centreline samples
+MAX_BEND = np.pi / 2  # radians one bend turns at most: a street does not circle back over itself
+
+
+def bends(start: float, end: float, curvature: float) -> tuple[tuple[float, float, float], ...]:
+    """The curves of a stretch that turns at `curvature` from `start` to `end`, as real streets do.
+
+    A stretch that would turn more than MAX_BEND (a long survey at a city street's radius would
+    circle over its own road several times) becomes bends of at most MAX_BEND, back to back,
+    turning left and right in turn: the road never heads back, so no street is passed twice.
+    A stretch that turns less is one curve, unchanged.
+    """
+    bend = MAX_BEND / abs(curvature)
+    if end - start <= bend:
+        return ((start, end, curvature),)
+    edges = np.append(np.arange(start, end, bend), end)
+    return tuple(
+        (float(s0), float(s1), curvature * (-1) ** k)
+        for k, (s0, s1) in enumerate(zip(edges[:-1], edges[1:], strict=True))
+        if s1 > s0
+    )
 
 
 @dataclass(frozen=True)
