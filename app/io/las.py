@@ -24,6 +24,7 @@ import numpy as np
 
 from app.core.errors import InputError
 from app.io.las_layout import check_las_layout
+from app.io.laz_chunks import LazJoin, LazPart
 from app.io.point_files import (
     guarded,
     is_native_panic,
@@ -333,25 +334,38 @@ MERGE_CHUNK = 1_000_000  # points per chunk when files are concatenated
 
 class LasAppender:
     """One LAS / LAZ file written from part files as they come (a tiled run appends each tile's
-    part once the tiles before it are in): the parts share one scale and offset, so points are
-    copied chunk by chunk. Written through `<path>.partial`, renamed by `close`; `abort` leaves
-    nothing."""
+    part once the tiles before it are in). The parts share one scale and offset. LAZ parts into a
+    LAZ file are joined chunk by chunk, their compressed bytes copied (`laz_chunks`); other parts
+    are copied a million points at a time through laspy. Written through `<path>.partial`,
+    renamed by `close`; `abort` leaves nothing."""
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
         self.partial = self.path.with_suffix(self.path.suffix + ".partial")
         self.count = 0
         self._file = None
+        self._join: LazJoin | None = None
         self._writer = None
         self._first: Path | None = None
         self._scales = self._offsets = None
 
     def append(self, part: Path) -> None:
+        part = Path(part)
+        if self._file is None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._file = open(self.partial, "wb")  # noqa: SIM115 (closed by close / abort)
+            if self.path.suffix.lower() == ".laz" and _joinable(part):
+                self._join = LazJoin(self._file)
+        if self._join is not None:
+            self._join.add(LazPart.read(part))
+            self.count = self._join.count
+        else:
+            self._copy_points(part)
+
+    def _copy_points(self, part: Path) -> None:
         with laspy.open(part) as reader:
             header = reader.header
             if self._writer is None:
-                self.path.parent.mkdir(parents=True, exist_ok=True)
-                self._file = open(self.partial, "wb")  # noqa: SIM115 (closed by close / abort)
                 self._writer = laspy.open(
                     self._file, mode="w", header=copy.deepcopy(header),  # recounted on close
                     do_compress=self.path.suffix.lower() == ".laz", closefd=False,
@@ -367,11 +381,14 @@ class LasAppender:
     def close(self) -> int:
         """Finish the file under its name; the points written (0: nothing was appended, and
         no file is made)."""
-        if self._writer is None:
+        if self._file is None:
             return 0
-        self._writer.close()
+        if self._join is not None:
+            self._join.finish()
+        elif self._writer is not None:
+            self._writer.close()
         self._file.close()
-        self._writer = self._file = None
+        self._writer = self._file = self._join = None
         os.replace(self.partial, self.path)
         return self.count
 
@@ -382,5 +399,14 @@ class LasAppender:
                     handle.close()
             except Exception:  # already failing: the partial file goes either way
                 pass
-        self._writer = self._file = None
+        self._writer = self._file = self._join = None
         self.partial.unlink(missing_ok=True)
+
+
+def _joinable(part: Path) -> bool:
+    """A LAZ file whose compressed chunks can be copied as they are (`laz_chunks`)."""
+    try:
+        LazPart.read(part)
+    except ValueError:
+        return False
+    return True

@@ -19,6 +19,7 @@ from app.io.asprs import (
     to_asprs,
 )
 from app.io.las import LasAppender, las_point_count, read_las, read_las_points, write_laz
+from app.io.las_layout import check_las_layout
 from app.io.point_files import guarded
 from app.io.registry import open_survey
 from app.io.survey import MAP_FRAME_ID
@@ -473,3 +474,53 @@ def test_parts_are_appended_into_one_file_and_a_failed_one_leaves_nothing(tmp_pa
     failing.abort()
     assert not list(tmp_path.glob("bad.laz*"))
     assert LasAppender(tmp_path / "none.laz").close() == 0 and not (tmp_path / "none.laz").exists()
+
+
+def test_laz_parts_are_joined_chunk_by_chunk_without_recompressing(tmp_path: Path) -> None:
+    """Parts of several LASzip chunks each (50,000 points a chunk): the joined file holds their
+    compressed bytes as they were, one table of variable-size chunks, the header recounted; every
+    point reads back, whatever reader walks the chunks."""
+    import lazrs
+
+    from app.io.laz_chunks import LazPart
+
+    rng = np.random.default_rng(1)
+    sizes = (120_000, 7, 50_000)
+    parts, xyz_all = [], []
+    for k, n in enumerate(sizes):
+        xyz = rng.uniform(0, 80, (n, 3)) + [500_000.0 + 100 * k, 5_000_000.0, 10.0 * k]
+        path = tmp_path / f"p{k}.laz"
+        offset = [500_000, 5_000_000, 0]
+        kept = {"source_index": np.arange(n), "classification": np.full(n, 2 + k)}
+        parts.append(write_laz(path, xyz, offset=offset, **kept))
+        xyz_all.append(xyz)
+    read = [LazPart.read(p) for p in parts]
+    assert [len(p.table) for p in read] == [3, 1, 1]
+    appender = LasAppender(tmp_path / "all.laz")
+    for path in parts:
+        appender.append(path)
+    assert appender.close() == sum(sizes)
+    joined = LazPart.read(tmp_path / "all.laz")
+    assert joined.table == [chunk for p in read for chunk in p.table]  # copied, not re-encoded
+    with (tmp_path / "all.laz").open("rb") as f, parts[0].open("rb") as first:
+        first.seek(read[0].chunks_start)
+        f.seek(joined.chunks_start)
+        assert f.read(4096) == first.read(4096)
+    whole = np.concatenate(xyz_all)
+    for parallel in (False, True):
+        las = laspy.read(tmp_path / "all.laz", laz_backend=laspy.LazBackend.LazrsParallel
+                         if parallel else laspy.LazBackend.Lazrs)  # fmt: skip
+        np.testing.assert_allclose(las.xyz, whole, atol=6e-4)
+        assert np.asarray(las["source_index"])[120_000:120_007].tolist() == list(range(7))
+        assert np.bincount(np.asarray(las.classification)).tolist()[2:] == list(sizes)
+    header = las.header
+    assert header.point_count == sum(sizes) and header.number_of_points_by_return[0] == sum(sizes)
+    np.testing.assert_allclose(header.mins, whole.min(0), atol=6e-4)
+    np.testing.assert_allclose(header.maxs, whole.max(0), atol=6e-4)
+    assert lazrs.LazVlr(joined.record).uses_variable_size_chunks()
+    for backend in (laspy.LazBackend.Lazrs, laspy.LazBackend.LazrsParallel):
+        with laspy.open(tmp_path / "all.laz", laz_backend=backend) as reader:  # across chunks
+            chunks = list(reader.chunk_iterator(30_001))
+        walked = np.concatenate([np.column_stack([c.x, c.y, c.z]) for c in chunks])
+        np.testing.assert_allclose(walked, whole, atol=6e-4)
+    check_las_layout(tmp_path / "all.laz")  # what an import of the joined file checks

@@ -1,0 +1,201 @@
+"""LAZ files joined by copying their compressed chunks: no point is decompressed or compressed.
+
+LASzip compresses points in chunks that each start afresh, listed in a chunk table at the end of
+the point data (point count and byte count per chunk). Files of one point layout, scale and
+offset are therefore joined by copying every file's chunk bytes in turn and writing one table
+for all of them, with variable-size chunks (the last chunk of each file is short), which LAZ 1.4
+readers (LASzip 3, laz-perf, lazrs, COPC readers) read. A tiled run's maps are appended this way:
+re-encoding every point of a survey in the process that assembles the tiles took it a good part
+of a core, beside the tile workers.
+
+Header fields the join changes (point counts, points by return, bounds) are written at their
+fixed places of the LAS 1.4 header (ASPRS LAS 1.4 R15, table 3).
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+from typing import BinaryIO
+
+import laspy
+import lazrs
+import numpy as np
+
+VARIABLE_CHUNKS = 0xFFFFFFFF  # the LASzip VLR's chunk size that says chunks vary in size
+LASZIP_USER = b"laszip encoded"
+LASZIP_RECORD = 22204
+VLR_HEADER = 54  # bytes before a VLR's record data
+CHUNK_SIZE_AT = 12  # bytes into the LASzip record: compressor, coder, version (4), options (4)
+COPY_BLOCK = 16 * 2**20
+
+# LAS header places (bytes from the file's start)
+LEGACY_COUNT, LEGACY_BY_RETURN, BOUNDS = 107, 111, 179  # u32, 5 x u32, max/min x, y, z (f64)
+COUNT_14, BY_RETURN_14 = 247, 255  # u64, 15 x u64 (LAS 1.4)
+
+
+@dataclass(frozen=True)
+class LazPart:
+    """What joining needs of one LAZ file: where its chunks are and how many points each has."""
+
+    path: Path
+    header: laspy.LasHeader
+    record: bytes  # the LASzip VLR's record data
+    chunks_start: int  # first byte of the chunks (after the 8-byte chunk table offset)
+    chunks_end: int  # first byte of the chunk table
+    table: list[tuple[int, int]]  # per chunk: (points, bytes)
+
+    @classmethod
+    def read(cls, path: Path) -> LazPart:
+        """The file's header and chunk table; a ValueError names a file that is not a chunked
+        LAZ file joining can copy (no LASzip record, extended VLRs after the points)."""
+        path = Path(path)
+        with laspy.open(path) as reader:
+            header = reader.header
+        laszip = [v for v in header.vlrs if v.user_id == "laszip encoded"]
+        if not laszip:
+            raise ValueError(f"{path}: not LAZ compressed (no LASzip record)")
+        if header.number_of_evlrs:
+            raise ValueError(f"{path}: extended VLRs after the points; not joined chunk by chunk")
+        record = bytes(laszip[0].record_data)
+        vlr = lazrs.LazVlr(record)
+        with path.open("rb") as f:
+            f.seek(header.offset_to_point_data)
+            table_at = int.from_bytes(f.read(8), "little", signed=True)
+            if table_at < 0:  # written as a stream: the offset is the file's last 8 bytes
+                f.seek(-8, 2)
+                table_at = int.from_bytes(f.read(8), "little", signed=True)
+            f.seek(table_at)
+            entries = lazrs.read_chunk_table_only(f, vlr)
+        return cls(
+            path, header, record, header.offset_to_point_data + 8, table_at,
+            _point_counts(entries, vlr, header.point_count, path),
+        )  # fmt: skip
+
+
+def _point_counts(
+    entries: list[tuple[int, int]], vlr: lazrs.LazVlr, total: int, path: Path
+) -> list[tuple[int, int]]:
+    """(points, bytes) per chunk: a table of fixed-size chunks holds byte counts only (its
+    last chunk holds what is left)."""
+    if vlr.uses_variable_size_chunks():
+        table = [(int(n), int(b)) for n, b in entries]
+    else:
+        size = int(vlr.chunk_size())
+        counts = [size] * len(entries)
+        if counts:
+            counts[-1] = total - size * (len(entries) - 1)
+        table = [(n, int(b)) for n, (_, b) in zip(counts, entries, strict=True)]
+    if sum(n for n, _ in table) != total or any(n <= 0 for n, _ in table):
+        raise ValueError(f"{path}: its chunk table does not add up to its {total} points")
+    return table
+
+
+class LazJoin:
+    """One LAZ file written from parts as they come (`add`), chunk bytes copied; `finish` writes
+    the chunk table and the header's counts and bounds."""
+
+    def __init__(self, file: BinaryIO):
+        self.file = file
+        self.first: LazPart | None = None
+        self.record = b""  # the first part's LASzip record, chunks made variable
+        self.table: list[tuple[int, int]] = []
+        self.count = 0
+        self.by_return = np.zeros(15, dtype=np.uint64)
+        self.mins = np.full(3, np.inf)
+        self.maxs = np.full(3, -np.inf)
+
+    def add(self, part: LazPart) -> None:
+        if self.first is None:
+            self._start(part)
+        elif not (np.array_equal(part.header.scales, self.first.header.scales)
+                  and np.array_equal(part.header.offsets, self.first.header.offsets)):  # fmt: skip
+            raise ValueError(f"{part.path}: scale or offset differs from {self.first.path}")
+        elif not same_layout(self.first.header, part.header):
+            raise ValueError(f"{part.path}: point layout differs from {self.first.path}")
+        with part.path.open("rb") as f:
+            f.seek(part.chunks_start)
+            _copy(f, self.file, part.chunks_end - part.chunks_start)
+        self.table.extend(part.table)
+        self.count += part.header.point_count
+        returns = np.asarray(part.header.number_of_points_by_return, dtype=np.uint64)
+        self.by_return[: len(returns)] += returns
+        if part.header.point_count:
+            self.mins = np.minimum(self.mins, part.header.mins)
+            self.maxs = np.maximum(self.maxs, part.header.maxs)
+
+    def _start(self, part: LazPart) -> None:
+        """The first part's header and VLRs, its LASzip record saying variable-size chunks."""
+        with part.path.open("rb") as f:
+            head = bytearray(f.read(part.header.offset_to_point_data))
+        at = _laszip_record_at(head, part.path)
+        head[at + CHUNK_SIZE_AT : at + CHUNK_SIZE_AT + 4] = struct.pack("<I", VARIABLE_CHUNKS)
+        self.file.write(bytes(head))
+        self.file.write(struct.pack("<q", -1))  # the chunk table's place, known at the end
+        self.first = part
+        self.record = bytes(head[at : at + len(part.record)])
+
+    def finish(self) -> int:
+        """The chunk table and the header completed; the points written."""
+        if self.first is None:
+            return 0
+        table_at = self.file.tell()
+        lazrs.write_chunk_table(self.file, self.table, lazrs.LazVlr(self.record))
+        end = self.file.tell()
+        start = self.first.header.offset_to_point_data
+        self.file.seek(start)
+        self.file.write(struct.pack("<q", table_at))
+        self._write_header()
+        self.file.seek(end)
+        return self.count
+
+    def _write_header(self) -> None:
+        header = self.first.header  # type: ignore[union-attr]
+        if self.count:
+            bounds = np.column_stack([self.maxs, self.mins]).ravel()  # max x, min x, max y ...
+            self.file.seek(BOUNDS)
+            self.file.write(struct.pack("<6d", *bounds))
+        legacy = header.point_format.id < 6 and self.count <= 0xFFFFFFFF
+        self.file.seek(LEGACY_COUNT)
+        self.file.write(struct.pack("<I", self.count if legacy else 0))
+        self.file.seek(LEGACY_BY_RETURN)
+        five = self.by_return[:5] if legacy and self.by_return.max() <= 0xFFFFFFFF else [0] * 5
+        self.file.write(struct.pack("<5I", *[int(n) for n in five]))
+        if header.version.minor >= 4:
+            self.file.seek(COUNT_14)
+            self.file.write(struct.pack("<Q", self.count))
+            self.file.seek(BY_RETURN_14)
+            self.file.write(struct.pack("<15Q", *[int(n) for n in self.by_return]))
+
+
+def same_layout(a: laspy.LasHeader, b: laspy.LasHeader) -> bool:
+    """Points of `b` may follow those of `a` byte for byte: one version, point format (with its
+    extra bytes), scale and offset."""
+    return (
+        a.version == b.version
+        and a.point_format == b.point_format
+        and np.array_equal(a.scales, b.scales)
+        and np.array_equal(a.offsets, b.offsets)
+    )
+
+
+def _laszip_record_at(head: bytearray, path: Path) -> int:
+    """Where the LASzip VLR's record data starts in the header bytes."""
+    at = head.find(LASZIP_USER)
+    while at >= 0:
+        start = at - 2  # the VLR begins with two reserved bytes
+        (record_id,) = struct.unpack_from("<H", head, start + 18)
+        if record_id == LASZIP_RECORD:
+            return start + VLR_HEADER
+        at = head.find(LASZIP_USER, at + 1)
+    raise ValueError(f"{path}: no LASzip record in its header")
+
+
+def _copy(source: BinaryIO, dest: BinaryIO, n: int) -> None:
+    while n > 0:
+        block = source.read(min(n, COPY_BLOCK))
+        if not block:
+            raise ValueError(f"{getattr(source, 'name', 'a LAZ part')}: shorter than its chunks")
+        dest.write(block)
+        n -= len(block)
