@@ -35,11 +35,11 @@ from app.pipelines.guardrail.pipeline import (
     ReconstructionInput,
     rebuild_guardrails,
 )
-from app.pipelines.guardrail.run import STAGE_FILE, run_guardrail_report
+from app.pipelines.guardrail.run import STAGE_FILE, guardrail_writer, run_guardrail_report
 from app.pipelines.guardrail.tiled import INDEX_CELL, TILE_LENGTH, TILE_POINTS, guardrail_halo
 from app.pipelines.outputs import write_report
 from app.pipelines.sensor_models import ModelChoice
-from app.review.guardrails import current_run, load_stage, stage_rows
+from app.review.guardrails import current_run, load_stage, reading_stage, stage_rows
 from app.store.guardrail_review import slice_table
 from app.store.guardrail_runs import (
     ModelRecord,
@@ -54,10 +54,11 @@ REBUILD_FIELDS = ("min_guardrail_length", "join_gap", "join_lateral", "ground_cl
 # points, road / component / slice labels, crops' features: 263 bytes per point measured on the
 # fullest window of `guardrail.tiled.TILE_POINTS`, with a margin
 GUARDRAIL_BYTES_PER_POINT = 300.0
-# gathered once the tiles are done: the guardrails' points (0.6 % of a simulated urban street's
-# points, 64 bytes each) and every slice's classifier inputs (2.6 kB per slice, 350 slices per
-# million points there): 1.4 bytes per survey point, taken generously for rail-lined roads
-GATHERED_BYTES_PER_POINT = 4.0
+# held once the tiles are done: every slice's row (about 100 bytes, 350 slices per million points
+# of a simulated urban street) and the guardrail being built (at most the guardrails' points,
+# 0.6 % of the survey's there, 64 bytes each): 0.4 bytes per survey point, taken generously for
+# rail-lined roads (the classifier inputs and the slices' points stay in the tiles' files)
+GATHERED_BYTES_PER_POINT = 1.0
 
 
 # --- configuration ------------------------------------------------------------------------
@@ -123,16 +124,14 @@ def _json_safe(value: Any) -> Any:
 
 
 def model_records(
-    saved: ReconstructionInput,
-    guardrails: list[GuardrailInstance],
-    files: list[dict[str, str] | None],
-    config: GuardrailConfig,
+    saved: ReconstructionInput, guardrails: list[GuardrailInstance], config: GuardrailConfig
 ) -> list[ModelRecord]:
     """Store records of the guardrails that were reconstructed as a pipe or a beam (others,
     with fewer than two poles or a failed reconstruction, stay in the report only)."""
     s = saved.slices
     out = []
-    for g, written in zip(guardrails, files, strict=True):
+    for g in guardrails:
+        written = g.files
         if g.model is None or written is None or g.model.kind not in ("pipe", "beam"):
             continue
         model = g.model.model
@@ -170,8 +169,9 @@ def estimate_run(session: Session, survey: int | None, config: dict[str, Any]) -
     """run:guardrail's memory: one tile's points with their slice and component arrays (tiles
     run one at a time per worker; a tile holds its share of the survey's points by trajectory
     length, the length taken as the trajectory's bounding-box diagonal, so the share comes out
-    generous), and what the job gathers once the tiles are done: the guardrails' points and
-    every slice's classifier inputs (the slices' points stay in the tiles' files)."""
+    generous), and what the job holds once the tiles are done: every slice's row and one
+    guardrail's points at a time (the classifier inputs and the slices' points stay in the
+    tiles' files)."""
     cfg, option = guardrail_options(config)
     if survey is None:
         return MemoryEstimate("no survey")
@@ -193,8 +193,8 @@ def estimate_run(session: Session, survey: int | None, config: dict[str, Any]) -
     return estimate.add(
         "survey_id",
         points_mb(footprint, GATHERED_BYTES_PER_POINT),
-        f"the guardrails' points and every slice's classifier inputs, about "
-        f"{GATHERED_BYTES_PER_POINT:.0f} bytes per point of the survey",
+        f"every slice's row and the guardrail being built, about "
+        f"{GATHERED_BYTES_PER_POINT:.0f} byte per point of the survey",
     )
 
 
@@ -224,13 +224,9 @@ def run_guardrail(context: JobContext, config: dict[str, Any]) -> dict[str, Any]
     )  # fmt: skip
     report, run = done.report, done.run
     log_tiles(context, report["tiles"])
-    files = [
-        None if w is None else {k: str(Path(v).resolve()) for k, v in w.items()}
-        for w in done.model_files
-    ]
     models = []
     if run.rails is not None:
-        models = model_records(run.rails, done.guardrails, files, done.pipeline.config)
+        models = model_records(run.rails, done.guardrails, done.pipeline.config)
     s = run.slices
     rows = SliceRows(
         component=s.component,
@@ -254,9 +250,9 @@ def run_guardrail(context: JobContext, config: dict[str, Any]) -> dict[str, Any]
         "report": str(out / "report.json"),
         **{name: str(out / path) for name, path in report["files"].items()},
     }
-    for g, written in zip(done.guardrails, files, strict=True):
-        for fmt_name, path in (written or {}).items():
-            output[f"{g.id}.{fmt_name}"] = path
+    for g in done.guardrails:
+        for fmt_name, path in (g.files or {}).items():
+            output[f"{g.id}.{fmt_name}"] = str(Path(path).resolve())
     return {
         "files": output,
         "report": output["report"],
@@ -280,23 +276,17 @@ def rebuild_guardrail_models(context: JobContext, config: dict[str, Any]) -> dic
     at = stage_rows(slices, table.component, table.slice_index)
     labels = np.zeros(len(slices.slices), dtype=bool)
     labels[at] = table.label.astype(bool)
-    saved = load_stage(run, points_of=labels)  # the guardrail slices' points, not every slice's
     cfg = validated(
         GuardrailConfig,
-        {**saved.config.model_dump(), **(config or {})},
+        {**slices.config.model_dump(), **(config or {})},
         known=tuple(GuardrailConfig.model_fields),
     )
-    guardrails = rebuild_guardrails(
-        saved, labels, cfg, lambda stage, f: context.progress(0.05 + 0.85 * f, stage)
-    )
-    from app.pipelines.guardrail.reconstruction import export_guardrail
-
-    out = context.workdir
-    files = [
-        export_guardrail(g.model, out / "guardrails", g.id) if g.model is not None else None
-        for g in guardrails
-    ]
-    models = model_records(saved, guardrails, files, cfg)
+    with reading_stage(run) as stage:  # each guardrail's points read for it alone, then written
+        guardrails = rebuild_guardrails(
+            stage, labels, cfg, lambda step, f: context.progress(0.05 + 0.85 * f, step),
+            guardrail_writer(context.workdir),
+        )  # fmt: skip
+    models = model_records(slices, guardrails, cfg)
     context.progress(0.95, "storing models")
     with Session(context.engine) as session:
         stored = replace_guardrail_models(
@@ -324,10 +314,10 @@ def rebuild_guardrail_models(context: JobContext, config: dict[str, Any]) -> dic
             for g in guardrails
         ],  # fmt: skip
     }
-    report_path = write_report(out, report)
+    report_path = write_report(context.workdir, report)
     output = {"report": str(report_path)}
-    for g, written in zip(guardrails, files, strict=True):
-        for fmt_name, path in (written or {}).items():
+    for g in guardrails:
+        for fmt_name, path in (g.files or {}).items():
             output[f"{g.id}.{fmt_name}"] = str(path)
     context.progress(1.0, f"{stored['models']} guardrail models ({stored['kept']} kept)")
     return {"files": output, "report": str(report_path), "counts": counts}

@@ -39,6 +39,7 @@ from app.pipelines.guardrail.classifier import (
 )
 from app.pipelines.guardrail.pipeline import SHIPPED as GUARDRAIL_SHIPPED
 from app.pipelines.guardrail.run import FEATURES_FILE
+from app.pipelines.guardrail.segmentation import read_slice_features, slice_feature_keys
 from app.pipelines.guardrail.training.dataset import SliceSamples
 from app.pipelines.guardrail.training.train import fit_head
 from app.pipelines.phantom.config import PhantomConfig
@@ -287,24 +288,23 @@ def _slice_samples(
 ) -> tuple[SliceSamples, np.ndarray]:
     """The reviewed slices' classifier inputs from a run's saved features (with whether a
     camera crop showed each) and their stations (slices missing from the run are left out)."""
-    with np.load(features) as f:
-        at = match_slices(
-            reviewed[:, 0].astype(np.int64), reviewed[:, 1].astype(np.int64),
-            f["component"], f["slice_index"],
-        )  # fmt: skip
-        found = at >= 0
-        rows = at[found]
-        return (
-            SliceSamples(
-                embedding=f["embedding"][rows].astype(np.float32),
-                geometry=f["geometry"][rows].astype(np.float32),
-                label=reviewed[found, 3].astype(np.int64),
-                group=np.full(int(found.sum()), survey_id, dtype=np.int64),
-                geometry_names=[str(n) for n in f["geometry_names"]],
-                has_crop=f["has_crop"][rows].astype(bool),
-            ),
-            reviewed[found, 2],
-        )
+    component, slice_index = slice_feature_keys(features)
+    at = match_slices(
+        reviewed[:, 0].astype(np.int64), reviewed[:, 1].astype(np.int64), component, slice_index
+    )
+    found = at >= 0
+    f = read_slice_features(features, at[found])
+    return (
+        SliceSamples(
+            embedding=f["embedding"].astype(np.float32),
+            geometry=f["geometry"].astype(np.float32),
+            label=reviewed[found, 3].astype(np.int64),
+            group=np.full(int(found.sum()), survey_id, dtype=np.int64),
+            geometry_names=[str(n) for n in f["geometry_names"]],
+            has_crop=f["has_crop"].astype(bool),
+        ),
+        reviewed[found, 2],
+    )
 
 
 def pipeline_scores(heads: dict[str, SliceHead], samples: SliceSamples, head: str):

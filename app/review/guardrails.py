@@ -4,6 +4,8 @@ and `guardrail:rebuild` read."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -24,9 +26,17 @@ def load_stage(
 ) -> ReconstructionInput:
     """The slice stage `run` saved (slices, features, config): what a rebuild or a preview
     starts from (`ReconstructionInput.load`: `points_of` the slices whose points are read)."""
+    with reading_stage(run) as path:
+        return ReconstructionInput.load(path, slices_only=slices_only, points_of=points_of)
+
+
+@contextmanager
+def reading_stage(run: GuardrailRun) -> Iterator[Path]:
+    """The path of the slice stage `run` saved; a file of it missing while it is read is a 409
+    that says to run it again (a rebuild reads its parts guardrail by guardrail)."""
     path = Path(run.stage_path)
     try:
-        return ReconstructionInput.load(path, slices_only=slices_only, points_of=points_of)
+        yield path
     except FileNotFoundError as exc:
         missing = exc.filename or path
         raise ConflictError(

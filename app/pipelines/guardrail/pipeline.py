@@ -4,6 +4,7 @@ poles, unit shapes, superimposition, pipe / beam reconstruction -> meshes."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -31,13 +32,15 @@ SHIPPED: dict[SensorKind, Path] = {
 
 @dataclass
 class GuardrailInstance:
-    """One guardrail: its slices and points (indices into the stage's points)."""
+    """One guardrail: its slices and points (indices into the points it was built from: the
+    stage's, or its own slices' where they were read for it alone)."""
 
     id: str
     slices: np.ndarray
     points: np.ndarray
     model: object | None = None  # ReconstructedGuardrail when reconstructed
     error: str | None = None  # why reconstruction failed, when it did
+    files: dict[str, str] | None = None  # its meshes, where a rebuild wrote them ({format: path})
 
 
 @dataclass
@@ -170,12 +173,20 @@ def slice_point_labels(s: SliceSet, labels: np.ndarray) -> np.ndarray:
 def group_guardrails(
     s: SliceSet, above_ground: np.ndarray, labels: np.ndarray, cfg: GuardrailConfig
 ) -> list[GuardrailInstance]:
-    """Guardrails: guardrail slices grouped by (component, side), then groups on one side
-    joined when they follow each other along the road (gap <= `join_gap`) at the same
+    """Guardrails of the slice labels (`guardrail_groups`) with their points.
+    `above_ground` is the height above ground of every point `s` indexes."""
+    return [
+        GuardrailInstance(f"guardrail_{i:03d}", members, rail_points(s, above_ground, members, cfg))
+        for i, members in enumerate(guardrail_groups(s, labels, cfg))
+    ]
+
+
+def guardrail_groups(s: SliceSet, labels: np.ndarray, cfg: GuardrailConfig) -> list[np.ndarray]:
+    """Per guardrail, its slices: guardrail slices grouped by (component, side), then groups on
+    one side joined when they follow each other along the road (gap <= `join_gap`) at the same
     lateral offset (within `join_lateral`): a rail broken into several components by a
     gap in the scan is still one guardrail. Runs shorter than `min_guardrail_length` are
-    not modelled. Points at ground level (the ground under the rail) are left out.
-    `above_ground` is the height above ground of every point `s` indexes."""
+    not modelled. Slices only: no point is read."""
     keep = np.flatnonzero(labels)
     if len(keep) == 0:
         return []
@@ -183,18 +194,23 @@ def group_guardrails(
     groups = [keep[(keys == key).all(axis=1)] for key in np.unique(keys, axis=0)]
     groups = _join_groups(groups, s.station, s.lateral, s.side, cfg.join_gap, cfg.join_lateral)
     min_slices = int(np.ceil(cfg.min_guardrail_length / s.spacing))
-    out = []
-    for members in sorted(groups, key=lambda m: float(s.station[m].min())):
-        if len(members) < min_slices:
-            continue
-        # along the road, then across it: the points in the same order however the slices
-        # were numbered (a tiled run's components are numbered per tile), so the seeded
-        # reconstruction sees the same input
-        members = members[np.lexsort((s.lateral[members], s.station_index[members]))]
-        points = np.concatenate([s.points(int(k)) for k in members])
-        points = points[above_ground[points] > cfg.ground_clearance]
-        out.append(GuardrailInstance(f"guardrail_{len(out):03d}", members, points))
-    return out
+    # along the road, then across it: the points in the same order however the slices were
+    # numbered (a tiled run's components are numbered per tile), so the seeded reconstruction
+    # sees the same input
+    return [
+        members[np.lexsort((s.lateral[members], s.station_index[members]))]
+        for members in sorted(groups, key=lambda m: float(s.station[m].min()))
+        if len(members) >= min_slices
+    ]
+
+
+def rail_points(
+    s: SliceSet, above_ground: np.ndarray, members: np.ndarray, cfg: GuardrailConfig
+) -> np.ndarray:
+    """The points of a guardrail's slices (`members`), without those at ground level (the ground
+    under the rail)."""
+    points = np.concatenate([s.points(int(k)) for k in members])
+    return points[above_ground[points] > cfg.ground_clearance]
 
 
 def reconstruct_instance(
@@ -395,22 +411,45 @@ _POINT_COLUMNS = ("xyz", "above_ground", "slices.point_station", "slices.point_l
 
 
 def rebuild_guardrails(
-    saved: ReconstructionInput,
+    saved: ReconstructionInput | Path,
     labels: np.ndarray,
     config: GuardrailConfig | None = None,
     progress: Progress | None = None,
+    write: Callable[[GuardrailInstance], dict[str, str]] | None = None,
 ) -> list[GuardrailInstance]:
     """Guardrails (grouped, joined and reconstructed as in a run) from given slice labels, e.g.
-    the labels a human corrected; `config` defaults to the run's."""
-    cfg = config or saved.config
+    the labels a human corrected; `config` defaults to the run's (grouped only, with their
+    points, where its `reconstruct` is off).
+
+    `saved` in memory, or a stored one (`save` / `save_parts`): then the grouping reads its
+    slices only, and each guardrail's points are read for it alone. With `write` (its meshes to
+    disk: `GuardrailInstance.files`), each guardrail is written as soon as it is reconstructed
+    and its mesh let go. Stored and written, a run holds one guardrail at a time, however long
+    the survey."""
+    stored = not isinstance(saved, ReconstructionInput)
+    index = ReconstructionInput.load(Path(saved), slices_only=True) if stored else saved
+    cfg = config or index.config
     report = progress or (lambda stage, fraction: None)
     labels = np.asarray(labels).astype(bool)
-    if len(labels) != len(saved.slices):
-        raise ValueError(f"{len(labels)} labels for {len(saved.slices)} slices")
-    guardrails = group_guardrails(saved.slices, saved.above_ground, labels, cfg)
-    for i, g in enumerate(guardrails):
-        report("reconstruction", i / max(len(guardrails), 1))
-        reconstruct_instance(saved.xyz, saved.trajectory, g, cfg.reconstruction)
+    if len(labels) != len(index.slices):
+        raise ValueError(f"{len(labels)} labels for {len(index.slices)} slices")
+    groups = guardrail_groups(index.slices, labels, cfg)
+    guardrails = []
+    for i, members in enumerate(groups):
+        report("reconstruction", i / max(len(groups), 1))
+        held = index
+        if stored:
+            wanted = np.zeros(len(labels), dtype=bool)
+            wanted[members] = True
+            held = ReconstructionInput.load(Path(saved), points_of=wanted)
+        points = rail_points(held.slices, held.above_ground, members, cfg)
+        g = GuardrailInstance(f"guardrail_{i:03d}", members, points)
+        if cfg.reconstruct:
+            reconstruct_instance(held.xyz, held.trajectory, g, cfg.reconstruction)
+        if write is not None and g.model is not None:
+            g.files = write(g)
+            g.model = g.model.without_mesh()  # type: ignore[attr-defined]
+        guardrails.append(g)
     report("done", 1.0)
     return guardrails
 

@@ -20,7 +20,7 @@ Each stage's settings are one group of `config.ReconstructionConfig` (`poles`, `
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -57,6 +57,13 @@ class ReconstructedGuardrail:
     placements: list[np.ndarray] = field(default_factory=list)  # per pole pair: 4x4 affine
     stack: Stack | None = field(default=None, repr=False)
     curve: RailCurve | None = field(default=None, repr=False)
+
+    def without_mesh(self) -> ReconstructedGuardrail:
+        """The guardrail without its mesh and working data (stack, curve, placements), once its
+        mesh is written: the model (`model`, poles, unit models) stays, for the store."""
+        empty = np.zeros((0, 3))
+        return replace(self, vertices=empty, faces=np.zeros((0, 3), np.int64), placements=[],
+                       stack=None, curve=None)  # fmt: skip
 
 
 def _affine_apply(A: np.ndarray, q: np.ndarray) -> np.ndarray:

@@ -5,6 +5,7 @@ reference labels (simulator: guardrail index; SemanticKITTI: the fence class).""
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,7 +29,6 @@ from app.pipelines.guardrail.pipeline import (
     GuardrailPipeline,
     GuardrailResult,
     Progress,
-    group_guardrails,
     rebuild_guardrails,
 )
 from app.pipelines.guardrail.tile_assembly import slice_metrics_from_counts
@@ -87,8 +87,7 @@ class GuardrailRun:
     report: dict
     pipeline: GuardrailPipeline
     run: GuardrailTiledRun
-    guardrails: list[GuardrailInstance]  # their slices index `run.rails`
-    model_files: list[dict[str, str] | None]  # per guardrail, its meshes (paths under out)
+    guardrails: list[GuardrailInstance]  # their slices index `run.rails`, `files` under out
 
 
 def run_guardrail_report(
@@ -121,19 +120,17 @@ def run_guardrail_report(
     )  # fmt: skip
     guardrails: list[GuardrailInstance] = []
     clock = time.perf_counter()
-    if run.rails is not None:  # every slice in `rails` is a guardrail slice
-        every = np.ones(len(run.rails.slices), dtype=bool)
-        if cfg.reconstruct:
-            guardrails = rebuild_guardrails(run.rails, every, cfg, _reconstruction(progress))
-        else:
-            guardrails = group_guardrails(run.rails.slices, run.rails.above_ground, every, cfg)
+    if run.rails is not None and run.rails_path is not None:
+        every = np.ones(len(run.rails.slices), dtype=bool)  # `rails` are guardrail slices
+        guardrails = rebuild_guardrails(  # one at a time: read, rebuilt, written, let go
+            run.rails_path, every, cfg, _reconstruction(progress), guardrail_writer(out)
+        )
     timings = {**run.timings, "reconstruction": round(time.perf_counter() - clock, 3)}
-    files = write_guardrail_models(out, guardrails)
     entries = []
-    for g, written in zip(guardrails, files, strict=True):
+    for g in guardrails:
         entry: dict = {"id": g.id, "slices": int(len(g.slices)), "points": int(len(g.points))}
-        if written is not None:
-            entry["files"] = {k: str(Path(v).relative_to(out)) for k, v in written.items()}
+        if g.files is not None:
+            entry["files"] = {k: str(Path(v).relative_to(out)) for k, v in g.files.items()}
             entry["model"] = g.model.model  # type: ignore[union-attr]
         if g.error:
             entry["error"] = g.error
@@ -162,7 +159,7 @@ def run_guardrail_report(
         }
     report["timings"]["total"] = round(time.perf_counter() - started, 3)
     write_report(out, report)
-    return GuardrailRun(report, pipeline, run, guardrails, files)
+    return GuardrailRun(report, pipeline, run, guardrails)
 
 
 def _reconstruction(progress: Progress | None) -> Progress:
@@ -170,13 +167,8 @@ def _reconstruction(progress: Progress | None) -> Progress:
     return lambda stage, fraction: progress(stage, 1.0) if progress is not None else None
 
 
-def write_guardrail_models(
-    out: Path, guardrails: list[GuardrailInstance]
-) -> list[dict[str, str] | None]:
-    """Each reconstructed guardrail's meshes under OUT/guardrails/ (None where it has none)."""
+def guardrail_writer(out: Path) -> Callable[[GuardrailInstance], dict[str, str]]:
+    """`rebuild_guardrails`' `write`: a reconstructed guardrail's meshes under OUT/guardrails/."""
     from app.pipelines.guardrail.reconstruction import export_guardrail
 
-    return [
-        export_guardrail(g.model, Path(out) / "guardrails", g.id) if g.model is not None else None
-        for g in guardrails
-    ]
+    return lambda g: export_guardrail(g.model, Path(out) / "guardrails", g.id)  # type: ignore[arg-type]

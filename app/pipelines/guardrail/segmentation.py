@@ -127,3 +127,60 @@ def save_slice_features(path: Path, stage: SliceStage, slices: np.ndarray | None
     )
     partial.replace(path)
     return path
+
+
+FEATURE_COLUMNS = ("embedding", "geometry", "has_crop")  # per slice, in `save_slice_features`
+
+
+def index_slice_features(path: Path, parts: list[Path], components: list[np.ndarray]) -> Path:
+    """An index of feature files (`save_slice_features`, e.g. a tiled run's tiles, beside it):
+    every slice's key, with `components` (per part, the run's component number of each of its
+    slices), while the features stay in the parts (`read_slice_features`). Small: per slice."""
+    path = Path(path)
+    slice_index, names = [], np.array([], dtype=str)
+    for part in parts:
+        with np.load(part) as data:
+            slice_index.append(data["slice_index"])
+            names = data["geometry_names"]
+    partial = path.with_suffix(".partial.npz")
+    np.savez(
+        partial, geometry_names=names,
+        parts=np.array([str(Path(p).relative_to(path.parent)) for p in parts]),
+        part_slices=np.array([len(k) for k in slice_index], dtype=np.int64),
+        component=np.concatenate(components) if components else np.zeros(0, np.int64),
+        slice_index=np.concatenate(slice_index) if slice_index else np.zeros(0, np.int64),
+    )  # fmt: skip
+    partial.replace(path)
+    return path
+
+
+def slice_feature_keys(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(component, slice index) of every slice a features file (or index) holds, in its order."""
+    with np.load(path) as data:
+        return data["component"], data["slice_index"]
+
+
+def read_slice_features(path: Path, rows: np.ndarray) -> dict[str, np.ndarray]:
+    """The features of the slices at `rows` (in `slice_feature_keys`' order), in that order, and
+    the geometric features' names; from an index, only the parts holding them are read."""
+    rows = np.asarray(rows, dtype=np.int64)
+    with np.load(path) as data:
+        if "parts" not in data.files:
+            return {"geometry_names": data["geometry_names"],
+                    **{c: data[c][rows] for c in FEATURE_COLUMNS}}  # fmt: skip
+        names, parts, sizes = data["geometry_names"], data["parts"], data["part_slices"]
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    part_of = np.searchsorted(starts, rows, side="right") - 1
+    out: dict[str, np.ndarray] = {"geometry_names": names}
+    # no rows: the first part still gives each column's shape and type
+    for k in np.unique(part_of) if len(rows) else range(min(len(parts), 1)):
+        at = np.flatnonzero(part_of == k)
+        with np.load(Path(path).parent / str(parts[k])) as data:
+            for c in FEATURE_COLUMNS:
+                values = data[c][rows[at] - starts[k]]
+                if c not in out:
+                    out[c] = np.zeros((len(rows), *values.shape[1:]), dtype=values.dtype)
+                out[c][at] = values
+    for c in FEATURE_COLUMNS:  # an index of no parts
+        out.setdefault(c, np.zeros(0))
+    return out

@@ -11,12 +11,13 @@ neighbours' is kept. Once all are in:
   and both have a slice at one station, the second keeps a number of its own.
 - **Guardrails** are then grouped, joined and reconstructed from the guardrail slices of all
   tiles (`pipeline.rebuild_guardrails`): a rail is one model from its first pole to its last.
-  Only the guardrail slices' points are held, not the survey's.
+  The grouping reads the slices only (`save_rails`: an index of the tiles' parts); each
+  guardrail's points are then read for it alone, its meshes written and let go.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -25,12 +26,14 @@ from scipy.sparse.csgraph import connected_components
 
 from app.metrics.classification import binary_from_counts
 from app.pipelines.guardrail.pipeline import ReconstructionInput
+from app.pipelines.guardrail.segmentation import index_slice_features
 from app.pipelines.outputs import commit_frame_labels, fill_labels_of_frames, start_frame_labels
 from app.pipelines.tiling import TILES, TileMaps, tile_name, tile_totals
 
 SLICE_COLUMNS = ("component", "slice_index", "station", "probability", "raw", "corrected",
                  "has_crop")  # fmt: skip
 RAILS = "guardrail_points"  # the LAZ of the points on guardrails, OUT/guardrail_points.laz
+RAILS_INDEX = "rails.npz"  # OUT/tiles/: the guardrail slices of every tile, points in the parts
 LINKS = ("start_keys", "start_components", "end_keys", "end_components")
 
 
@@ -97,15 +100,16 @@ class GuardrailAssembly:
     def abort(self) -> None:
         self.maps.abort()
 
-    def rails(self, numbers: dict[int, np.ndarray]) -> ReconstructionInput | None:
-        """The tiles' guardrail slices with their points as one, with the run's component
-        numbers; None without tiles."""
-        parts = []
-        for tile in sorted(numbers):
-            part = ReconstructionInput.load(self.folder / f"{tile_name(tile)}.rails.npz")
-            which = numbers[tile][self.columns[tile]["corrected"].astype(bool)]
-            parts.append(replace(part, slices=replace(part.slices, component=which)))
-        return ReconstructionInput.concatenate(parts) if parts else None
+    def save_rails(self, numbers: dict[int, np.ndarray]) -> Path | None:
+        """An index of the tiles' guardrail slices (their points stay in the tiles' parts), with
+        the run's component numbers: what the guardrails are grouped and built from, one at a
+        time (`pipeline.rebuild_guardrails`). None without tiles."""
+        if not numbers:
+            return None
+        tiles = sorted(numbers)
+        parts = [self.folder / f"{tile_name(t)}.rails.npz" for t in tiles]
+        owned = [numbers[t][self.columns[t]["corrected"].astype(bool)] for t in tiles]
+        return ReconstructionInput.save_parts(self.folder / RAILS_INDEX, parts, owned)
 
     def save_stage(self, path: Path, numbers: dict[int, np.ndarray]) -> Path:
         """An index of the tiles' stage parts (every slice, with the run's component numbers;
@@ -115,24 +119,11 @@ class GuardrailAssembly:
         return ReconstructionInput.save_parts(path, parts, [numbers[t] for t in tiles])
 
     def features(self, path: Path, numbers: dict[int, np.ndarray]) -> Path:
-        """The tiles' classifier inputs as one file (what retraining reads), keyed by the
-        run's component numbers."""
-        keys = ("embedding", "geometry", "has_crop", "slice_index")
-        columns: dict[str, list[np.ndarray]] = {key: [] for key in (*keys, "component")}
-        names = None
-        for tile in sorted(numbers):
-            with np.load(self.folder / f"{tile_name(tile)}.features.npz") as data:
-                for key in keys:
-                    columns[key].append(data[key])
-                names = data["geometry_names"]
-            columns["component"].append(numbers[tile])
-        partial = path.with_suffix(".partial.npz")
-        np.savez(
-            partial, geometry_names=names,
-            **{key: np.concatenate(values) for key, values in columns.items()},
-        )  # fmt: skip
-        partial.replace(path)
-        return path
+        """An index of the tiles' classifier inputs (what retraining reads: the features stay in
+        the tiles' files), keyed by the run's component numbers."""
+        tiles = sorted(numbers)
+        parts = [self.folder / f"{tile_name(t)}.features.npz" for t in tiles]
+        return index_slice_features(path, parts, [numbers[t] for t in tiles])
 
 
 def slice_components(

@@ -326,8 +326,9 @@ def write_rail_points(
 @dataclass
 class GuardrailTiledRun:
     """A tiled run's outcome: the assembled files and totals, every slice (`SliceTable`), the
-    guardrail slices with their points (what the guardrails are built from), every slice with
-    its points when the stage was kept, the tile index, and how many tiles this attempt ran."""
+    guardrail slices (`rails`: per slice, without points) and the stored index they were read
+    from (`rails_path`: what the guardrails are built from, one at a time), every slice with its
+    points when the stage was kept, the tile index, and how many tiles this attempt ran."""
 
     files: dict[str, str]
     counts: dict
@@ -335,7 +336,8 @@ class GuardrailTiledRun:
     timings: dict[str, float]
     worker_peak_mb: float
     slices: SliceTable
-    rails: ReconstructionInput | None
+    rails: ReconstructionInput | None  # the guardrail slices, without their points
+    rails_path: Path | None  # the guardrail slices stored, their points in the tiles' parts
     stage_path: Path | None  # every slice, its points in the tiles' parts (`keep_stage`)
     features_path: Path | None  # every slice's classifier inputs (`keep_stage`)
     index: TileIndex
@@ -386,8 +388,10 @@ def run_guardrail_tiled(
             raise ValueError("keep_stage needs a stage_path and a features_path")
         assembly.save_stage(stage_path, numbers)
         assembly.features(features_path, numbers)
+    rails_path = assembly.save_rails(numbers)
+    rails = None if rails_path is None else ReconstructionInput.load(rails_path, slices_only=True)
     return GuardrailTiledRun(
-        **assembled, rails=assembly.rails(numbers),
+        **assembled, rails=rails, rails_path=rails_path,
         stage_path=stage_path if keep_stage else None,
         features_path=features_path if keep_stage else None, index=index, tiles_run=ran,
     )  # fmt: skip

@@ -13,7 +13,12 @@ import pytest
 
 from app.io import open_survey
 from app.pipelines.guardrail.config import GuardrailConfig
-from app.pipelines.guardrail.pipeline import DEFAULT_MODEL, GuardrailPipeline
+from app.pipelines.guardrail.pipeline import (
+    DEFAULT_MODEL,
+    GuardrailPipeline,
+    ReconstructionInput,
+    rebuild_guardrails,
+)
 from app.pipelines.guardrail.run import run_guardrail_report
 from app.pipelines.guardrail.tile_assembly import slice_components
 from app.pipelines.guardrail.tiled import guardrail_halo
@@ -77,6 +82,41 @@ def test_tiled_guardrails_agree_with_the_whole_survey(street: Path, tmp_path: Pa
         (g["id"], g["points"], g["files"]) for g in report["guardrails"]
     ]
     assert (tmp_path / TILES / "plan.json").is_file()
+
+
+def test_guardrails_are_built_one_at_a_time(street: Path, tmp_path: Path, monkeypatch) -> None:
+    """The run groups the guardrail slices from their index, then reads each guardrail's points
+    alone, writes its meshes and lets them go: the same models as from every point at once."""
+    survey = open_survey(street, "sim")
+    done = run_guardrail_report(survey, tmp_path, CONFIG, DEFAULT_MODEL, tile_length=20.0)
+    assert len(done.guardrails) >= 2
+    for g in done.guardrails:
+        assert g.model is not None and len(g.model.vertices) == 0 and g.model.stack is None
+        assert g.files is not None and all(Path(f).is_file() for f in g.files.values())
+    every = np.ones(len(done.run.rails.slices), dtype=bool)
+    held = ReconstructionInput.load(done.run.rails_path)  # every guardrail slice's points
+    at_once = rebuild_guardrails(held, every)
+
+    reads: list[int] = []
+    load = ReconstructionInput.load.__func__
+
+    def counted(cls, path, slices_only=False, points_of=None):
+        part = load(cls, path, slices_only, points_of)
+        if points_of is not None:
+            reads.append(len(part.xyz))
+        return part
+
+    monkeypatch.setattr(ReconstructionInput, "load", classmethod(counted))
+    written: list[str] = []
+    one_by_one = rebuild_guardrails(
+        done.run.rails_path, every, write=lambda g: written.append(g.id) or {}
+    )
+    s = held.slices
+    assert reads == [int(np.diff(s.offsets)[g.slices].sum()) for g in at_once]
+    assert max(reads) < len(held.xyz) and written == [g.id for g in at_once]
+    for a, b in zip(at_once, one_by_one, strict=True):
+        assert len(a.points) == len(b.points) and b.model is not None and a.model is not None
+        assert np.array_equal([p.centre for p in a.model.poles], [p.centre for p in b.model.poles])
 
 
 def test_components_are_joined_across_tile_edges() -> None:
