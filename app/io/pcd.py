@@ -1,7 +1,9 @@
 """PCD (Point Cloud Library, v0.7): read an accumulated map.
 
 A small reader of its own for `DATA ascii` and `DATA binary` (header parsed eagerly, data read on
-`Frame.points()` with one `np.loadtxt` / `np.fromfile`). `DATA binary_compressed` (LZF) is handed
+`Frame.points()` with one `np.loadtxt` / `np.fromfile`, or a million points at a time by
+`Frame.world_chunks` where the cloud is unorganized). `DATA binary_compressed` (LZF, one block:
+read whole) is handed
 to open3d's tensor reader when the points are loaded (open3d only knows lower-case `x y z`, so a
 file that spells them otherwise goes to it as a temporary copy whose FIELDS line does); if that
 fails the error names the file. Counts the file cannot hold (POINTS beyond the data, the
@@ -25,6 +27,7 @@ from __future__ import annotations
 import shutil
 import struct
 import tempfile
+from collections.abc import Iterator
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -34,6 +37,7 @@ import numpy as np
 from app.core.errors import InputError
 from app.io.point_files import (
     LABEL_NAMES,
+    binary_table_chunks,
     canonical_name,
     check_text_fits,
     cloud_from_fields,
@@ -42,6 +46,7 @@ from app.io.point_files import (
     map_survey,
     normalized,
     read_header_bytes,
+    text_table_chunks,
 )
 from app.io.survey import PointCloud, Survey
 
@@ -98,6 +103,12 @@ def read_pcd(path: str | Path) -> Survey:
         partial(_load_points, path, header),
         partial(_load_reference, path, header, labels) if labels else None,
         labels,
+        # a sensor's organized range image is small, and LZF is one block: those are read whole
+        load_chunks=(
+            partial(_chunks, path, header)
+            if header.data != "binary_compressed" and not header.organized
+            else None
+        ),
     )
 
 
@@ -249,8 +260,24 @@ def _load_data(path: Path, header: _PcdHeader) -> np.ndarray:
         data = data.astype(dtype.newbyteorder("="), copy=False)
     else:
         data = _load_compressed(path, header)
+    return _without_padding(data)
+
+
+def _without_padding(data: np.ndarray) -> np.ndarray:
     keep = [name for name in data.dtype.names or () if not name.startswith("_pad")]
     return data[keep] if len(keep) < len(data.dtype.names or ()) else data
+
+
+def _chunks(path: Path, header: _PcdHeader) -> Iterator[tuple[int, PointCloud]]:
+    """An unorganized cloud's points in pieces (index of the first, points): a map of any size
+    in bounded memory."""
+    n, dtype = header.points, header.dtype()
+    if header.data == "ascii":
+        pieces = text_table_chunks(path, header.data_offset, dtype, 0, n, "points")
+    else:
+        pieces = binary_table_chunks(path, header.data_offset, dtype, n, "points")
+    for start, data in pieces:
+        yield start, cloud_from_fields(path, _without_padding(data), start)
 
 
 def _load_compressed(path: Path, header: _PcdHeader) -> np.ndarray:

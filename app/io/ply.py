@@ -3,7 +3,8 @@
 A small reader of its own (no open3d): the header is parsed eagerly, the vertex data only when
 `Frame.points()` is called. Binary bodies are read with one `np.fromfile` into a packed structured
 dtype, ASCII bodies with one `np.loadtxt` (float columns parsed as float64, so coordinates keep
-every digit of the text even when declared `float`).
+every digit of the text even when declared `float`); `Frame.world_chunks` reads either a million
+vertices at a time (a tiled run reads a map of any size in bounded memory).
 
 Vertex properties are mapped, case-insensitively and ignoring CloudCompare's `scalar_` prefix:
 `x`, `y`, `z` -> xyz (float64); `intensity` -> intensity (float32); `time` / `gps_time` /
@@ -18,6 +19,7 @@ properties, since their size must be computed); elements after it are ignored.
 from __future__ import annotations
 
 import io
+from collections.abc import Iterator
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -27,6 +29,7 @@ import numpy as np
 from app.core.errors import InputError
 from app.io.point_files import (
     LABEL_NAMES,
+    binary_table_chunks,
     canonical_name,
     check_text_fits,
     cloud_from_fields,
@@ -35,6 +38,7 @@ from app.io.point_files import (
     map_survey,
     normalized,
     read_header_bytes,
+    text_table_chunks,
     writable_xyz,
     write_atomically,
 )
@@ -132,6 +136,7 @@ def read_ply(path: str | Path) -> Survey:
         partial(_load_points, path, header),
         partial(_load_reference, path, header, labels) if labels else None,
         labels,
+        load_chunks=partial(_vertex_chunks, path, header),
     )
 
 
@@ -227,6 +232,18 @@ def _load_vertices(path: Path, header: _PlyHeader) -> np.ndarray:
 
 def _load_points(path: Path, header: _PlyHeader) -> PointCloud:
     return cloud_from_fields(path, _load_vertices(path, header))
+
+
+def _vertex_chunks(path: Path, header: _PlyHeader) -> Iterator[tuple[int, PointCloud]]:
+    """The vertices in pieces (index of the first, points): a map of any size in bounded memory."""
+    n, dtype = header.vertex.count, _vertex_dtype(header)
+    if header.format == "ascii":
+        lines_before = sum(e.count for e in header.elements[: header.vertex_index])
+        pieces = text_table_chunks(path, header.data_offset, dtype, lines_before, n, "vertices")
+    else:
+        pieces = binary_table_chunks(path, _binary_layout(path, header)[0], dtype, n, "vertices")
+    for start, data in pieces:
+        yield start, cloud_from_fields(path, data, start)
 
 
 def _load_reference(path: Path, header: _PlyHeader, labels: tuple[str, ...]) -> dict:

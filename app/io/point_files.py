@@ -7,6 +7,7 @@ rename), text headers, structured point tables -> `PointCloud`, and the one-fram
 from __future__ import annotations
 
 import io
+import itertools
 import os
 from collections.abc import Callable, Iterator
 from functools import partial
@@ -24,6 +25,7 @@ INTENSITY_NAMES = ("intensity",)
 TIME_NAMES = ("time", "gps_time", "gpstime", "timestamp")
 LABEL_NAMES = ("label", "class", "classification")
 CANONICAL_NAMES = ("x", "y", "z", "rgb", "rgba")
+TABLE_CHUNK = 1_000_000  # rows per piece when a map file is read in pieces (`Frame.world_chunks`)
 
 
 def map_survey(
@@ -178,16 +180,7 @@ def load_text_table(path: Path, offset: int, dtype: np.dtype, skip: int, rows: i
     Float columns are parsed as float64, so x, y, z keep every digit the text has (even when the
     header says float32); other float columns are then cast to their declared type.
     """
-    names = dtype.names or ()
-    parse = np.dtype(
-        [
-            (n, np.float64 if dtype[n].base.kind == "f" else dtype[n].base, dtype[n].shape)
-            for n in names
-        ]
-    )
-    result = np.dtype(
-        [(n, np.float64 if n in ("x", "y", "z") else dtype[n].base, dtype[n].shape) for n in names]
-    )
+    parse, result = _text_types(dtype)
 
     def load() -> np.ndarray:
         with open(path, "rb") as raw:
@@ -200,15 +193,79 @@ def load_text_table(path: Path, offset: int, dtype: np.dtype, skip: int, rows: i
     return guarded(path, "point data", load).astype(result, copy=False)
 
 
-def cloud_from_fields(path: Path, data: np.ndarray) -> PointCloud:
-    """Build a PointCloud from a structured array with x, y, z fields (shared with PCD).
+def _text_types(dtype: np.dtype) -> tuple[np.dtype, np.dtype]:
+    """(parsed as, returned as) of a text table's columns: floats parsed as float64, x, y, z
+    kept so, other floats cast back to their declared type."""
+    names = dtype.names or ()
+    parse = np.dtype(
+        [
+            (n, np.float64 if dtype[n].base.kind == "f" else dtype[n].base, dtype[n].shape)
+            for n in names
+        ]
+    )
+    result = np.dtype(
+        [(n, np.float64 if n in ("x", "y", "z") else dtype[n].base, dtype[n].shape) for n in names]
+    )
+    return parse, result
+
+
+def text_table_chunks(
+    path: Path, offset: int, dtype: np.dtype, skip: int, n: int, noun: str, rows: int = 0
+) -> Iterator[tuple[int, np.ndarray]]:
+    """`load_text_table`'s `n` rows in pieces of `rows` (default `TABLE_CHUNK`): (index of the
+    first row, rows), read on from one open file, blank lines skipped as `np.loadtxt` skips them.
+    Fewer rows than `n` is an error naming the file."""
+    rows = rows or TABLE_CHUNK
+    parse, result = _text_types(dtype)
+    with guarded(path, "point data", lambda: open(path, "rb")) as raw:
+        raw.seek(offset)
+        text = io.TextIOWrapper(raw, encoding="latin-1")
+        for _ in itertools.islice(text, skip):
+            pass
+        start = 0
+        while start < n:
+            lines = [line for line in itertools.islice(text, min(rows, n - start)) if line.strip()]
+            if not lines:
+                raise InputError(path, f"truncated: header promises {n} {noun}, file has {start}")
+            load = partial(np.loadtxt, lines, dtype=parse, ndmin=1, comments=None)
+            data = guarded(path, "point data", load)
+            yield start, data.astype(result, copy=False)
+            start += len(data)
+
+
+def binary_table_chunks(
+    path: Path, offset: int, dtype: np.dtype, n: int, noun: str, rows: int = 0
+) -> Iterator[tuple[int, np.ndarray]]:
+    """`n` records of `dtype` from byte `offset` on, in pieces of `rows` (default `TABLE_CHUNK`):
+    (index of the first record, records in native byte order). Fewer records than `n` is an
+    error naming the file."""
+    rows = rows or TABLE_CHUNK
+    for start in range(0, n, rows):
+        count = min(rows, n - start)
+        at = offset + start * dtype.itemsize
+        load = partial(np.fromfile, path, dtype=dtype, count=count, offset=at)
+        data = guarded(path, "point data", load)
+        if len(data) < count:
+            raise InputError(
+                path, f"truncated: header promises {n} {noun}, file has {start + len(data)}"
+            )
+        yield start, data.astype(dtype.newbyteorder("="), copy=False)
+
+
+def cloud_from_fields(path: Path, data: np.ndarray, start: int | None = None) -> PointCloud:
+    """Build a PointCloud from a structured array with x, y, z fields (shared with PCD); `start`:
+    the index of its first row, where it is one piece of a file.
 
     Points with NaN / infinite coordinates raise InputError: they are never silently dropped.
     """
     xyz = np.empty((len(data), 3), dtype=np.float64)
     for column, axis in enumerate("xyz"):
         xyz[:, column] = data[axis]
-    bad = len(xyz) - int(np.count_nonzero(np.isfinite(xyz).all(axis=1)))
+    finite = np.isfinite(xyz).all(axis=1)
+    bad = len(xyz) - int(np.count_nonzero(finite))
+    if bad and start is not None:
+        first = start + int(np.argmin(finite))
+        raise InputError(path, f"has points with NaN or infinite coordinates (the first: {first})")
     if bad:
         raise InputError(path, f"has {bad} points with NaN or infinite coordinates")
     intensity = None

@@ -10,6 +10,7 @@ import pytest
 
 from app.core.errors import InputError
 from app.io import pcd as pcd_module
+from app.io import point_files
 from app.io.pcd import read_pcd
 from app.io.registry import open_survey
 from app.io.survey import MAP_FRAME_ID
@@ -324,3 +325,36 @@ def test_binary_compressed_sizes_beyond_the_file(tmp_path: Path):
     path.write_bytes(bytes(data))
     with pytest.raises(InputError, match="says 1,000,000,000 compressed bytes for 72"):
         read_pcd(path)
+
+
+@pytest.mark.parametrize("kind", ["binary", "ascii"])
+def test_a_map_read_in_chunks_is_the_whole_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, kind: str
+):
+    """An unorganized cloud is read a million points at a time (here 150), padding dropped."""
+    n = 400
+    data = np.zeros(n, dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("pad0", "u1"),
+                              ("label", "<u4")])  # fmt: skip
+    xyz = _points(n)
+    data["x"], data["y"], data["z"], data["label"] = *xyz.T, np.arange(n)
+    path = _write_pcd(tmp_path / f"{kind}.pcd", data, kind=kind)
+    monkeypatch.setattr(point_files, "TABLE_CHUNK", 150)
+    frame = read_pcd(path).frames[0]
+    chunks = list(frame.world_chunks())
+    assert [start for start, _ in chunks] == [0, 150, 300]
+    np.testing.assert_array_equal(np.concatenate([c.xyz for _, c in chunks]), xyz)
+    assert all(sorted(c.extra) == ["label"] for _, c in chunks)
+    np.testing.assert_array_equal(
+        np.concatenate([c.extra["label"] for _, c in chunks]), data["label"]
+    )
+
+
+def test_an_organized_cloud_is_read_whole(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    """Its NaN returns are dropped and the grid index kept, which one piece keeps right."""
+    data = np.zeros(400, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+    data["x"] = np.arange(400)
+    data["x"][::7] = np.nan
+    path = _write_pcd(tmp_path / "organized.pcd", data, height=20)
+    monkeypatch.setattr(point_files, "TABLE_CHUNK", 150)
+    chunks = list(read_pcd(path).frames[0].world_chunks())
+    assert len(chunks) == 1 and len(chunks[0][1].xyz) == 400 - 58

@@ -10,6 +10,7 @@ import pytest
 
 from app.core.errors import InputError
 from app.io import ply as ply_module
+from app.io import point_files
 from app.io.ply import read_ply, write_ply
 from app.io.registry import open_survey
 from app.io.survey import MAP_FRAME_ID
@@ -299,3 +300,41 @@ def test_ascii_records_before_the_vertices_count_too(tmp_path: Path):
     path.write_bytes(("\n".join(lines) + "\nend_header\n1\n1 2 3\n4 5 6\n").encode())
     with pytest.raises(InputError, match="900,000,002 vertices and records before them"):
         read_ply(path)
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_a_map_read_in_chunks_is_the_whole_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, binary: bool
+):
+    """A tiled run reads a map a million vertices at a time (here 150), in bounded memory; an
+    element before the vertices and faces after them are stepped over."""
+    xyz = _points(500)
+    fields = {"label": np.arange(500).astype(np.uint16)}
+    path = write_ply(tmp_path / "map.ply", xyz, fields=fields, binary=binary)
+    monkeypatch.setattr(point_files, "TABLE_CHUNK", 150)
+    frame = read_ply(path).frames[0]
+    chunks = list(frame.world_chunks())
+    assert [start for start, _ in chunks] == [0, 150, 300, 450]
+    np.testing.assert_array_equal(np.concatenate([c.xyz for _, c in chunks]), xyz)
+    labels = np.concatenate([c.extra["label"] for _, c in chunks])
+    np.testing.assert_array_equal(labels, fields["label"])
+    np.testing.assert_array_equal(frame.world_points().xyz, xyz)
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_a_bad_map_read_in_chunks_is_an_input_error(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, binary: bool
+):
+    xyz = _points(400)
+    xyz[310, 2] = np.nan
+    path = write_ply(tmp_path / "cut.ply", _points(400), binary=binary)
+    monkeypatch.setattr(point_files, "TABLE_CHUNK", 150)
+    survey = read_ply(path)
+    path.write_bytes(path.read_bytes()[: path.stat().st_size * 2 // 3])  # cut after opening
+    with pytest.raises(InputError, match="cut.ply"):
+        list(survey.frames[0].world_chunks())
+    head = _header("ascii", 400, ["double x", "double y", "double z"])
+    body = "".join(f"{x} {y} {z}\n" for x, y, z in xyz).encode()
+    (tmp_path / "nan2.ply").write_bytes(head + body)
+    with pytest.raises(InputError, match=r"nan2.ply.*NaN or infinite coordinates \(the first: 310"):
+        list(read_ply(tmp_path / "nan2.ply").frames[0].world_chunks())
