@@ -3,10 +3,11 @@
 LASzip compresses points in chunks that each start afresh, listed in a chunk table at the end of
 the point data (point count and byte count per chunk). Files of one point layout, scale and
 offset are therefore joined by copying every file's chunk bytes in turn and writing one table
-for all of them, with variable-size chunks (the last chunk of each file is short), which LAZ 1.4
-readers (LASzip 3, laz-perf, lazrs, COPC readers) read. A tiled run's maps are appended this way:
-re-encoding every point of a survey in the process that assembles the tiles took it a good part
-of a core, beside the tile workers.
+for all of them, with variable-size chunks (the last chunk of each file is short), as the LAZ
+specification allows and COPC files use (tested here with lazrs, whole and in chunks; lazrs
+0.8.2's seek into any variable-chunk file lands on wrong points, so this project never seeks). A
+tiled run's maps are appended this way: re-encoding every point of a survey in the process that
+assembles the tiles took it a good part of a core, beside the tile workers.
 
 Header fields the join changes (point counts, points by return, bounds) are written at their
 fixed places of the LAS 1.4 header (ASPRS LAS 1.4 R15, table 3).
