@@ -267,35 +267,6 @@ class ReconstructionInput:
             config,
         )
 
-    @classmethod
-    def concatenate(cls, parts: list[ReconstructionInput]) -> ReconstructionInput:
-        """Parts (a tiled run's tiles, components already numbered apart) as one; they share
-        the trajectory and the configuration."""
-        first = parts[0]
-        sizes = [len(p.xyz) for p in parts]
-        starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
-        slice_starts = np.concatenate([[0], np.cumsum([len(p.slices) for p in parts])[:-1]])
-
-        def joined(key: str) -> np.ndarray:
-            return np.concatenate([getattr(p.slices, key) for p in parts])
-
-        offsets = [p.slices.offsets[:-1] + a for p, a in zip(parts, starts, strict=True)]
-        point_slice = [p.slices.point_slice + b for p, b in zip(parts, slice_starts, strict=True)]
-        slices = SliceSet(
-            spacing=first.slices.spacing,
-            point_slice=np.concatenate(point_slice).astype(np.int64),
-            indices=np.arange(sum(sizes), dtype=np.int64),
-            offsets=np.concatenate([*offsets, [sum(sizes)]]).astype(np.int64),
-            **{key: joined(key) for key in _SLICE_ARRAYS[3:]},
-        )
-        return cls(
-            slices,
-            np.concatenate([p.xyz for p in parts]).reshape(-1, 3),
-            np.concatenate([p.above_ground for p in parts]),
-            first.trajectory,
-            first.config,
-        )
-
     def save(self, path: Path) -> Path:
         """One .npz (written atomically: a half-written file never has the final name)."""
         path = Path(path)
