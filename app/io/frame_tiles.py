@@ -61,6 +61,10 @@ class FrameTiles:
             frames.append(np.unique(reach.astype(np.int64)))
         return cls(layout, owner.astype(np.int64), frames)
 
+    def reads(self) -> np.ndarray:
+        """(T,) frames each tile reads: what its work grows with."""
+        return np.array([len(f) for f in self.frames], dtype=np.int64)
+
     def own(self, tile: int) -> np.ndarray:
         """Ascending indices of the frames tile `tile` owns."""
         return np.flatnonzero(self.owner == tile)

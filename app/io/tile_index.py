@@ -117,6 +117,10 @@ class TileIndex:
             layout, cell, owned_cells, window_cells, frames, counts, sizes, low, time0, centre
         )
 
+    def points_read(self) -> np.ndarray:
+        """(T,) points each tile reads (its frames' points): what its work grows with."""
+        return np.array([int(self.frame_sizes[f].sum()) for f in self.frames], dtype=np.int64)
+
     def tile_survey(self, survey: Survey, tile: int) -> Survey:
         """The survey with only the frames tile `tile` reads (same order)."""
         return replace(survey, frames=[survey.frames[int(k)] for k in self.frames[tile]])

@@ -141,13 +141,19 @@ def drive_tiles(
     map_tiles: TileMap = in_process,
     progress: Progress | None = None,
     steps: dict[str, tuple[float, float]] | None = None,
+    cost: np.ndarray | None = None,
 ) -> int:
     """Every tile of `count` not in `done` through `map_tiles` (`fn(spec, index, tile)`), each
     summary to `add` as it arrives, the earlier attempt's first; returns how many tiles ran.
     `progress` sees tiles done / tiles; tiles run in this process also report their own steps
     (`fn`'s `progress`, placed within the tile by `steps`: {step: (start, end)}). A cancel
-    raised by `progress` closes `map_tiles`, which cancels a cluster's queued tiles."""
+    raised by `progress` closes `map_tiles`, which cancels a cluster's queued tiles.
+
+    With `cost` (per tile, what its work grows with), the costliest tiles are sent first: the
+    last to finish are then short ones, and no worker waits long for another's last tile."""
     missing = [t for t in range(count) if t not in done]
+    if cost is not None:
+        missing.sort(key=lambda t: -float(cost[t]))  # stable: equal costs in tile order
 
     def report(stage: str, within: float = 0.0) -> None:
         if progress is not None:

@@ -275,7 +275,7 @@ def run_clutter_tiled(
     try:
         ran = drive_tiles(
             clutter_tile, spec, tiles, tiles.count, done, assembly.add, map_tiles, progress,
-            TILE_STEPS,
+            TILE_STEPS, cost=tiles.reads(),
         )  # fmt: skip
         frames = sum(s["counts"]["frames"] for s in done.values())
         if frames != len(survey.frames):

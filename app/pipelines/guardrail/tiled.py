@@ -376,7 +376,7 @@ def run_guardrail_tiled(
     try:
         ran = drive_tiles(
             guardrail_tile, spec, index, index.count, done, assembly.add, map_tiles, progress,
-            TILE_STEPS,
+            TILE_STEPS, cost=index.points_read(),
         )  # fmt: skip
         assembled = assembly.finish()
     except BaseException:

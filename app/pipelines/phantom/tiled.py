@@ -197,7 +197,7 @@ def run_phantom_tiled(
     try:
         ran = drive_tiles(
             phantom_tile, spec, index, index.count, done, assembly.add, map_tiles, progress,
-            TILE_STEPS,
+            TILE_STEPS, cost=index.points_read(),
         )  # fmt: skip
         owned = sum(s["points"] for s in done.values())
         if owned != int(index.frame_sizes.sum()):
