@@ -351,13 +351,15 @@ class LasAppender:
 
     def append(self, part: Path) -> None:
         part = Path(part)
+        joined = None
         if self._file is None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._file = open(self.partial, "wb")  # noqa: SIM115 (closed by close / abort)
-            if self.path.suffix.lower() == ".laz" and _joinable(part):
+            joined = _joinable(part) if self.path.suffix.lower() == ".laz" else None
+            if joined is not None:
                 self._join = LazJoin(self._file)
         if self._join is not None:
-            self._join.add(LazPart.read(part))
+            self._join.add(joined or LazPart.read(part))
             self.count = self._join.count
         else:
             self._copy_points(part)
@@ -403,10 +405,10 @@ class LasAppender:
         self.partial.unlink(missing_ok=True)
 
 
-def _joinable(part: Path) -> bool:
-    """A LAZ file whose compressed chunks can be copied as they are (`laz_chunks`)."""
+def _joinable(part: Path) -> LazPart | None:
+    """The part, read for joining, where its compressed chunks can be copied as they are
+    (`laz_chunks`); None where they cannot."""
     try:
-        LazPart.read(part)
+        return LazPart.read(part)
     except ValueError:
-        return False
-    return True
+        return None

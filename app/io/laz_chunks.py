@@ -171,14 +171,9 @@ class LazJoin:
 
 
 def same_layout(a: laspy.LasHeader, b: laspy.LasHeader) -> bool:
-    """Points of `b` may follow those of `a` byte for byte: one version, point format (with its
-    extra bytes), scale and offset."""
-    return (
-        a.version == b.version
-        and a.point_format == b.point_format
-        and np.array_equal(a.scales, b.scales)
-        and np.array_equal(a.offsets, b.offsets)
-    )
+    """Records of `b` are laid out as those of `a`: one version and point format (with its
+    extra bytes); `LazJoin.add` checks the scale and offset apart, to say which differs."""
+    return a.version == b.version and a.point_format == b.point_format
 
 
 def _laszip_record_at(head: bytearray, path: Path) -> int:
