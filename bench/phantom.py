@@ -43,12 +43,16 @@ from bench.common import append_results, markdown_table
 COMMAND = "MMSCLEAN_DATA_DIR=/tmp/mmsvar .venv/bin/python -m bench.phantom"
 
 
-def simulated(scene: str, length: float, seed: int, scanner: str = "profile") -> Path:
-    """A cached simulated survey (deterministic: reused when it exists)."""
-    folder = get_settings().cache_dir / "bench" / f"{scene}-{length:g}m-{scanner}-seed{seed}"
+def simulated(
+    scene: str, length: float, seed: int, scanner: str = "profile", speed: float | None = None
+) -> Path:
+    """A cached simulated survey (deterministic: reused when it exists); `speed` fixes the
+    survey vehicle's speed (m/s) instead of the seed's."""
+    name = f"{scene}-{length:g}m-{scanner}-seed{seed}" + ("" if speed is None else f"-{speed:g}ms")
+    folder = get_settings().cache_dir / "bench" / name
     if not folder.is_dir():
         config = SimulationConfig(scene=scene, length=length, seed=seed, scanner=scanner,
-                                  camera=False, write_map=False)  # fmt: skip
+                                  camera=False, write_map=False, drive_speed=speed)  # fmt: skip
         simulate(config, folder)
     return folder
 

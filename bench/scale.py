@@ -17,7 +17,8 @@ Prints a table and appends it to RESULTS.md.
 
 Each measurement runs in a fresh process (`one`) with a fresh local Dask cluster, so the peaks
 are that run's: a worker's is its whole life (`ru_maxrss` after each tile, in the tile's summary).
-Surveys are synthetic (app.simulate, `--scanner` profile or hdl64, scene mixed, seed 901),
+Surveys are synthetic (app.simulate, `--scanner` profile or hdl64, scene mixed, seed 901, the
+van at 9.5 m/s at every length),
 cached under $MMSCLEAN_DATA_DIR/cache/bench.
 
 Usage: python -m bench.scale phantom|clutter|guardrail|agreement|guardrail-agreement|viewer|
@@ -40,6 +41,10 @@ from pathlib import Path
 COMMAND = "MMSCLEAN_DATA_DIR=/tmp/mmsvar .venv/bin/python -m bench.scale"
 SEED = 901
 SCENE = "mixed"
+# the survey vehicle's speed (m/s), the same at every length: a speed drawn per survey would
+# change the frames and points per km (924 to 1,242 frames per km at seed 901), and the time per
+# km with them, whatever the length
+DRIVE_SPEED = 9.5
 OVERVIEW_POINTS = 500_000  # the viewer's default cap (Settings.viewer_overview_points)
 
 
@@ -58,7 +63,7 @@ def run_one(km: float, scanner: str, workers: int, pipeline: str, tile_length: f
     from app.pipelines.phantom.run import run_phantom_to_folder
     from bench.phantom import simulated
 
-    source = simulated(SCENE, km * 1000.0, SEED, scanner)
+    source = simulated(SCENE, km * 1000.0, SEED, scanner, DRIVE_SPEED)
     survey = open_survey(source, "sim")
     settings = Settings(workers=workers, sample_dir="")
     with tempfile.TemporaryDirectory() as out:
@@ -115,7 +120,7 @@ def viewer_source(km: float, scanner: str):
     from app.review.survey_map import MapSource
     from bench.phantom import simulated
 
-    path = simulated(SCENE, km * 1000.0, SEED, scanner)
+    path = simulated(SCENE, km * 1000.0, SEED, scanner, DRIVE_SPEED)
     origin = tuple(float(v) for v in open_survey(path, "sim").frames[0].pose[:3, 3].round())
     return MapSource(1, str(path), "sim", origin, 0, 0)
 
@@ -183,7 +188,8 @@ def part_viewer(args) -> tuple[str, str, str]:
     )  # fmt: skip
     notes = (
         f"Synthetic: the simulated {args.scanner} survey of the phantom rows (scene {SCENE}, "
-        f"seed {SEED}). Server side only, each step in a fresh process: building the viewer's "
+        f"seed {SEED}, the van at {DRIVE_SPEED:g} m/s). Server side only, each step in a fresh "
+        f"process: building the viewer's "
         f"cache (app/review/survey_map.py, frames read twice, per-point arrays written to "
         f"memory-mapped files); then opening it as a new client's first scene does (the cache "
         f"opened, the overview's points and pillars read: {OVERVIEW_POINTS:,} points at most) "
@@ -201,7 +207,7 @@ def part_viewer_wire(args) -> tuple[str, str, str]:
     from bench.viewer_fly import FLY_STEP_M, measure
 
     km = float(args.lengths.split(",")[-1])
-    got = measure(simulated(SCENE, km * 1000.0, SEED, args.scanner))
+    got = measure(simulated(SCENE, km * 1000.0, SEED, args.scanner, DRIVE_SPEED))
     first, again, flight = got["first"], got["again"], got["flight"]
     prepared = "-" if got["prepared_s"] is None else f"{got['prepared_s']:.1f}"
     table = markdown_table(
@@ -221,7 +227,8 @@ def part_viewer_wire(args) -> tuple[str, str, str]:
     )  # fmt: skip
     notes = (
         f"Synthetic: the simulated {args.scanner} survey of the phantom rows (scene {SCENE}, "
-        f"seed {SEED}), imported into a real `mmsclean serve` on loopback (one job worker); the "
+        f"seed {SEED}, the van at {DRIVE_SPEED:g} m/s), imported into a real `mmsclean serve` on "
+        f"loopback (one job worker); the "
         f"import queues a prepare:viewer job that builds the viewer's map (surveys of 5 M points "
         f"or more), timed from the import's request to the job's end. A client speaking viser's "
         f"wire format through the /viewer/ws relay, as the browser does (tests/viewer/wire.py; "
@@ -346,7 +353,8 @@ def part_pipeline(args) -> tuple[str, str, str]:
 
     lengths = [float(x) for x in args.lengths.split(",")]
     for km in sorted({*lengths, args.speedup_km}):
-        simulated(SCENE, km * 1000.0, SEED, args.scanner)  # simulated before any clock runs
+        # simulated before any clock runs
+        simulated(SCENE, km * 1000.0, SEED, args.scanner, DRIVE_SPEED)
     rows, runs = [], []
     pipeline, tile_length = args.part, args.tile_length
 
@@ -386,7 +394,8 @@ def part_pipeline(args) -> tuple[str, str, str]:
         "guardrails grouped and reconstructed over the whole survey",
     }[pipeline]
     notes = (
-        f"Synthetic: simulated {args.scanner} surveys (scene {SCENE}, seed {SEED}, no camera), "
+        f"Synthetic: simulated {args.scanner} surveys (scene {SCENE}, seed {SEED}, the van at "
+        f"{DRIVE_SPEED:g} m/s at every length, no camera), "
         f"{how}, {tile_length:g} m tiles, on a fresh local Dask cluster per run. Wall time from "
         f"the start of the run to report.json (tiles, assembly of labels, LAZ and the rest; the "
         f"cluster's start and the simulation not counted). Time per km spread from the "

@@ -58,6 +58,9 @@ def simulate(
     compressed: Annotated[
         bool, typer.Option(help="scans as LAZ (per-point time inside) instead of KITTI .bin")
     ] = False,
+    drive_speed: Annotated[
+        float | None, typer.Option(help="the survey vehicle's speed, m/s (default: the seed's)")
+    ] = None,
     overwrite: Annotated[bool, typer.Option(help="replace OUT if it exists")] = False,
 ) -> None:
     """Simulate a mobile-mapping survey with complete ground truth."""
@@ -77,6 +80,7 @@ def simulate(
         pose_noise_deg=pose_noise_deg,
         write_map=write_map,
         compressed=compressed,
+        drive_speed=drive_speed,
     )
     with Progress(console=err_console, transient=True) as bar:
         task = bar.add_task(f"simulating {config.scene} ({config.scanner})", total=None)

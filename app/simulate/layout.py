@@ -478,7 +478,12 @@ def interchange(b: SceneBuilder, cs: CrossSection, s0: float, s1: float, length:
                      dz=-0.1, sides=(-1.0,))  # fmt: skip
 
 
-def build_scene(preset: str, length: float, rng: np.random.Generator) -> Scene:
+def build_scene(
+    preset: str, length: float, rng: np.random.Generator, drive_speed: float | None = None
+) -> Scene:
+    """The street of `preset`, `length` metres, drawn from `rng`. The survey vehicle's speed
+    is drawn too; `drive_speed` replaces the drawn value (drawn all the same, so that the rest
+    of the street is the seed's)."""
     if preset not in PRESETS:
         raise ValueError(f"unknown scene preset {preset!r}: {', '.join(PRESETS)}")
     highway = preset in ("highway", "interchange")
@@ -500,7 +505,9 @@ def build_scene(preset: str, length: float, rng: np.random.Generator) -> Scene:
             interchange(b, cs, s0, s1, length)
         else:
             open_highway(b, cs, s0, s1)
-        drive, vehicle = survey_drive(b, cs.lane_centres[1], rng.uniform(20.0, 25.0), length)
+        speed = rng.uniform(20.0, 25.0)
+        speed = speed if drive_speed is None else drive_speed
+        drive, vehicle = survey_drive(b, cs.lane_centres[1], speed, length)
         highway_traffic(b, drive, cs)
     else:
         cs = URBAN if preset == "urban" else ARTERIAL
@@ -518,7 +525,9 @@ def build_scene(preset: str, length: float, rng: np.random.Generator) -> Scene:
         parked_vehicles(b, parking, rail_right[1] + 1.0, s1, 0.0)
         parked_vehicles(b, -parking, s0, rail_left[0] - 1.0, np.pi)
         parked_vehicles(b, -parking, rail_left[1] + 1.0, s1, np.pi)
-        drive, vehicle = survey_drive(b, cs.lane_centres[0], rng.uniform(8.0, 11.0), length)
+        speed = rng.uniform(8.0, 11.0)
+        speed = speed if drive_speed is None else drive_speed
+        drive, vehicle = survey_drive(b, cs.lane_centres[0], speed, length)
         if preset == "mixed":
             light = mixed_traffic(b, drive, cs, length)
         else:

@@ -50,6 +50,13 @@ class SimulationConfig(BaseModel):
     pose_noise_deg: float = Field(0.0, ge=0.0, description="GNSS/INS heading noise (sigma)")
     write_map: bool | None = Field(None, description="write map.laz; default: profile only")
     compressed: bool = Field(False, description="scans as LAZ instead of KITTI .bin")
+    drive_speed: float | None = Field(
+        None,
+        ge=2.0,
+        le=30.0,
+        description="the survey vehicle's speed (m/s); default: drawn from the seed (8-11 in "
+        "town, 20-25 on a highway). Fixed, surveys of several lengths differ only in length",
+    )
     vary_scanner: bool = Field(
         False,
         description="hdl64: draw the rotating scanner from the seed (32 / 64 beams, azimuth "
@@ -148,7 +155,8 @@ def _seeds(config: SimulationConfig) -> list[np.random.SeedSequence]:
 
 def rebuild_scene(config: SimulationConfig) -> Scene:
     """The exact scene a simulation with this config used (tests, evaluation)."""
-    scene = build_scene(config.scene, config.length, np.random.default_rng(_seeds(config)[0]))
+    rng = np.random.default_rng(_seeds(config)[0])
+    scene = build_scene(config.scene, config.length, rng, config.drive_speed)
     scene.seed = config.seed
     return scene
 

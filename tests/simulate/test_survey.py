@@ -195,3 +195,18 @@ def test_pose_noise(tmp_path: Path) -> None:
         np.abs((raw[:, :3, 3] - raw[0, :3, 3]) - (measured[:, :, 3] - measured[0, :, 3])).max()
         < 1e-3
     )
+
+
+def test_fixed_drive_speed_keeps_the_seeds_street() -> None:
+    """A fixed speed changes the drive only: the street's bodies are the seed's (surveys of
+    several lengths at one speed differ only in length, bench.scale)."""
+    drawn = rebuild_scene(SimulationConfig(scene="mixed", length=120.0, seed=5))
+    fixed = rebuild_scene(SimulationConfig(scene="mixed", length=120.0, seed=5, drive_speed=6.0))
+    assert fixed.duration == pytest.approx(120.0 / 6.0)
+    assert drawn.duration != pytest.approx(fixed.duration)
+    assert [b.name for b in fixed.bodies] == [b.name for b in drawn.bodies]
+    parked = [i for i, b in enumerate(drawn.bodies) if b.motion is None]
+    for i in parked:
+        assert np.array_equal(fixed.bodies[i].mesh.vertices, drawn.bodies[i].mesh.vertices)
+    with pytest.raises(ValueError, match="drive_speed"):
+        SimulationConfig(drive_speed=50.0)
