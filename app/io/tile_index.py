@@ -6,12 +6,17 @@ the tile of its centre's station, and its points with it), and per frame a coars
 cells its points touch on a grid `FOOTPRINT_CELLS` times coarser). A tile's window is its own
 cells dilated by the halo (`geometry.tiles.halo_cells`); the frames it reads are those whose
 footprint meets the window. Nothing here holds a survey's points: memory grows with the area
-driven, not with the points.
+driven, not with the points. The pass may be cut into parts of frames that a cluster's workers
+scan side by side (`map_parts`): nothing else of a tiled run is serial for that long.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Iterator
+from contextlib import closing
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -20,6 +25,11 @@ from app.io.map_trajectory import map_trajectory
 from app.io.survey import Survey
 
 FOOTPRINT_CELLS = 8  # a frame's footprint is kept on cells this many times the tile cell
+PART_FRAMES = 64  # frames per part of the pass when a cluster scans the parts side by side
+
+# runs `fn(spec, parts, part)` for each part given and yields the results as they finish (the
+# tiled runs' `map_tiles`, `pipelines.tiling.TileMap`)
+PartMap = Callable[[Callable[..., Any], Any, Any, list[int]], Iterator[Any]]
 
 
 @dataclass
@@ -50,6 +60,7 @@ class TileIndex:
         halo: float,
         cell: float = 2.0,
         max_points: int | None = None,
+        map_parts: PartMap | None = None,
     ) -> TileIndex:
         """Stream the survey's frames once (a map file chunk by chunk). The trajectory is the
         frames' sensor positions, a map's recorded one, or else the one its points trace
@@ -57,7 +68,11 @@ class TileIndex:
         would own more than `max_points` points (`TileLayout.cut_by_points`): a dense scanner's
         tile fits a worker as a sparse one's does. The windows are then counted as they are on
         the ground, and a tile whose window still holds more (the drive came back along the
-        street: both passes are in it) is halved until it fits or is as short as it may be."""
+        street: both passes are in it) is halved until it fits or is as short as it may be.
+
+        With `map_parts`, the pass is cut into parts of `PART_FRAMES` frames scanned there
+        (a cluster's workers reopen the survey from its source); without it, this process
+        scans the frames as they are."""
         poses = survey.poses()
         if len(poses) == 0:
             raise ValueError(f"{survey.source}: no frames to cut into tiles")
@@ -65,24 +80,9 @@ class TileIndex:
         if survey.is_map and survey.trajectory is None:
             path, time0 = map_trajectory(survey)
         layout = TileLayout.along(path, length, halo)
-        coarse = cell * FOOTPRINT_CELLS
-        cells = _CellCounts()
-        footprints, sizes = [], []
-        low, total = np.full(3, np.inf), np.zeros(3)
-        for frame in survey.frames:
-            size, footprint = 0, []
-            for _, cloud in frame.world_chunks():
-                xyz = cloud.xyz
-                size += len(xyz)
-                if len(xyz):
-                    low = np.minimum(low, xyz.min(axis=0))
-                    total += xyz.sum(axis=0)
-                keys, per_key = np.unique(cell_keys(xyz, cell), return_counts=True)
-                cells.add(keys, per_key)
-                footprint.append(np.unique(cell_keys(_centres(keys, cell), coarse)))
-            sizes.append(size)
-            footprints.append(np.unique(np.concatenate(footprint)))
-        keys, per_key = cells.totals()
+        scan = _scan(survey, cell, map_parts)
+        footprints, sizes, low, total = scan.footprints, scan.sizes, scan.low, scan.total
+        keys, per_key = scan.keys, scan.counts
         stations = layout.stations(_centres(keys, cell))
         if max_points is not None:
             layout = layout.cut_by_points(stations, per_key, max_points, min_length=2 * cell)
@@ -106,11 +106,10 @@ class TileIndex:
         counts = np.bincount(tile, weights=per_key, minlength=layout.count).astype(np.int64)
         frame_of = np.repeat(np.arange(len(footprints)), [len(fp) for fp in footprints])
         footprint = np.concatenate(footprints)
-        frames = []
+        frames, coarse = [], cell * FOOTPRINT_CELLS
         for window in window_cells:  # the coarse cells holding a window cell's centre
             touched = np.isin(footprint, np.unique(cell_keys(_centres(window, cell), coarse)))
             frames.append(np.unique(frame_of[touched]))
-        sizes = np.asarray(sizes, dtype=np.int64)
         low = np.where(np.isfinite(low), low, 0.0)
         centre = total / max(int(sizes.sum()), 1)
         return cls(
@@ -132,6 +131,91 @@ class TileIndex:
     def owned(self, xyz: np.ndarray, tile: int) -> np.ndarray:
         """(N,) bool: tile `tile` owns the point (it owns the point's cell)."""
         return np.isin(cell_keys(xyz, self.cell), self.owned_cells[tile])
+
+
+@dataclass
+class FrameScan:
+    """What the pass keeps of a run of frames: their sizes and coarse footprints, the smallest
+    coordinates and the sum of their points, and the points per grid cell."""
+
+    sizes: np.ndarray  # (F,) int64
+    footprints: list[np.ndarray]  # per frame, sorted coarse cell keys its points touch
+    low: np.ndarray  # (3,) float64 (inf where there are no points)
+    total: np.ndarray  # (3,) float64
+    keys: np.ndarray  # sorted cell keys
+    counts: np.ndarray  # points in each
+    part: int = field(default=0, compare=False)
+
+    @classmethod
+    def of(cls, frames: list, cell: float, part: int = 0) -> FrameScan:
+        """Stream `frames` one at a time (a map file chunk by chunk)."""
+        coarse = cell * FOOTPRINT_CELLS
+        cells = _CellCounts()
+        footprints, sizes = [], []
+        low, total = np.full(3, np.inf), np.zeros(3)
+        for frame in frames:
+            size, footprint = 0, []
+            for _, cloud in frame.world_chunks():
+                xyz = cloud.xyz
+                size += len(xyz)
+                if len(xyz):
+                    low = np.minimum(low, xyz.min(axis=0))
+                    total += xyz.sum(axis=0)
+                keys, per_key = np.unique(cell_keys(xyz, cell), return_counts=True)
+                cells.add(keys, per_key)
+                footprint.append(np.unique(cell_keys(_centres(keys, cell), coarse)))
+            sizes.append(size)
+            footprints.append(np.unique(np.concatenate(footprint)))
+        keys, counts = cells.totals()
+        sizes = np.asarray(sizes, dtype=np.int64)
+        return cls(sizes, footprints, low, total, keys, counts, part)
+
+    @classmethod
+    def joined(cls, parts: list[FrameScan]) -> FrameScan:
+        """The scan of the parts' frames one after the other (`parts` in frame order)."""
+        cells = _CellCounts()
+        for p in parts:
+            cells.add(p.keys, p.counts)
+        keys, counts = cells.totals()
+        return cls(
+            np.concatenate([p.sizes for p in parts]),
+            [f for p in parts for f in p.footprints],
+            np.min([p.low for p in parts], axis=0),
+            np.sum([p.total for p in parts], axis=0),
+            keys,
+            counts,
+        )
+
+
+@dataclass(frozen=True)
+class ScanSpec:
+    """What a worker needs to scan a part of a survey's frames: names, not objects."""
+
+    survey_source: str
+    survey_format: str
+    cell: float
+
+
+def scan_part(spec: ScanSpec, parts: list[tuple[int, int]], part: int) -> FrameScan:
+    """Part `part` of the pass as a worker runs it: the survey reopened, frames [a, b)."""
+    from app.io.registry import open_survey
+
+    a, b = parts[part]
+    frames = open_survey(Path(spec.survey_source), spec.survey_format).frames[a:b]
+    return FrameScan.of(frames, spec.cell, part)
+
+
+def _scan(survey: Survey, cell: float, map_parts: PartMap | None) -> FrameScan:
+    """The pass over every frame: here, or in parts through `map_parts`."""
+    count = len(survey.frames)
+    if map_parts is None or count <= PART_FRAMES:
+        return FrameScan.of(survey.frames, cell)
+    starts = list(range(0, count, PART_FRAMES))
+    parts = [(a, min(a + PART_FRAMES, count)) for a in starts]
+    spec = ScanSpec(str(Path(survey.source).resolve()), survey.format, cell)
+    with closing(map_parts(scan_part, spec, parts, list(range(len(parts))))) as finished:
+        scans = sorted(finished, key=lambda s: s.part)
+    return FrameScan.joined(scans)
 
 
 def _points_in(window: np.ndarray, keys: np.ndarray, per_key: np.ndarray) -> int:

@@ -38,6 +38,13 @@ def in_process(fn: Callable[..., dict], spec: Any, index: Any, tiles: list[int])
         yield fn(spec, index, tile)
 
 
+def scan_map(map_tiles: TileMap) -> TileMap | None:
+    """The `map_parts` of `TileIndex.build`: a cluster's, whose workers scan the survey's frames
+    in parts side by side; None in this process, which scans the frames as they are (a survey
+    built in memory has no source to reopen)."""
+    return None if map_tiles is in_process else map_tiles
+
+
 def tile_name(tile: int) -> str:
     return f"{tile:05d}"
 

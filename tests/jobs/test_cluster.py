@@ -25,7 +25,11 @@ from tests.api.server import free_port
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def test_a_local_cluster_runs_the_tiles(tmp_path: Path) -> None:
+def test_a_local_cluster_runs_the_tiles(tmp_path: Path, monkeypatch) -> None:
+    """The tiles and the index pass (in parts of 16 frames: the sample has 59) on the
+    cluster: the labels of the run in this process."""
+    import app.io.tile_index as tile_index
+
     survey = open_survey(ROOT / "data_samples" / "urban-60m", "sim")
     pipeline = PhantomPipeline(model_path=ROOT / "models" / "phantom" / "phantom_cnn.pt")
     here = run_phantom_tiled(pipeline, survey, tmp_path / "here", length=25.0)
@@ -33,15 +37,16 @@ def test_a_local_cluster_runs_the_tiles(tmp_path: Path) -> None:
     try:
         client = tile_client(settings)
         assert len(client.scheduler_info()["workers"]) == 2
+        monkeypatch.setattr(tile_index, "PART_FRAMES", 16)
         seen = []
-        run_phantom_tiled(
+        there = run_phantom_tiled(
             pipeline, survey, tmp_path / "there", length=25.0, map_tiles=tile_map(settings),
             progress=lambda stage, fraction: seen.append(fraction),
         )  # fmt: skip
         assert tile_client(settings) is client  # one cluster per process
     finally:
         close_clients()
-    assert here.index.count == 3 and seen == [0.0, 1 / 3, 2 / 3, 1.0]
+    assert here.index.count == there.index.count == 3 and seen == [0.0, 1 / 3, 2 / 3, 1.0]
     for frame in survey.frames:
         name = f"{frame.frame_id}.npy"
         assert np.array_equal(

@@ -60,6 +60,7 @@ from app.pipelines.tiling import (
     finished_tiles,
     in_process,
     save_tile_arrays,
+    scan_map,
     tile_name,
     write_summary,
 )
@@ -364,7 +365,7 @@ def run_guardrail_tiled(
     the tiles' parts: `ReconstructionInput.save_parts`) and `features_path` holds their
     classifier inputs (the web app's review, rebuild and retraining read them)."""
     halo = guardrail_halo(pipeline.config) if halo is None else halo
-    index = TileIndex.build(survey, length, halo, INDEX_CELL, max_points)
+    index = TileIndex.build(survey, length, halo, INDEX_CELL, max_points, scan_map(map_tiles))
     model = pipeline.model_path.resolve()
     spec = GuardrailTileSpec(  # absolute paths: a cluster's workers run elsewhere
         str(Path(survey.source).resolve()), survey.format, str(model),

@@ -29,7 +29,14 @@ from app.pipelines.phantom.evaluation.classification_metrics import metric_count
 from app.pipelines.phantom.network import CONTEXT_SPAN
 from app.pipelines.phantom.pipeline import PhantomPipeline
 from app.pipelines.phantom.tile_outputs import Assembly, TileResult, write_tile
-from app.pipelines.tiling import TileMap, drive_tiles, file_stamp, finished_tiles, in_process
+from app.pipelines.tiling import (
+    TileMap,
+    drive_tiles,
+    file_stamp,
+    finished_tiles,
+    in_process,
+    scan_map,
+)
 
 TILE_LENGTH = 100.0  # metres of trajectory per tile, at most
 # points in a tile's window at most (the tile is cut shorter where they are denser): a worker's
@@ -186,7 +193,7 @@ def run_phantom_tiled(
     a cluster. Tiles are `length` metres, shorter where their window would hold more than
     `max_points` points (None: no bound)."""
     halo = phantom_halo(pipeline.config) if halo is None else halo
-    index = TileIndex.build(survey, length, halo, INDEX_CELL, max_points)
+    index = TileIndex.build(survey, length, halo, INDEX_CELL, max_points, scan_map(map_tiles))
     spec = PhantomTileSpec(  # absolute paths: a cluster's workers run elsewhere
         str(Path(survey.source).resolve()), survey.format, str(pipeline.model_path.resolve()),
         pipeline.config.model_dump_json(), str(Path(out).resolve()),

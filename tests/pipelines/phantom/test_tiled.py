@@ -166,3 +166,24 @@ def test_a_window_over_both_passes_is_cut_again() -> None:
         start, end = index.layout.bounds(tile)
         short = min(end, index.layout.total) - max(start, 0.0) < 4 * index.cell
         assert held <= budget or short, (tile, held)
+
+
+def test_the_pass_in_parts_is_the_pass_in_one(monkeypatch) -> None:
+    """A cluster scans the frames in parts, each reopening the survey from its source: the
+    index is the one this process builds from the frames in one pass."""
+    import app.io.tile_index as tile_index
+    from app.pipelines.tiling import in_process
+
+    survey = _first_frames(40)
+    whole = TileIndex.build(survey, 12.0, 11.0, 2.0, max_points=200_000)
+    monkeypatch.setattr(tile_index, "PART_FRAMES", 7)  # parts of 7 frames, the last of 5
+    parts = TileIndex.build(survey, 12.0, 11.0, 2.0, max_points=200_000, map_parts=in_process)
+    assert parts.count == whole.count > 2
+    np.testing.assert_array_equal(parts.frame_sizes, whole.frame_sizes)
+    np.testing.assert_array_equal(parts.owned_points, whole.owned_points)
+    for a, b in zip(
+        parts.frames + parts.owned_cells, whole.frames + whole.owned_cells, strict=True
+    ):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(parts.low, whole.low)
+    np.testing.assert_allclose(parts.centre, whole.centre, rtol=0, atol=1e-9)
