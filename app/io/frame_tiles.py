@@ -7,11 +7,12 @@ drive's way back its way out's stations). A tile reads its own frames and, as co
 frame whose sensor was within `halo` metres (horizontally) of one of its own frames' sensors: the
 frames whose rays and objects reach its own. The halo is spatial, not a stretch of stations, so a
 drive that comes back along a street sees its first pass there too. A tile may also be cut
-shorter so that it reads at most a number of frames where the frames are dense. Where one
-frame's context alone is over that number (the drive comes back along a street: both passes are
-context), a tile may read that context and a third of the number more: else each frame there
-would be a tile of its own, reading its whole context again. Only poses are read: building the
-tiles costs nothing per point.
+shorter so that what it reads stays within a budget: each frame weighs what it costs a tile to
+hold (by default 1: frames are counted; the clutter pipeline weighs them by what they add to its
+free-space map, `clutter/map_budget.py`). Where one frame's context alone is over the budget (the
+drive comes back along a street: both passes are context), a tile may read that context and a
+third of the budget more: else each frame there would be a tile of its own, reading its whole
+context again. Only poses (and the weights given) are read.
 """
 
 from __future__ import annotations
@@ -38,12 +39,17 @@ class FrameTiles:
 
     @classmethod
     def build(
-        cls, survey: Survey, length: float, halo: float, max_reads: int | None = None
+        cls,
+        survey: Survey,
+        length: float,
+        halo: float,
+        budget: float | None = None,
+        weights: np.ndarray | None = None,
     ) -> FrameTiles:
-        """Tiles of `length` metres; with `max_reads`, a tile also ends before it would read
-        more than that many frames (its own and their halo's, a drive's other passes
-        included), or one of its frames' context and a third of `max_reads` more where that
-        context alone is over `max_reads`."""
+        """Tiles of `length` metres; with `budget`, a tile also ends before the frames it reads
+        (its own and their halo's, a drive's other passes included) would weigh more than
+        that, or more than one of its frames' context and a third of `budget` where that
+        context alone is over `budget`. `weights`: (F,) what each frame weighs (default 1)."""
         poses = survey.poses()
         if len(poses) == 0:
             raise ValueError(f"{survey.source}: no frames to cut into tiles")
@@ -51,8 +57,11 @@ class FrameTiles:
         layout = TileLayout.along(sensors, length, halo)
         station = arc_length(np.column_stack([sensors[:, :2], np.zeros(len(sensors))]))
         near = cKDTree(sensors[:, :2]).query_ball_point(sensors[:, :2], r=halo)
-        if max_reads is not None:
-            layout = _cut_by_reads(layout, station, near, max_reads)
+        if budget is not None:
+            weight = np.ones(len(poses)) if weights is None else np.asarray(weights, np.float64)
+            if weight.shape != (len(poses),):
+                raise ValueError(f"{len(weight)} frame weights for {len(poses)} frames")
+            layout = _cut_by_budget(layout, station, near, weight, budget)
         owner = layout.owner(station)
         frames = []
         for tile in range(layout.count):
@@ -74,20 +83,21 @@ class FrameTiles:
         return replace(survey, frames=[survey.frames[int(k)] for k in self.frames[tile]])
 
 
-def _cut_by_reads(
-    layout: TileLayout, station: np.ndarray, near: list, max_reads: int
+def _cut_by_budget(
+    layout: TileLayout, station: np.ndarray, near: list, weight: np.ndarray, budget: float
 ) -> TileLayout:
     """`layout`'s trajectory with a tile ending at `length` metres or before the frame that
-    would make it read more than `max_reads` frames, or more than that frame's context and a
-    third of `max_reads` where the context alone is over `max_reads` (else such a frame would
+    would make the frames it reads weigh more than `budget`, or more than that frame's context
+    and a third of `budget` where the context alone is over `budget` (else such a frame would
     be a tile on its own). One step per frame (frames, not points)."""
-    edges, start, reads = [0.0], 0.0, set()
+    edges, start, reads, held = [0.0], 0.0, set(), 0.0
     for k in np.argsort(station, kind="stable").tolist():
         s = max(float(station[k]), 0.0)
-        grown = reads.union(near[k])
-        limit = max(max_reads, len(near[k]) + max_reads // 3)
-        if reads and (s - start >= layout.length or len(grown) > limit) and s > start:
+        new = set(near[k]) - reads
+        grown, weighs = reads | new, held + float(weight[list(new)].sum())
+        limit = max(budget, float(weight[near[k]].sum()) + budget / 3)
+        if reads and (s - start >= layout.length or weighs > limit) and s > start:
             edges.append(s)
-            start, grown = s, set(near[k])
-        reads = grown
+            start, grown, weighs = s, set(near[k]), float(weight[near[k]].sum())
+        reads, held = grown, weighs
     return TileLayout(layout.stations_of, layout.length, layout.halo, tuple(edges))

@@ -33,13 +33,14 @@ from app.pipelines.guardrail.pipeline import (
     SHIPPED,
     GuardrailInstance,
     ReconstructionInput,
+    StoredStage,
     rebuild_guardrails,
 )
 from app.pipelines.guardrail.run import STAGE_FILE, guardrail_writer, run_guardrail_report
 from app.pipelines.guardrail.tiled import INDEX_CELL, TILE_LENGTH, TILE_POINTS, guardrail_halo
 from app.pipelines.outputs import write_report
 from app.pipelines.sensor_models import ModelChoice
-from app.review.guardrails import current_run, load_stage, reading_stage, stage_rows
+from app.review.guardrails import current_run, reading_stage, stage_rows
 from app.store.guardrail_review import slice_table
 from app.store.guardrail_runs import (
     ModelRecord,
@@ -226,7 +227,7 @@ def run_guardrail(context: JobContext, config: dict[str, Any]) -> dict[str, Any]
     log_tiles(context, report["tiles"])
     models = []
     if run.rails is not None:
-        models = model_records(run.rails, done.guardrails, done.pipeline.config)
+        models = model_records(run.rails.index, done.guardrails, done.pipeline.config)
     s = run.slices
     rows = SliceRows(
         component=s.component,
@@ -272,16 +273,17 @@ def rebuild_guardrail_models(context: JobContext, config: dict[str, Any]) -> dic
         run = current_run(session, survey_id)
         table = slice_table(session, survey_id)
     context.progress(0.02, "loading the slice stage")
-    slices = load_stage(run, slices_only=True)
-    at = stage_rows(slices, table.component, table.slice_index)
-    labels = np.zeros(len(slices.slices), dtype=bool)
-    labels[at] = table.label.astype(bool)
-    cfg = validated(
-        GuardrailConfig,
-        {**slices.config.model_dump(), **(config or {})},
-        known=tuple(GuardrailConfig.model_fields),
-    )
-    with reading_stage(run) as stage:  # each guardrail's points read for it alone, then written
+    with reading_stage(run) as path:  # each guardrail's points read for it alone, then written
+        stage = StoredStage.open(path)
+        slices = stage.index
+        at = stage_rows(slices, table.component, table.slice_index)
+        labels = np.zeros(len(slices.slices), dtype=bool)
+        labels[at] = table.label.astype(bool)
+        cfg = validated(
+            GuardrailConfig,
+            {**slices.config.model_dump(), **(config or {})},
+            known=tuple(GuardrailConfig.model_fields),
+        )
         guardrails = rebuild_guardrails(
             stage, labels, cfg, lambda step, f: context.progress(0.05 + 0.85 * f, step),
             guardrail_writer(context.workdir),

@@ -26,6 +26,7 @@ from app.io.frame_tiles import FrameTiles
 from app.io.survey import Camera, Survey
 from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.evaluation.removal_metrics import survey_removal_counts
+from app.pipelines.clutter.map_budget import frame_map_mb
 from app.pipelines.clutter.maps import maps_offset, write_frame_maps
 from app.pipelines.clutter.pipeline import ClutterPipeline, ClutterResult
 from app.pipelines.clutter.review_units import write_review_units
@@ -42,12 +43,14 @@ from app.pipelines.tiling import (
     write_summary,
 )
 
-TILE_LENGTH = 100.0  # metres of trajectory per tile, at most
-# frames a tile reads at most (its own and their halo's): DUFOMap's map grows with them. A profile
-# scanner's thin planes of free space do not merge in its octree: 0.5-1.4 MB per frame on
-# simulated streets, 9.9 MB where its rays reach far (a simulated open stretch; a 100 m tile of a
-# simulated HDL-64E peaked at 0.5 GB in all). 150 frames keep that stretch near 1.5 GB.
-TILE_FRAMES = 150
+# metres of trajectory per tile, at most: a tile reads its halo's frames on both sides as well
+# (80 m of frames with the defaults), so longer tiles read each frame fewer times
+TILE_LENGTH = 200.0
+# megabytes of free-space map a tile's frames may add up to (`map_budget.frame_map_mb`: what each
+# frame adds, estimated). A tile's worker held about 220 MB besides the map (simulated profile
+# surveys), so a full tile stays near 850 MB, and one whose single frame's context is over the
+# budget (a drive back along its street) reads that context and 200 MB more.
+TILE_MAP_MB = 600.0
 # share of a tile's time at the start and end of each step (for progress within a tile)
 TILE_STEPS = {
     "segmentation": (0.0, 0.4),
@@ -255,14 +258,17 @@ def run_clutter_tiled(
     review: bool = False,
     cache_dir: Path | None = None,
     weights_dir: Path | None = None,
-    max_reads: int | None = TILE_FRAMES,
+    map_mb: float | None = TILE_MAP_MB,
 ) -> ClutterTiledRun:
     """The survey tile by tile into `out`: each tile's files as it finishes, the maps and
     totals assembled from them. Tiles an earlier attempt finished with the same plan are not
     run again; `map_tiles` may run the tiles side by side on a cluster. A tile ends at
-    `length` metres or before it would read more than `max_reads` frames."""
+    `length` metres or before its frames would add more than `map_mb` megabytes to its
+    free-space map (None, or no free space: tiles by length only)."""
     halo = clutter_halo(config) if halo is None else halo
-    tiles = FrameTiles.build(survey, length, halo, max_reads)
+    budget = map_mb if config.use_free_space else None
+    weights = None if budget is None else frame_map_mb(survey, config)
+    tiles = FrameTiles.build(survey, length, halo, budget, weights)
     spec = ClutterTileSpec(  # absolute paths: a cluster's workers run elsewhere
         str(Path(survey.source).resolve()), survey.format, config.model_dump_json(),
         str(Path(out).resolve()), tuple(maps_offset(survey).tolist()),

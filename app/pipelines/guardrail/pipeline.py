@@ -5,7 +5,7 @@ poles, unit shapes, superimposition, pipe / beam reconstruction -> meshes."""
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -314,63 +314,94 @@ class ReconstructionInput:
     ) -> ReconstructionInput:
         """`slices_only`: the per-slice arrays without the points (cheap: for label previews);
         `points_of` (K,) bool: every slice, with the points of these only (a rebuild needs the
-        guardrail slices' points, not the survey's)."""
-        with np.load(Path(path), allow_pickle=False) as z:
-            if "parts" in z.files:
-                return cls._load_parts(Path(path), z, slices_only, points_of)
-            empty = {"slices.point_slice": np.int64, "slices.indices": np.int64,
-                     "slices.point_station": np.float64, "slices.point_lateral": np.float64,
-                     "above_ground": np.float64}  # fmt: skip
+        guardrail slices' points, not the survey's). A step that reads points several times
+        opens the stage once (`StoredStage`)."""
+        stage = StoredStage.open(path)
+        return stage.index if slices_only else stage.with_points(points_of)
 
-            def part(key: str) -> np.ndarray:
-                if slices_only and key == "xyz":
-                    return np.zeros((0, 3))
-                if slices_only and key in empty:
-                    return np.zeros(0, dtype=empty[key])
-                return z[key]
 
-            arrays = {k: part(f"slices.{k}") for k in _SLICE_ARRAYS}
-            slices = SliceSet(spacing=float(z["spacing"]), **arrays)
-            config = GuardrailConfig.model_validate_json(str(z["config"]))
-            return cls(slices, part("xyz"), part("above_ground"), z["trajectory"], config)
+@dataclass
+class StoredStage:
+    """A stored stage (`ReconstructionInput.save` / `save_parts`) opened once: its slices held
+    without their points (`index`), the points read for the slices a step asks, from the parts
+    that hold them (`with_points`). A rebuild asks once per guardrail and reads the index once:
+    its per-slice arrays grow with the survey, not with one guardrail."""
+
+    path: Path
+    index: ReconstructionInput  # every slice, no points
+    parts: list[str] | None  # the parts' files beside the index (None: one file holds all)
+    part_slices: np.ndarray | None  # (P,) slices of each part
+    counts: np.ndarray | None  # (K,) points of each slice
 
     @classmethod
-    def _load_parts(
-        cls, path: Path, z: Any, slices_only: bool, points_of: np.ndarray | None
-    ) -> ReconstructionInput:
-        """`load` of a `save_parts` index: the points read part by part, of the slices asked."""
-        per_slice = {k: z[f"slices.{k}"] for k in _PER_SLICE}
-        k = len(per_slice["component"])
-        wanted = np.zeros(k, bool) if slices_only else np.ones(k, bool)
-        if points_of is not None and not slices_only:
-            wanted = np.asarray(points_of, dtype=bool)
-            if len(wanted) != k:
-                raise ValueError(f"{len(wanted)} slices asked of {k}")
-        counts = np.diff(z["slices.offsets"])
+    def open(cls, path: Path) -> StoredStage:
+        path = Path(path)
+        with np.load(path, allow_pickle=False) as z:
+            if "parts" not in z.files:
+                return cls(path, _one_file(z, slices_only=True), None, None, None)
+            per_slice = {k: z[f"slices.{k}"] for k in _PER_SLICE}
+            counts = np.diff(z["slices.offsets"])
+            none_i, none_f = np.zeros(0, np.int64), np.zeros(0)
+            slices = SliceSet(
+                spacing=float(z["spacing"]), point_slice=none_i, indices=none_i,
+                offsets=np.zeros(len(counts) + 1, np.int64), **per_slice,
+                point_station=none_f, point_lateral=none_f,
+            )  # fmt: skip
+            config = GuardrailConfig.model_validate_json(str(z["config"]))
+            index = ReconstructionInput(slices, np.zeros((0, 3)), none_f, z["trajectory"], config)
+            return cls(path, index, [str(p) for p in z["parts"]], z["part_slices"], counts)
+
+    def with_points(self, wanted: np.ndarray | None = None) -> ReconstructionInput:
+        """Every slice, with the points of the `wanted` ones ((K,) bool; None: all) read part
+        by part; a stage of one file is read whole."""
+        if self.parts is None or self.counts is None or self.part_slices is None:
+            with np.load(self.path, allow_pickle=False) as z:
+                return _one_file(z, slices_only=False)
+        k = len(self.counts)
+        wanted = np.ones(k, bool) if wanted is None else np.asarray(wanted, dtype=bool)
+        if len(wanted) != k:
+            raise ValueError(f"{len(wanted)} slices asked of {k}")
         columns: dict[str, list[np.ndarray]] = {c: [] for c in _POINT_COLUMNS}
-        start = 0
-        for name, n in zip(z["parts"], z["part_slices"], strict=True):
-            chosen = wanted[start : start + n]
+        starts = np.concatenate([[0], np.cumsum(self.part_slices)])
+        for name, a, b in zip(self.parts, starts[:-1], starts[1:], strict=True):
+            chosen = wanted[a:b]
             if chosen.any():
-                with np.load(path.parent / str(name), allow_pickle=False) as part:
+                with np.load(self.path.parent / name, allow_pickle=False) as part:
                     keep = chosen[part["slices.point_slice"]]
                     for c in _POINT_COLUMNS:
                         columns[c].append(part[c][keep])
-            start += n
-        counts = np.where(wanted, counts, 0)
+        counts = np.where(wanted, self.counts, 0)
         offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
         m = int(offsets[-1])
         points = {c: np.concatenate(v) if v else np.zeros(0) for c, v in columns.items()}
-        slices = SliceSet(
-            spacing=float(z["spacing"]),
-            point_slice=np.repeat(np.arange(k, dtype=np.int64), counts),
-            indices=np.arange(m, dtype=np.int64), offsets=offsets, **per_slice,
+        held = self.index.slices
+        slices = replace(
+            held, point_slice=np.repeat(np.arange(k, dtype=np.int64), counts),
+            indices=np.arange(m, dtype=np.int64), offsets=offsets,
             point_station=points["slices.point_station"],
             point_lateral=points["slices.point_lateral"],
         )  # fmt: skip
-        config = GuardrailConfig.model_validate_json(str(z["config"]))
         xyz = points["xyz"].reshape(-1, 3)
-        return cls(slices, xyz, points["above_ground"], z["trajectory"], config)
+        return replace(self.index, slices=slices, xyz=xyz, above_ground=points["above_ground"])
+
+
+def _one_file(z: Any, slices_only: bool) -> ReconstructionInput:
+    """A stage `save`d as one file; `slices_only`: without its points."""
+    empty = {"slices.point_slice": np.int64, "slices.indices": np.int64,
+             "slices.point_station": np.float64, "slices.point_lateral": np.float64,
+             "above_ground": np.float64}  # fmt: skip
+
+    def part(key: str) -> np.ndarray:
+        if slices_only and key == "xyz":
+            return np.zeros((0, 3))
+        if slices_only and key in empty:
+            return np.zeros(0, dtype=empty[key])
+        return z[key]
+
+    arrays = {k: part(f"slices.{k}") for k in _SLICE_ARRAYS}
+    slices = SliceSet(spacing=float(z["spacing"]), **arrays)
+    config = GuardrailConfig.model_validate_json(str(z["config"]))
+    return ReconstructionInput(slices, part("xyz"), part("above_ground"), z["trajectory"], config)
 
 
 _SLICE_ARRAYS = (
@@ -382,7 +413,7 @@ _POINT_COLUMNS = ("xyz", "above_ground", "slices.point_station", "slices.point_l
 
 
 def rebuild_guardrails(
-    saved: ReconstructionInput | Path,
+    saved: ReconstructionInput | StoredStage | Path,
     labels: np.ndarray,
     config: GuardrailConfig | None = None,
     progress: Progress | None = None,
@@ -392,13 +423,15 @@ def rebuild_guardrails(
     the labels a human corrected; `config` defaults to the run's (grouped only, with their
     points, where its `reconstruct` is off).
 
-    `saved` in memory, or a stored one (`save` / `save_parts`): then the grouping reads its
-    slices only, and each guardrail's points are read for it alone. With `write` (its meshes to
-    disk: `GuardrailInstance.files`), each guardrail is written as soon as it is reconstructed
-    and its mesh let go. Stored and written, a run holds one guardrail at a time, however long
-    the survey."""
-    stored = not isinstance(saved, ReconstructionInput)
-    index = ReconstructionInput.load(Path(saved), slices_only=True) if stored else saved
+    `saved` in memory, or a stored one (`save` / `save_parts`, its path or opened): then the
+    grouping reads its slices only, and each guardrail's points are read for it alone. With
+    `write` (its meshes to disk: `GuardrailInstance.files`), each guardrail is written as soon
+    as it is reconstructed and its mesh let go. Stored and written, a run holds one guardrail at
+    a time, however long the survey."""
+    if isinstance(saved, (str, Path)):
+        saved = StoredStage.open(Path(saved))
+    stored = saved if isinstance(saved, StoredStage) else None
+    index = saved.index if isinstance(saved, StoredStage) else saved
     cfg = config or index.config
     report = progress or (lambda stage, fraction: None)
     labels = np.asarray(labels).astype(bool)
@@ -409,10 +442,10 @@ def rebuild_guardrails(
     for i, members in enumerate(groups):
         report("reconstruction", i / max(len(groups), 1))
         held = index
-        if stored:
+        if stored is not None:
             wanted = np.zeros(len(labels), dtype=bool)
             wanted[members] = True
-            held = ReconstructionInput.load(Path(saved), points_of=wanted)
+            held = stored.with_points(wanted)
         points = rail_points(held.slices, held.above_ground, members, cfg)
         g = GuardrailInstance(f"guardrail_{i:03d}", members, points)
         if cfg.reconstruct:

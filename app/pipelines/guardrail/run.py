@@ -87,7 +87,7 @@ class GuardrailRun:
     report: dict
     pipeline: GuardrailPipeline
     run: GuardrailTiledRun
-    guardrails: list[GuardrailInstance]  # their slices index `run.rails`, `files` under out
+    guardrails: list[GuardrailInstance]  # their slices index `run.rails.index`, files under out
 
 
 def run_guardrail_report(
@@ -120,10 +120,10 @@ def run_guardrail_report(
     )  # fmt: skip
     guardrails: list[GuardrailInstance] = []
     clock = time.perf_counter()
-    if run.rails is not None and run.rails_path is not None:
-        every = np.ones(len(run.rails.slices), dtype=bool)  # `rails` are guardrail slices
+    if run.rails is not None:
+        every = np.ones(len(run.rails.index.slices), dtype=bool)  # `rails` are guardrail slices
         guardrails = rebuild_guardrails(  # one at a time: read, rebuilt, written, let go
-            run.rails_path, every, cfg, _reconstruction(progress), guardrail_writer(out)
+            run.rails, every, cfg, _reconstruction(progress), guardrail_writer(out)
         )
     timings = {**run.timings, "reconstruction": round(time.perf_counter() - clock, 3)}
     entries = []

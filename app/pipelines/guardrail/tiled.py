@@ -45,6 +45,7 @@ from app.pipelines.guardrail.features import CONTEXT_SLICES
 from app.pipelines.guardrail.pipeline import (
     GuardrailPipeline,
     ReconstructionInput,
+    StoredStage,
     slice_point_labels,
 )
 from app.pipelines.guardrail.road import EDGE_WINDOW, STATION_BIN
@@ -327,9 +328,9 @@ def write_rail_points(
 @dataclass
 class GuardrailTiledRun:
     """A tiled run's outcome: the assembled files and totals, every slice (`SliceTable`), the
-    guardrail slices (`rails`: per slice, without points) and the stored index they were read
-    from (`rails_path`: what the guardrails are built from, one at a time), every slice with its
-    points when the stage was kept, the tile index, and how many tiles this attempt ran."""
+    guardrail slices stored (`rails`: opened, their points in the tiles' parts, what the
+    guardrails are built from, one at a time), every slice with its points when the stage was
+    kept, the tile index, and how many tiles this attempt ran."""
 
     files: dict[str, str]
     counts: dict
@@ -337,8 +338,7 @@ class GuardrailTiledRun:
     timings: dict[str, float]
     worker_peak_mb: float
     slices: SliceTable
-    rails: ReconstructionInput | None  # the guardrail slices, without their points
-    rails_path: Path | None  # the guardrail slices stored, their points in the tiles' parts
+    rails: StoredStage | None  # the guardrail slices stored, their points in the tiles' parts
     stage_path: Path | None  # every slice, its points in the tiles' parts (`keep_stage`)
     features_path: Path | None  # every slice's classifier inputs (`keep_stage`)
     index: TileIndex
@@ -390,9 +390,9 @@ def run_guardrail_tiled(
         assembly.save_stage(stage_path, numbers)
         assembly.features(features_path, numbers)
     rails_path = assembly.save_rails(numbers)
-    rails = None if rails_path is None else ReconstructionInput.load(rails_path, slices_only=True)
+    rails = None if rails_path is None else StoredStage.open(rails_path)
     return GuardrailTiledRun(
-        **assembled, rails=rails, rails_path=rails_path,
+        **assembled, rails=rails,
         stage_path=stage_path if keep_stage else None,
         features_path=features_path if keep_stage else None, index=index, tiles_run=ran,
     )  # fmt: skip

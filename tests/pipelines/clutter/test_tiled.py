@@ -14,6 +14,7 @@ from app.io import open_survey
 from app.io.frame_tiles import FrameTiles
 from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.evaluation.removal_metrics import removal_metrics
+from app.pipelines.clutter.map_budget import MB_PER_RAY_KM, ROTATING_FRAME_MB, frame_map_mb
 from app.pipelines.clutter.pipeline import ClutterPipeline
 from app.pipelines.clutter.run import run_clutter_report
 from app.pipelines.clutter.segmenter import ESPNetv2Segmenter, segmented_class_maps
@@ -142,7 +143,7 @@ def test_a_tile_without_frames_is_empty(street: Path, tmp_path: Path) -> None:
     far[0, 3] += 250.0  # the last frame 250 m further on
     frames[3] = replace(frames[3], pose=far)
     gap = replace(survey, frames=frames)
-    run = run_clutter_tiled(CONFIG, gap, tmp_path, 100.0, max_reads=None)  # tiles by length
+    run = run_clutter_tiled(CONFIG, gap, tmp_path, 100.0, map_mb=None)  # tiles by length
     assert run.tiles.count == 3 and len(run.tiles.own(1)) == 0
     assert run.counts["frames"] == 4
     assert run.counts["points"] == sum(len(f.points()) for f in frames)
@@ -153,7 +154,7 @@ def test_a_frame_budget_cuts_tiles_shorter(street: Path) -> None:
     own frames' halo included."""
     survey = open_survey(street, "sim")
     free = FrameTiles.build(survey, 100.0, 5.0)
-    bounded = FrameTiles.build(survey, 100.0, 5.0, max_reads=20)
+    bounded = FrameTiles.build(survey, 100.0, 5.0, budget=20)
     assert free.count == 1 and bounded.count > 1
     assert max(len(f) for f in bounded.frames) <= 20
     assert sorted(np.concatenate([bounded.own(t) for t in range(bounded.count)])) == list(
@@ -167,7 +168,7 @@ def test_the_way_back_has_its_own_tiles() -> None:
     both passes, and a tile owns more than one frame although one frame's context alone is
     over the budget (that context and a third of the budget more at most)."""
     survey = there_and_back()
-    tiles = FrameTiles.build(survey, 41.0, 10.0, max_reads=8)
+    tiles = FrameTiles.build(survey, 41.0, 10.0, budget=8)
     assert np.all(np.diff(tiles.owner) >= 0)  # tiles follow the drive
     assert tiles.owner[-1] == tiles.count - 1 and tiles.owner[30] < tiles.count - 1
     context = max(len(f) for f in FrameTiles.build(survey, 0.5, 10.0).frames)  # one frame's
@@ -176,3 +177,39 @@ def test_the_way_back_has_its_own_tiles() -> None:
     assert max(len(f) for f in tiles.frames) <= context + 8 // 3
     way_back = tiles.frames[tiles.owner[-1]]
     assert (way_back <= 30).any()  # its context reads the way out too
+
+
+def test_heavier_frames_make_shorter_tiles(street: Path) -> None:
+    """Frames weigh what they add to the free-space map: where they weigh three times as much,
+    a tile reads a third as many, and the weight it reads stays within the budget."""
+    survey = open_survey(street, "sim")
+    n = len(survey.frames)
+    weights = np.where(np.arange(n) < n // 2, 1.0, 3.0)
+    light = FrameTiles.build(survey, 100.0, 5.0, budget=60)
+    mixed = FrameTiles.build(survey, 100.0, 5.0, budget=60, weights=weights)
+    assert light.count == 1 and mixed.count > 1
+    assert max(weights[f].sum() for f in mixed.frames) <= 60
+    heavy = [t for t in range(mixed.count) if (weights[mixed.own(t)] == 3).all()]
+    assert heavy and max(len(mixed.frames[t]) for t in heavy) <= 20
+    with pytest.raises(ValueError, match="frame weights"):
+        FrameTiles.build(survey, 100.0, 5.0, budget=60, weights=weights[:-1])
+
+
+def test_the_map_budget_weighs_a_profile_scanners_rays() -> None:
+    """A profile scanner's frame adds to the map by its rays' length (measured on every 5th
+    frame, interpolated between); a rotating scanner's, a fixed amount per frame."""
+    survey = open_survey(Path(__file__).resolve().parents[3] / "data_samples" / "urban-60m", "sim")
+    assert survey.scanner == "profile"
+    config = ClutterConfig()
+    every = frame_map_mb(survey, config, every=1)
+    rays = np.array([np.linalg.norm(f.points().xyz, axis=1).sum() for f in survey.frames])
+    np.testing.assert_allclose(every, rays / 1e3 * MB_PER_RAY_KM)
+    sampled = frame_map_mb(survey, config)
+    np.testing.assert_allclose(sampled[::5], every[::5])
+    np.testing.assert_allclose(sampled[-1], every[-1])
+    between = (sampled[1:5] - every[0]) * (sampled[1:5] - every[5])
+    assert (between <= 1e-12).all()  # between its sampled neighbours
+    coarse = frame_map_mb(survey, config.model_copy(update={"dufomap_resolution": 0.2}))
+    np.testing.assert_allclose(coarse, sampled * 0.5**1.6)
+    rotating = frame_map_mb(replace(survey, scanner="hdl64"), config)
+    np.testing.assert_allclose(rotating, ROTATING_FRAME_MB)

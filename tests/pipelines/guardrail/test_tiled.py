@@ -16,7 +16,7 @@ from app.pipelines.guardrail.config import GuardrailConfig
 from app.pipelines.guardrail.pipeline import (
     DEFAULT_MODEL,
     GuardrailPipeline,
-    ReconstructionInput,
+    StoredStage,
     rebuild_guardrails,
 )
 from app.pipelines.guardrail.run import run_guardrail_report
@@ -62,7 +62,7 @@ def test_tiled_guardrails_agree_with_the_whole_survey(street: Path, tmp_path: Pa
     crossing = 0
     for g_whole, g_tiled in zip(whole.guardrails, done.guardrails, strict=True):
         assert len(g_tiled.points) == len(g_whole.points)
-        station = done.run.rails.slices.station[g_tiled.slices]
+        station = done.run.rails.index.slices.station[g_tiled.slices]
         crossing += any(station.min() < e < station.max() for e in edges)
         assert g_whole.model is not None and g_tiled.model is not None
         poles_whole = np.array([p.centre for p in g_whole.model.poles])
@@ -93,23 +93,23 @@ def test_guardrails_are_built_one_at_a_time(street: Path, tmp_path: Path, monkey
     for g in done.guardrails:
         assert g.model is not None and len(g.model.vertices) == 0 and g.model.stack is None
         assert g.files is not None and all(Path(f).is_file() for f in g.files.values())
-    every = np.ones(len(done.run.rails.slices), dtype=bool)
-    held = ReconstructionInput.load(done.run.rails_path)  # every guardrail slice's points
+    every = np.ones(len(done.run.rails.index.slices), dtype=bool)
+    held = done.run.rails.with_points()  # every guardrail slice's points
     at_once = rebuild_guardrails(held, every)
 
     reads: list[int] = []
-    load = ReconstructionInput.load.__func__
+    read = StoredStage.with_points
 
-    def counted(cls, path, slices_only=False, points_of=None):
-        part = load(cls, path, slices_only, points_of)
-        if points_of is not None:
-            reads.append(len(part.xyz))
+    def counted(stage, wanted=None):
+        part = read(stage, wanted)
+        reads.append(len(part.xyz))
         return part
 
-    monkeypatch.setattr(ReconstructionInput, "load", classmethod(counted))
+    monkeypatch.setattr(StoredStage, "with_points", counted)
+    monkeypatch.setattr(StoredStage, "open", None)  # the run's opened stage is read, not opened
     written: list[str] = []
     one_by_one = rebuild_guardrails(
-        done.run.rails_path, every, write=lambda g: written.append(g.id) or {}
+        done.run.rails, every, write=lambda g: written.append(g.id) or {}
     )
     s = held.slices
     assert reads == [int(np.diff(s.offsets)[g.slices].sum()) for g in at_once]

@@ -1,0 +1,45 @@
+"""What each frame adds to DUFOMap's map, estimated before any tile runs: the clutter tiles are cut
+by it (`io.frame_tiles`), so that a tile reads as many frames as its worker's memory allows
+where a fixed count of frames would cut every tile for the worst street.
+
+Measured with `FreeSpaceMap` at 0.1 m, 200 frames at a time (one-off, bench/RESULTS.md):
+- a profile scanner's frames are thin planes of rays that never merge: the map grows with the
+  length of their rays, 10-18 kB per kilometre of rays on simulated town, open and highway
+  streets (0.9-1.7 MB per frame there; rays that reach far make frames of several MB);
+- a rotating scanner's frames sweep the same space again from a step further on: 1.8-3.2 MB
+  per frame over 150 frames of a simulated HDL-64E street, 1 kB per kilometre of rays.
+A scanner of unknown kind is taken as a profile scanner (the larger estimate for its rays).
+The map's memory grows about as resolution^-1.6 (`ClutterConfig.dufomap_resolution`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from app.core.sensors import SensorKind, kind_of_scanner
+from app.io.survey import Survey
+from app.pipelines.clutter.config import ClutterConfig
+
+MB_PER_RAY_KM = 0.02  # a profile scanner's map per kilometre of rays (measured: 0.010-0.018)
+ROTATING_FRAME_MB = 3.5  # a rotating scanner's map per frame (measured: 1.8-3.2)
+MEASURED_RESOLUTION = 0.1  # metres: the voxels these were measured at
+SAMPLE_EVERY = 5  # a profile survey's rays are measured on every 5th frame, interpolated between
+
+
+def frame_map_mb(survey: Survey, config: ClutterConfig, every: int = SAMPLE_EVERY) -> np.ndarray:
+    """(F,) megabytes each frame is expected to add to a tile's free-space map. A profile
+    scanner's frames are read (every `every`-th, one at a time) for their rays' length."""
+    count = len(survey.frames)
+    scale = (MEASURED_RESOLUTION / config.dufomap_resolution) ** 1.6
+    if kind_of_scanner(survey.scanner) is SensorKind.ROTATING:
+        return np.full(count, ROTATING_FRAME_MB * scale)
+    if count == 0:
+        return np.zeros(0)
+    sampled = np.unique(np.r_[np.arange(0, count, max(every, 1)), count - 1])
+    ray_km = [_ray_km(survey.frames[int(k)].points().xyz) for k in sampled]
+    return np.interp(np.arange(count), sampled, ray_km) * MB_PER_RAY_KM * scale
+
+
+def _ray_km(xyz: np.ndarray) -> float:
+    """Kilometres of rays from the sensor to a frame's points (sensor coordinates)."""
+    return float(np.linalg.norm(xyz, axis=1).sum()) / 1e3
