@@ -1,7 +1,8 @@
 """Surveys of any length (issue 18): the tiled pipelines on simulated surveys of growing length.
 Prints a table and appends it to RESULTS.md.
 
-  phantom   per length (--lengths, km): wall time, time per km, peak resident memory of each
+  phantom   per length (--lengths, km; tiles of the pipeline's own length unless --tile-length):
+            wall time, time per km, peak resident memory of each
   clutter   tile worker and of the run's own process (which assembles the outputs); then 1 vs 2
   guardrail tile workers on one survey (--speedup-km), same run: the speed-up
   agreement tiled against whole-drive clutter labels on a 150 m rotating-scanner street
@@ -50,6 +51,15 @@ OVERVIEW_POINTS = 500_000  # the viewer's default cap (Settings.viewer_overview_
 
 def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux: kilobytes
+
+
+def pipeline_tile_length(pipeline: str) -> float:
+    """The metres per tile a run of `pipeline` takes by default (its `TILE_LENGTH`)."""
+    from app.pipelines.clutter import tiled as clutter
+    from app.pipelines.guardrail import tiled as guardrail
+    from app.pipelines.phantom import tiled as phantom
+
+    return {"clutter": clutter, "guardrail": guardrail, "phantom": phantom}[pipeline].TILE_LENGTH
 
 
 def run_one(km: float, scanner: str, workers: int, pipeline: str, tile_length: float) -> dict:
@@ -356,7 +366,8 @@ def part_pipeline(args) -> tuple[str, str, str]:
         # simulated before any clock runs
         simulated(SCENE, km * 1000.0, SEED, args.scanner, DRIVE_SPEED)
     rows, runs = [], []
-    pipeline, tile_length = args.part, args.tile_length
+    pipeline = args.part
+    tile_length = args.tile_length or pipeline_tile_length(pipeline)
 
     def timed(km: float, workers: int) -> dict:
         return measure(km, args.scanner, workers, pipeline=pipeline, tile_length=tile_length)
@@ -427,7 +438,8 @@ def main() -> int:
     pipelines = ["phantom", "clutter", "guardrail"]
     parser.add_argument("--pipeline", default="phantom", choices=pipelines,
                         help="one: the pipeline")  # fmt: skip
-    parser.add_argument("--tile-length", type=float, default=100.0, help="metres per tile")
+    parser.add_argument("--tile-length", type=float, default=None,
+                        help="metres per tile (default: the pipeline's own)")  # fmt: skip
     parser.add_argument("--lengths", default="0.25,0.5,1,2,4", help="survey lengths in km")
     parser.add_argument("--scanner", default="profile", choices=["profile", "hdl64"])
     parser.add_argument("--workers", type=int, default=2, help="tile workers")
@@ -438,7 +450,11 @@ def main() -> int:
     args = parser.parse_args()
     steps = {
         "one": lambda: run_one(
-            args.km, args.scanner, args.workers, args.pipeline, args.tile_length
+            args.km,
+            args.scanner,
+            args.workers,
+            args.pipeline,
+            args.tile_length or pipeline_tile_length(args.pipeline),
         ),  # fmt: skip
         "viewer-build": lambda: viewer_build(args.km, args.scanner, Path(args.cache)),
         "viewer-open": lambda: viewer_open(args.km, args.scanner, Path(args.cache)),
