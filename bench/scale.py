@@ -12,6 +12,8 @@ Prints a table and appends it to RESULTS.md.
             a fresh process what a first scene needs (open the cache, the overview's points and
             pillars) and a tile in focus, and the memory while every tile is read in turn, as a
             camera flying along the survey asks for them (server side; no browser)
+  viewer-browser  the longest survey imported into a real server, opened in Chromium (software
+            WebGL): the overview and the tile in focus drawn, twice, then the camera panned
   viewer-wire  the longest survey imported into a real server, opened by a client speaking
             viser's wire format (the map the import's job built, two opens) whose camera flies
             along the drive
@@ -23,7 +25,7 @@ van at 9.5 m/s at every length),
 cached under $MMSCLEAN_DATA_DIR/cache/bench.
 
 Usage: python -m bench.scale phantom|clutter|guardrail|agreement|guardrail-agreement|viewer|
-       viewer-wire
+       viewer-wire|viewer-browser
        [--lengths 0.25,0.5,1,2,4] [--scanner profile] [--tile-length 100] [--workers 2]
        [--speedup-km 2] [--no-record]
 """
@@ -253,6 +255,46 @@ def part_viewer_wire(args) -> tuple[str, str, str]:
     return "Scale: the viewer on a long survey through a real server", table, notes
 
 
+def part_viewer_browser(args) -> tuple[str, str, str]:
+    """The longest survey through a real server, in a real browser (`viewer_browser`)."""
+    from bench.common import markdown_table
+    from bench.phantom import simulated
+    from bench.viewer_browser import measure
+
+    km = float(args.lengths.split(",")[-1])
+    got = measure(simulated(SCENE, km * 1000.0, SEED, args.scanner, DRIVE_SPEED))
+    first, again, flight = got["first"], got["again"], got["flight"]
+    seconds = (
+        "-" if flight["tile_s_median"] is None
+        else f"{flight['tile_s_median']:.2f} / {flight['tile_s_max']:.2f}"
+    )  # fmt: skip
+    table = markdown_table(
+        ["km", "points", "first open: overview drawn s / tile drawn s",
+         "second open: overview drawn s / tile drawn s", "drags with a new tile",
+         "tile drawn after a drag s: median / max", "server RSS after open MB",
+         "server RSS / anonymous MB while panning, most", "page errors"],
+        [[f"{km:g}", f"{got['points']:,}",
+          f"{first['overview_s']:.2f} / {first['tile_s']:.2f}",
+          f"{again['overview_s']:.2f} / {again['tile_s']:.2f}",
+          f"{flight['tiles']} of {flight['drags']}", seconds, f"{got['after_open_mb'][0]:.0f}",
+          f"{flight['rss_mb_max'] or 0:.0f} / {flight['anon_mb_max'] or 0:.0f}",
+          str(len(got["page_errors"]))]],
+    )  # fmt: skip
+    notes = (
+        f"Synthetic: the simulated {args.scanner} survey of the phantom rows (scene {SCENE}, "
+        f"seed {SEED}, the van at {DRIVE_SPEED:g} m/s), imported into a real `mmsclean serve` on "
+        f"loopback (one job worker; its prepare:viewer job done first), opened at /viewer by "
+        f"Debian's Chromium, headless, drawing WebGL in software (SwiftShader, no GPU), logged in "
+        f"as admin, default viewer settings. Seconds from the page's request to the overview's "
+        f"point cloud drawn and to the tile in focus drawn (the message received, then three "
+        f"animation frames); a second open in a new tab; then right-button drags of 500 pixels "
+        f"across the canvas (the camera pans), per drag the seconds from the release to the next "
+        f"tile drawn, and the server process's memory after it (RSS counts mapped file pages "
+        f"the kernel can drop; anonymous is what it holds). Page errors: JavaScript errors seen."
+    )
+    return "Scale: the viewer of a long survey in a real browser", table, notes
+
+
 def part_agreement(args) -> tuple[str, str, str]:
     """Tiled against whole-drive clutter labels on a rotating-scanner street, by halo."""
     import numpy as np
@@ -430,6 +472,7 @@ def main() -> int:
             "guardrail-agreement",
             "viewer",
             "viewer-wire",
+            "viewer-browser",
             "one",
             "viewer-build",
             "viewer-open",
@@ -465,7 +508,8 @@ def main() -> int:
     from bench.common import append_results
 
     parts = {"viewer": part_viewer, "viewer-wire": part_viewer_wire, "agreement": part_agreement,
-             "guardrail-agreement": part_guardrail_agreement}  # fmt: skip
+             "guardrail-agreement": part_guardrail_agreement,
+             "viewer-browser": part_viewer_browser}  # fmt: skip
     title, table, notes = parts.get(args.part, part_pipeline)(args)
     print(table)
     print(notes)

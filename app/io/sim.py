@@ -38,11 +38,19 @@ def read_pose_file(path: Path, count: int) -> np.ndarray:
     return poses
 
 
-def read_truth(path: Path, point_count: int) -> dict[str, np.ndarray]:
+def read_truth(
+    path: Path, point_count: int, names: tuple[str, ...] | None = None
+) -> dict[str, np.ndarray]:
+    """The frame's ground-truth arrays (`names` only: each is a compressed member, and a
+    frame's points need only its times)."""
     if not path.is_file():
         raise InputError(path, "ground-truth labels are missing")
     with guarded(path, "ground truth", lambda: np.load(path)) as data:
-        arrays = {name: data[name] for name in data.files}
+        missing = [n for n in names or () if n not in data.files]
+        if missing:
+            raise InputError(path, f"has no {', '.join(missing)}")
+        wanted = data.files if names is None else names
+        arrays = guarded(path, "ground truth", lambda: {name: data[name] for name in wanted})
     for name, values in arrays.items():
         if len(values) != point_count:
             raise InputError(path, f"{name} has {len(values)} entries for {point_count} points")
@@ -54,13 +62,12 @@ def _load_points(scan: Path, truth: Path) -> PointCloud:
     if scan.suffix == ".laz":
         return read_laz_scan(scan)
     cloud = read_velodyne_bin(scan)
-    cloud.time = read_truth(truth, len(cloud))["time"]
+    cloud.time = read_truth(truth, len(cloud), ("time",))["time"]
     return cloud
 
 
 def _load_reference(truth: Path, point_count: int) -> dict[str, np.ndarray]:
-    arrays = read_truth(truth, point_count)
-    return {name: arrays[name] for name in REFERENCE_KINDS}
+    return read_truth(truth, point_count, REFERENCE_KINDS)
 
 
 def read_sim(source: Path) -> Survey:

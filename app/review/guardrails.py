@@ -14,7 +14,7 @@ from sqlmodel import Session
 
 from app.core.errors import ConfigError, ConflictError, NotFoundError
 from app.pipelines.guardrail.correction import correct_labels
-from app.pipelines.guardrail.pipeline import ReconstructionInput, confident
+from app.pipelines.guardrail.pipeline import ReconstructionInput, StoredStage, confident
 from app.store.guardrail_review import slice_table, trajectory_position
 from app.store.guardrail_runs import GuardrailRun, latest_run, match_slices
 from app.store.models import GuardrailSlice
@@ -28,6 +28,14 @@ def load_stage(
     starts from (`ReconstructionInput.load`: `points_of` the slices whose points are read)."""
     with reading_stage(run) as path:
         return ReconstructionInput.load(path, slices_only=slices_only, points_of=points_of)
+
+
+def stage_sample(run: GuardrailRun, cap: int) -> tuple[ReconstructionInput, np.ndarray, np.ndarray]:
+    """The slices `run` saved (without points), and (xyz, slice of each) of at most `cap` of
+    their points, evenly spread, read part by part (`StoredStage.sampled`)."""
+    with reading_stage(run) as path:
+        stage = StoredStage.open(path)
+        return stage.index, *stage.sampled(cap)
 
 
 @contextmanager

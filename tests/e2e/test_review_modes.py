@@ -155,7 +155,12 @@ def test_approve_a_clutter_instance(open_viewer, viewer_server: Server, street, 
         now = reviewer.get(f"/surveys/{street}/clutter/instances/{target['id']}").json()
         return now if now["decision"] == "approved" else None
 
-    now = wait_until("the approval in the store", stored)
+    try:
+        now = wait_until("the approval in the store", stored)
+    except AssertionError as exc:  # what the page showed, for a failure seen once under load
+        rows = page.locator("label").all_inner_texts()
+        shown = [r for r in rows if "#" in r]
+        raise AssertionError(f"{exc}; the viewer's labels: {shown}") from exc
     assert now["user_id"] == reviewer_id and now["version"] == target["version"] + 1
     page.get_by_text(f"{label}: approved").wait_for()
     # select another instance from the list: its points turn magenta, its mask image shows

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import hashlib
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from app.core.errors import InputError
 from app.core.labels import GROUND_CLASSES, HIGH_CLASSES, PillarClass
 from app.geometry.projection import project
 from app.io import open_survey
@@ -71,6 +73,21 @@ def test_readers(small_survey: Path) -> None:
     assert set(truth) == {"semantic", "instance", "moving", "pillar_class", "guardrail", "part",
                           "halo"}  # fmt: skip
     assert np.array_equal(raw.frames[3].points().xyz, cloud.xyz)
+
+
+def test_a_truth_file_without_times_is_named(small_survey: Path, tmp_path: Path) -> None:
+    """A frame's points take their times from its truth file (only that member is read): a
+    file without them is one error naming it."""
+    copy = tmp_path / "urban"
+    shutil.copytree(small_survey, copy)
+    sim = open_survey(copy, "sim")
+    truth = copy / "ground_truth" / "labels" / f"{sim.frames[2].frame_id}.npz"
+    with np.load(truth) as data:
+        kept = {k: data[k] for k in data.files if k != "time"}
+    np.savez_compressed(truth, **kept)
+    assert len(sim.frames[2].reference_labels()["semantic"]) == sim.frames[2].point_count
+    with pytest.raises(InputError, match=f"{truth.name}.*has no time"):
+        sim.frames[2].points()
 
 
 def test_moving_points_lie_in_their_objects_swept_volume(small_survey: Path) -> None:

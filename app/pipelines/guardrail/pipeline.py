@@ -384,6 +384,35 @@ class StoredStage:
         xyz = points["xyz"].reshape(-1, 3)
         return replace(self.index, slices=slices, xyz=xyz, above_ground=points["above_ground"])
 
+    def sampled(self, cap: int) -> tuple[np.ndarray, np.ndarray]:
+        """(xyz, slice of each point) of at most `cap` slice points, evenly spread over the
+        slices in order (the same ones every time), read part by part: what a view of every
+        slice shows without holding every slice's points."""
+        if self.parts is None or self.counts is None or self.part_slices is None:
+            with np.load(self.path, allow_pickle=False) as z:
+                point_slice = z["slices.point_slice"]
+                picked = _evenly(np.flatnonzero(point_slice >= 0), cap)
+                return z["xyz"][picked], point_slice[picked]
+        total = int(self.counts.sum())
+        picked = np.linspace(0, total - 1, min(cap, total)).astype(np.int64)
+        first_slice = np.concatenate([[0], np.cumsum(self.part_slices)])
+        first_point = np.concatenate([[0], np.cumsum(self.counts)])[first_slice]
+        xyz, slices = [np.zeros((0, 3))], [np.zeros(0, np.int64)]
+        for p, name in enumerate(self.parts):
+            at = picked[(picked >= first_point[p]) & (picked < first_point[p + 1])]
+            if len(at):
+                with np.load(self.path.parent / name, allow_pickle=False) as part:
+                    xyz.append(part["xyz"][at - first_point[p]])
+                    slices.append(part["slices.point_slice"][at - first_point[p]] + first_slice[p])
+        return np.concatenate(xyz), np.concatenate(slices)
+
+
+def _evenly(indices: np.ndarray, cap: int) -> np.ndarray:
+    """At most `cap` of `indices`, evenly spread."""
+    if len(indices) <= cap:
+        return indices
+    return indices[np.linspace(0, len(indices) - 1, cap).astype(np.int64)]
+
 
 def _one_file(z: Any, slices_only: bool) -> ReconstructionInput:
     """A stage `save`d as one file; `slices_only`: without its points."""

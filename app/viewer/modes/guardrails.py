@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from app.core.errors import StaleWriteError
-from app.review.guardrails import load_stage, preview_correction
+from app.review.guardrails import preview_correction, stage_sample
 from app.store.guardrail_review import (
     MAX_LABELS_PER_WRITE,
     SliceLabelEdit,
@@ -132,16 +132,15 @@ class GuardrailMode(Mode):
                     "dashboard; its slices show up here for review when it has finished."
                 )
             return
-        self.stage = load_stage(run)
+        cap = session.viewer.settings.viewer_tile_points
+        self.stage, xyz, self.point_slice = stage_sample(run, cap)  # slices; `cap` points
         s = self.stage.slices
         self.rows = read_slices(session, self.survey_id)
         self.row_of_slice = match_slices(
             s.component, s.station_index, self.rows.component, self.rows.slice_index
         )
-        self.xyz = (self.stage.xyz - self.origin).astype(np.float32)
-        self.point_slice = s.point_slice
-        cap = session.viewer.settings.viewer_tile_points
-        self.shown = evenly(np.flatnonzero(self.point_slice >= 0), cap)
+        self.xyz = (xyz - self.origin).astype(np.float32)
+        self.shown = np.arange(len(self.xyz))
         self.annotator = may(session, Role.annotator)
         self._build_gui()
         self._draw()

@@ -124,14 +124,16 @@ class ModelMode(Mode):
     # --- data ---------------------------------------------------------------------------------
 
     def _load_points(self, run: Any) -> None:
-        """Each model's slice points from the run's stage (model id per shown point)."""
-        stage = load_stage(run)
-        s = stage.slices
+        """Each model's slice points from the run's stage (model id per shown point): the
+        models' slices' points only are read."""
+        s = load_stage(run, slices_only=True).slices
         model_of_slice = np.full(len(s), -1, dtype=np.int64)
         for m in self.models:  # one lookup per model, vectorised over its slices
             keys = np.asarray((m.params or {}).get("slices") or [], dtype=np.int64).reshape(-1, 2)
             at = match_slices(keys[:, 0], keys[:, 1], s.component, s.station_index)
             model_of_slice[at[at >= 0]] = m.id
+        stage = load_stage(run, points_of=model_of_slice >= 0)
+        s = stage.slices
         owner = np.where(s.point_slice >= 0, model_of_slice[np.maximum(s.point_slice, 0)], -1)
         cap = self.session.viewer.settings.viewer_tile_points
         self.shown = evenly(np.flatnonzero(owner >= 0), cap)

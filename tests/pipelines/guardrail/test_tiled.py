@@ -96,6 +96,14 @@ def test_guardrails_are_built_one_at_a_time(street: Path, tmp_path: Path, monkey
     every = np.ones(len(done.run.rails.index.slices), dtype=bool)
     held = done.run.rails.with_points()  # every guardrail slice's points
     at_once = rebuild_guardrails(held, every)
+    # a view of every slice reads an even sample of their points, part by part
+    xyz, point_slice = done.run.rails.sampled(100)
+    picked = np.linspace(0, len(held.xyz) - 1, 100).astype(np.int64)
+    assert np.array_equal(xyz, held.xyz[picked])
+    assert np.array_equal(point_slice, held.slices.point_slice[picked])
+    xyz, point_slice = done.run.rails.sampled(len(held.xyz) + 1)
+    assert np.array_equal(xyz, held.xyz)
+    assert np.array_equal(point_slice, held.slices.point_slice)
 
     reads: list[int] = []
     read = StoredStage.with_points

@@ -176,7 +176,7 @@ def test_the_pass_in_parts_is_the_pass_in_one(monkeypatch) -> None:
 
     survey = _first_frames(40)
     whole = TileIndex.build(survey, 12.0, 11.0, 2.0, max_points=200_000)
-    monkeypatch.setattr(tile_index, "PART_FRAMES", 7)  # parts of 7 frames, the last of 5
+    monkeypatch.setattr(tile_index, "PART_FRAMES", 7)  # 6 parts of 6 or 7 frames
     parts = TileIndex.build(survey, 12.0, 11.0, 2.0, max_points=200_000, map_parts=in_process)
     assert parts.count == whole.count > 2
     np.testing.assert_array_equal(parts.frame_sizes, whole.frame_sizes)
