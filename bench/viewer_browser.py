@@ -1,10 +1,11 @@
 """The viewer on a long survey in a real browser (`bench.scale viewer-browser`): a real
 `mmsclean serve` on loopback with the survey imported (its `prepare:viewer` job done), and
 Debian's Chromium (headless, software WebGL: SwiftShader) driven by Playwright, logged in as a
-user is. Measured per open of /viewer: seconds from the page's request to the overview's
-points drawn and to the tile in focus drawn (a point cloud's message received, then three
-animation frames of the page: the frame that draws it has passed); then the camera panned by
-right-button drags across the canvas, as a user moves along the street: per drag, the seconds to
+user is. Measured per open of /viewer: seconds from the page's request to its websocket (the
+viewer's page and scripts loaded), to the overview's points received and drawn, and to the tile
+in focus drawn (drawn: the point cloud's message received, then three animation frames of the
+page, so the frame that draws it has passed); then the camera panned by right-button drags
+across the canvas, round a square, as a user moves about the street: per drag, the seconds to
 the next tile drawn; the server's memory after each.
 
 Run through `python -m bench.scale viewer-browser` (the longest of --lengths).
@@ -43,12 +44,15 @@ class Tab:
         self.context.add_cookies([{"name": "mmsclean_token", "value": token, "url": server.url}])
         self.page = self.context.new_page()
         self.clouds: list[float] = []  # arrival times of point cloud messages
+        self.socket_at: float | None = None  # when the page opened its websocket
         self.errors: list[str] = []
         self.page.on("pageerror", lambda exc: self.errors.append(str(exc)))
         self.page.on("websocket", self._watch)
         self.url = f"{server.url}/viewer?survey={survey_id}"
 
     def _watch(self, ws) -> None:
+        self.socket_at = self.socket_at or time.perf_counter()
+
         def received(payload) -> None:
             if len(payload) >= CLOUD_BYTES:
                 self.clouds.append(time.perf_counter())
@@ -77,20 +81,27 @@ def open_scene(tab: Tab) -> dict:
     tile = tab.drawn_after(2, SCENE_TIMEOUT_S)
     if overview is None or tile is None:
         raise RuntimeError(f"no scene within {SCENE_TIMEOUT_S:.0f} s ({len(tab.clouds)} clouds)")
-    return {"overview_s": overview - started, "tile_s": tile - started}
+    return {"socket_s": (tab.socket_at or started) - started,
+            "overview_received_s": tab.clouds[0] - started, "overview_s": overview - started,
+            "tile_s": tile - started}  # fmt: skip
+
+
+# drag directions in turn (screen x, y): the camera goes round a square about where it started
+SQUARE = [(-1, 0)] * 3 + [(0, -1)] * 3 + [(1, 0)] * 3 + [(0, 1)] * 3
 
 
 def pan(tab: Tab, server: Server, drags: int, pixels: int) -> dict:
     """Right-button drags of `pixels` across the canvas's middle (the camera pans along the
-    screen); per drag, seconds from the release to the next tile drawn."""
+    screen, round a square); per drag, seconds from the release to the next tile drawn."""
     box = tab.page.locator("canvas").first.bounding_box()
     x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
     seconds, rss, anon, stayed = [], [], [], 0
-    for _ in range(drags):
+    for k in range(drags):
+        dx, dy = (pixels / 2 * v for v in SQUARE[k % len(SQUARE)])
         before = len(tab.clouds)
-        tab.page.mouse.move(x + pixels / 2, y)
+        tab.page.mouse.move(x - dx, y - dy)
         tab.page.mouse.down(button="right")
-        tab.page.mouse.move(x - pixels / 2, y, steps=10)
+        tab.page.mouse.move(x + dx, y + dy, steps=10)
         tab.page.mouse.up(button="right")
         released = time.perf_counter()
         drawn = tab.drawn_after(before + 1, DRAG_TIMEOUT_S)
