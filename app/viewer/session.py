@@ -164,10 +164,15 @@ class ViewerSession:
         self.switch_mode(mode_name)
 
     def _place_camera(self) -> None:
-        """Look down at the middle of the map, a little from behind-left."""
+        """Look down at the middle of the map, a little from behind-left: at the overview's
+        point nearest the middle of its bounds (the middle of a long winding drive's bounds
+        may hold no point, and the tile in focus there none)."""
         survey_map = self.view.map
         lo, hi = survey_map.bounds()
         centre = (lo[:2].astype(np.float64) + hi[:2]) / 2.0
+        if len(survey_map.overview):
+            xy = np.asarray(survey_map.xyz[survey_map.overview, :2], dtype=np.float64)
+            centre = xy[int(np.argmin(((xy - centre) ** 2).sum(axis=1)))]
         ground = float(survey_map.ground.height(centre[None])[0]) if len(survey_map) else 0.0
         look_at = np.array([centre[0], centre[1], ground])
         distance = float(np.clip(0.9 * float(np.max(hi[:2] - lo[:2])), *CAMERA_DISTANCE))

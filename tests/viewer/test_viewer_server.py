@@ -230,6 +230,10 @@ def test_client_gets_the_scene_labels_as_its_user_sees_api_writes_and_undoes(
         assert len(overview["props"]["colors"]) == len(points)  # one RGB per point
         _, tile = await client.wait_for(is_point_cloud, 30)
         assert tile["name"] == "/pillars/tile" and len(tile["props"]["points"]) // 3 <= TILE_POINTS
+        # the first camera looks at a point of the map (a long drive's middle may hold none)
+        look = next(m for _, m in client.received if m.get("type") == "SetCameraLookAtMessage")
+        shown = np.asarray(points).reshape(-1, 3)[:, :2]
+        assert np.hypot(*(shown - np.asarray(look["look_at"][:2])).T).min() < 0.01
 
         # brush: a click straight down at local (30, 0) paints the pillars within 1 m
         await client.send(click_message((30.0, 0.0, 40.0), (0.0, 0.0, -1.0)))
