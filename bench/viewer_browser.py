@@ -1,12 +1,13 @@
 """The viewer on a long survey in a real browser (`bench.scale viewer-browser`): a real
 `mmsclean serve` on loopback with the survey imported (its `prepare:viewer` job done), and
 Debian's Chromium (headless, software WebGL: SwiftShader) driven by Playwright, logged in as a
-user is. Measured per open of /viewer: seconds from the page's request to its websocket (the
-viewer's page and scripts loaded), to the overview's points received and drawn, and to the tile
-in focus drawn (drawn: the point cloud's message received, then three animation frames of the
-page, so the frame that draws it has passed); then the camera panned by right-button drags
-across the canvas, round a square, as a user moves about the street: per drag, the seconds to
-the next tile drawn; the server's memory after each.
+user is; the page's websocket frames are decoded as they arrive (viser's wire format).
+Measured per open of /viewer: seconds from the page's request to its websocket (the viewer's
+page and scripts loaded), to the overview's points received and drawn, and to the tile in focus
+drawn (drawn: the point cloud's message received, then three animation frames of the page, so
+the frame that draws it has passed); then the camera panned by right-button drags across the
+canvas, round a square, as a user moves about the street: per drag, the seconds to the next
+tile drawn; the server's memory after each.
 
 Run through `python -m bench.scale viewer-browser` (the longest of --lengths).
 """
@@ -22,11 +23,11 @@ from bench.common import process_memory_mb
 from bench.viewer import import_survey, login
 from bench.viewer_fly import _prepared
 from tests.api.server import ADMIN_PASSWORD, Server
+from tests.viewer.wire import decode_frame, is_point_cloud
 
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader"]
 VIEWPORT = {"width": 1280, "height": 800}
-CLOUD_BYTES = 200_000  # a websocket message this large carries a point cloud
 SCENE_TIMEOUT_S = 300.0
 DRAG_TIMEOUT_S = 30.0
 # resolves after three animation frames: the frame that handles a received message has drawn
@@ -37,7 +38,7 @@ AFTER_DRAWING = (
 
 
 class Tab:
-    """One logged-in viewer tab; big websocket messages (point clouds) time-stamped."""
+    """One logged-in viewer tab; its point cloud messages time-stamped."""
 
     def __init__(self, browser, server: Server, token: str, survey_id: int):
         self.context = browser.new_context(viewport=VIEWPORT)
@@ -54,8 +55,11 @@ class Tab:
         self.socket_at = self.socket_at or time.perf_counter()
 
         def received(payload) -> None:
-            if len(payload) >= CLOUD_BYTES:
-                self.clouds.append(time.perf_counter())
+            if not isinstance(payload, bytes):
+                return
+            arrived = time.perf_counter()
+            if any(is_point_cloud(m) for m in decode_frame(payload)):
+                self.clouds.append(arrived)
 
         ws.on("framereceived", received)
 
