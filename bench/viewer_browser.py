@@ -15,14 +15,12 @@ Run through `python -m bench.scale viewer-browser` (the longest of --lengths).
 from __future__ import annotations
 
 import statistics
-import tempfile
 import time
 from pathlib import Path
 
 from bench.common import process_memory_mb
-from bench.viewer import import_survey, login
-from bench.viewer_fly import _prepared
-from tests.api.server import ADMIN_PASSWORD, Server
+from bench.viewer_fly import imported
+from tests.api.server import Server
 from tests.viewer.wire import decode_frame, is_point_cloud
 
 CHROMIUM = Path("/usr/bin/chromium")
@@ -131,38 +129,22 @@ def measure(source: Path, drags: int = 12, pixels: int = 500) -> dict:
 
     if not CHROMIUM.is_file():
         raise SystemExit(f"Debian's Chromium is not installed at {CHROMIUM} (make system-deps)")
-    with tempfile.TemporaryDirectory() as tmp:
-        env = {
-            "MMSCLEAN_SAMPLE_DIR": "",
-            "MMSCLEAN_IMPORT_ROOT": str(source.parent),
-            "MMSCLEAN_RETRAIN_EVERY": "0",
-            "MMSCLEAN_WORKERS": "1",
-        }
-        server = Server(Path(tmp) / "var", env=env).start()
-        try:
-            api = server.client()
-            imported = time.perf_counter()
-            record = import_survey(api, source)
-            survey_id = record["id"]
-            prepared_s = _prepared(api, survey_id, imported)
-            token = login(server, "admin", ADMIN_PASSWORD)
-            time.sleep(5.0)  # the server's worker processes finish starting
-            with sync_playwright() as playwright:
-                browser = playwright.chromium.launch(
-                    executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_ARGS
-                )
-                first_tab = Tab(browser, server, token, survey_id)
-                first = open_scene(first_tab)
-                first_tab.close()
-                tab = Tab(browser, server, token, survey_id)
-                again = open_scene(tab)
-                after_open = process_memory_mb(server.process.pid)
-                flight = pan(tab, server, drags, pixels)
-                errors = first_tab.errors + tab.errors
-                tab.close()
-                browser.close()
-        finally:
-            server.stop()
+    with imported(source) as (server, record, prepared_s, token):
+        survey_id = record["id"]
+        with sync_playwright() as playwright:
+            browser = playwright.chromium.launch(
+                executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_ARGS
+            )
+            first_tab = Tab(browser, server, token, survey_id)
+            first = open_scene(first_tab)
+            first_tab.close()
+            tab = Tab(browser, server, token, survey_id)
+            again = open_scene(tab)
+            after_open = process_memory_mb(server.process.pid)
+            flight = pan(tab, server, drags, pixels)
+            errors = first_tab.errors + tab.errors
+            tab.close()
+            browser.close()
     return {"points": int(record["point_count"]), "prepared_s": prepared_s, "first": first,
             "again": again, "after_open_mb": after_open, "flight": flight,
             "page_errors": errors}  # fmt: skip

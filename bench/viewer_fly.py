@@ -13,6 +13,8 @@ import asyncio
 import statistics
 import tempfile
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -70,12 +72,10 @@ async def fly(server: Server, token: str, survey_id: int, path_local: np.ndarray
     }  # fmt: skip
 
 
-def measure(source: Path) -> dict:
-    """Import `source` (a simulated survey folder) into a fresh server, wait for the map the
-    import queued, then two first scenes and the flight."""
-    from app.io import open_survey
-
-    trajectory = open_survey(source, "sim").poses()[:, :3, 3]
+@contextmanager
+def imported(source: Path) -> Iterator[tuple[Server, dict, float | None, str]]:
+    """A fresh server on loopback with `source` (a simulated survey folder) imported and the
+    map its import queued built: (server, survey record, seconds to that map, admin token)."""
     with tempfile.TemporaryDirectory() as tmp:
         env = {
             "MMSCLEAN_SAMPLE_DIR": "",
@@ -86,21 +86,32 @@ def measure(source: Path) -> dict:
         server = Server(Path(tmp) / "var", env=env).start()
         try:
             api = server.client()
-            imported = time.perf_counter()
+            started = time.perf_counter()
             record = import_survey(api, source)
-            survey_id = record["id"]
-            prepared_s = _prepared(api, survey_id, imported)
-            origin = np.asarray(api.get(f"/surveys/{survey_id}").json()["origin"], dtype=float)
+            prepared_s = _prepared(api, record["id"], started)
             token = login(server, "admin", ADMIN_PASSWORD)
             time.sleep(5.0)  # the server's worker processes finish starting
-            path = _stations_along(trajectory, FLY_STEP_M) - origin
-            start = _camera_at(path[0])  # the map's middle may hold no point on a looping drive
-            first = asyncio.run(first_scene(server, token, survey_id, False, start))
-            again = asyncio.run(first_scene(server, token, survey_id, False, start))
-            after_open = process_memory_mb(server.process.pid)
-            flight = asyncio.run(fly(server, token, survey_id, path))
+            yield server, record, prepared_s, token
         finally:
             server.stop()
+
+
+def measure(source: Path) -> dict:
+    """Import `source` (a simulated survey folder) into a fresh server, wait for the map the
+    import queued, then two first scenes and the flight."""
+    from app.io import open_survey
+
+    trajectory = open_survey(source, "sim").poses()[:, :3, 3]
+    with imported(source) as (server, record, prepared_s, token):
+        survey_id = record["id"]
+        api = server.client()
+        origin = np.asarray(api.get(f"/surveys/{survey_id}").json()["origin"], dtype=float)
+        path = _stations_along(trajectory, FLY_STEP_M) - origin
+        start = _camera_at(path[0])  # the map's middle may hold no point on a looping drive
+        first = asyncio.run(first_scene(server, token, survey_id, False, start))
+        again = asyncio.run(first_scene(server, token, survey_id, False, start))
+        after_open = process_memory_mb(server.process.pid)
+        flight = asyncio.run(fly(server, token, survey_id, path))
     return {"points": int(record["point_count"]), "prepared_s": prepared_s, "first": first,
             "again": again, "after_open_mb": after_open, "flight": flight}  # fmt: skip
 
