@@ -7,7 +7,8 @@ cells its points touch on a grid `FOOTPRINT_CELLS` times coarser). A tile's wind
 cells dilated by the halo (`geometry.tiles.halo_cells`); the frames it reads are those whose
 footprint meets the window. Nothing here holds a survey's points: memory grows with the area
 driven, not with the points. The pass may be cut into parts of frames that a cluster's workers
-scan side by side (`map_parts`): nothing else of a tiled run is serial for that long.
+scan side by side (`map_parts`): alone in the run's process, it was the longest step that kept
+the workers waiting (8 s of a 113 s guardrail run on a simulated 2 km survey).
 """
 
 from __future__ import annotations

@@ -2,12 +2,13 @@
 by it (`io.frame_tiles`), so that a tile reads as many frames as its worker's memory allows
 where a fixed count of frames would cut every tile for the worst street.
 
-Measured with `FreeSpaceMap` at 0.1 m, 200 frames at a time (one-off, bench/RESULTS.md):
+Measured with `FreeSpaceMap` at 0.1 m (`python -m bench.dufomap_memory`, bench/RESULTS.md):
 - a profile scanner's frames are thin planes of rays that never merge: the map grows with the
-  length of their rays, 10-18 kB per kilometre of rays on simulated town, open and highway
-  streets (0.9-1.7 MB per frame there; rays that reach far make frames of several MB);
-- a rotating scanner's frames sweep the same space again from a step further on: 1.8-3.2 MB
-  per frame over 150 frames of a simulated HDL-64E street, 1 kB per kilometre of rays.
+  length of their rays, 9.8-17.7 kB per kilometre of rays on simulated town, open and highway
+  streets (0.85-1.6 MB per frame there);
+- a rotating scanner's frames sweep the same space again from a step further on: 1.8 MB per
+  frame over 157 frames of a simulated HDL-64E street (3.2 over its first 50), 0.8 kB per
+  kilometre of rays.
 A scanner of unknown kind is taken as a profile scanner (the larger estimate for its rays).
 The map's memory grows about as resolution^-1.6 (`ClutterConfig.dufomap_resolution`).
 """
@@ -21,7 +22,7 @@ from app.io.survey import Survey
 from app.pipelines.clutter.config import ClutterConfig
 
 MB_PER_RAY_KM = 0.02  # a profile scanner's map per kilometre of rays (measured: 0.010-0.018)
-ROTATING_FRAME_MB = 3.5  # a rotating scanner's map per frame (measured: 1.8-3.2)
+ROTATING_FRAME_MB = 3.5  # a rotating scanner's map per frame (measured: 1.8, 3.2 at first)
 MEASURED_RESOLUTION = 0.1  # metres: the voxels these were measured at
 SAMPLE_EVERY = 5  # a profile survey's rays are measured on every 5th frame, interpolated between
 
