@@ -43,9 +43,12 @@ from app.pipelines.tiling import (
     write_summary,
 )
 
-# metres of trajectory per tile, at most: a tile reads its halo's frames on both sides as well
-# (80 m of frames with the defaults), so longer tiles read each frame fewer times
-TILE_LENGTH = 200.0
+# metres of trajectory per tile, at most. A tile reads its halo's frames on both sides as well
+# (80 m of frames with the defaults), so longer tiles read each frame fewer times (the length
+# series in bench/RESULTS.md ran 200 m tiles), but a job's memory estimate grows with the tile's
+# share of the survey's points (`jobs/clutter_tasks.estimate_run`, not measured again since the
+# frames' evidence is spilled to disk) and refuses 200 m tiles of a dense survey on a 2 GB limit
+TILE_LENGTH = 100.0
 # megabytes of free-space map a tile's frames may add up to (`map_budget.frame_map_mb`: what each
 # frame adds, estimated). A tile's worker held about 220 MB besides the map (simulated profile
 # surveys), so a full tile stays near 850 MB, and one whose single frame's context is over the
