@@ -95,9 +95,10 @@ def _cut_by_budget(
         s = max(float(station[k]), 0.0)
         new = set(near[k]) - reads
         grown, weighs = reads | new, held + float(weight[list(new)].sum())
-        limit = max(budget, float(weight[near[k]].sum()) + budget / 3)
+        context = float(weight[near[k]].sum())
+        limit = max(budget, context + budget / 3)
         if reads and (s - start >= layout.length or weighs > limit) and s > start:
             edges.append(s)
-            start, grown, weighs = s, set(near[k]), float(weight[near[k]].sum())
+            start, grown, weighs = s, set(near[k]), context
         reads, held = grown, weighs
     return TileLayout(layout.stations_of, layout.length, layout.halo, tuple(edges))

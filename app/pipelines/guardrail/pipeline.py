@@ -460,7 +460,7 @@ def rebuild_guardrails(
     if isinstance(saved, (str, Path)):
         saved = StoredStage.open(Path(saved))
     stored = saved if isinstance(saved, StoredStage) else None
-    index = saved.index if isinstance(saved, StoredStage) else saved
+    index = saved if stored is None else stored.index
     cfg = config or index.config
     report = progress or (lambda stage, fraction: None)
     labels = np.asarray(labels).astype(bool)
