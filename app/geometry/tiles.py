@@ -33,6 +33,11 @@ def _flat(xy: np.ndarray) -> np.ndarray:
     return np.column_stack([xy, np.zeros(len(xy))])
 
 
+# tiles evened over the workers (`TileLayout.along`) are at most this times the length asked:
+# the nearest multiple of the workers is at least the tile count less half the workers
+EVEN_STRETCH = 1.5
+
+
 @dataclass(frozen=True)
 class TileLayout:
     """Tiles of at most `length` metres along a trajectory, each read with `halo` metres around.
@@ -45,8 +50,22 @@ class TileLayout:
     edges: tuple[float, ...] = (0.0,)  # ascending start stations, the first 0
 
     @classmethod
-    def along(cls, trajectory: np.ndarray, length: float, halo: float) -> TileLayout:
-        """The layout of a trajectory (M, 2 or 3) in driving order: tiles every `length` m."""
+    def along(
+        cls,
+        trajectory: np.ndarray,
+        length: float,
+        halo: float,
+        workers: int | None = None,
+    ) -> TileLayout:
+        """The layout of a trajectory (M, 2 or 3) in driving order: tiles every `length` m.
+
+        With `workers` (how many tiles run at once), a count of more than one becomes the
+        multiple of `workers` nearest to it, and the tiles equal: a short survey's 100, 100
+        and 40 m on two workers ran its last tile alone while the other worker idled; two
+        tiles of 120 m keep both busy. Rounding up instead (four of 60 m) costs more than it
+        saves: each tile reads its halo again. Evened tiles are at most `EVEN_STRETCH` times
+        `length` (a job's memory estimate counts with that), and the layout's `length` is
+        theirs."""
         if not length > 0 or not halo >= 0:
             raise ValueError(f"tile length {length} must be > 0 and halo {halo} >= 0")
         if len(trajectory) == 0:
@@ -55,7 +74,12 @@ class TileLayout:
         index = StationIndex(positions) if len(positions) > 1 else None
         total = 0.0 if index is None else index.length
         count = max(int(np.ceil(total / length - 1e-9)), 1)
-        return cls(index, float(length), float(halo), tuple(np.arange(count) * float(length)))
+        if count == 1 or workers is None:
+            return cls(index, float(length), float(halo), tuple(np.arange(count) * float(length)))
+        share = max(int(workers), 1)
+        count = max(int(np.floor(count / share + 0.5)), 1) * share  # nearest, half-way up
+        even = total / count  # the layout's length: later cuts (by points, by budget) keep it
+        return cls(index, even, float(halo), tuple(np.arange(count) * even))
 
     def cut_by_points(
         self, station: np.ndarray, points: np.ndarray, max_points: int, min_length: float

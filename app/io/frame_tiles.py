@@ -45,6 +45,7 @@ class FrameTiles:
         halo: float,
         budget: float | None = None,
         weights: np.ndarray | None = None,
+        workers: int | None = None,
     ) -> FrameTiles:
         """Tiles of `length` metres; with `budget`, a tile also ends before the frames it reads
         (its own and their halo's, a drive's other passes included) would weigh more than
@@ -54,7 +55,7 @@ class FrameTiles:
         if len(poses) == 0:
             raise ValueError(f"{survey.source}: no frames to cut into tiles")
         sensors = poses[:, :3, 3]
-        layout = TileLayout.along(sensors, length, halo)
+        layout = TileLayout.along(sensors, length, halo, workers)
         station = arc_length(np.column_stack([sensors[:, :2], np.zeros(len(sensors))]))
         near = cKDTree(sensors[:, :2]).query_ball_point(sensors[:, :2], r=halo)
         if budget is not None:

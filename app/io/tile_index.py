@@ -64,6 +64,7 @@ class TileIndex:
         cell: float = 2.0,
         max_points: int | None = None,
         map_parts: PartMap | None = None,
+        workers: int | None = None,
     ) -> TileIndex:
         """Stream the survey's frames once (a map file chunk by chunk). The trajectory is the
         frames' sensor positions, a map's recorded one, or else the one its points trace
@@ -82,7 +83,7 @@ class TileIndex:
         path, time0 = poses[:, :3, 3], None
         if survey.is_map and survey.trajectory is None:
             path, time0 = map_trajectory(survey)
-        layout = TileLayout.along(path, length, halo)
+        layout = TileLayout.along(path, length, halo, workers)
         scan = _scan(survey, cell, map_parts)
         footprints, sizes, low, total = scan.footprints, scan.sizes, scan.low, scan.total
         keys, per_key = scan.keys, scan.counts

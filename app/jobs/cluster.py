@@ -119,6 +119,7 @@ def tile_map(settings: Settings) -> Callable[..., Iterator[Any]]:
         finally:
             client.cancel([*futures, shared])
 
+    map_tiles.workers = settings.workers  # type: ignore[attr-defined]  # tiling.tile_workers
     return map_tiles
 
 

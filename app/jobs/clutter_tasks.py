@@ -36,6 +36,7 @@ from app.jobs.memory import (
     points_mb,
     survey_text,
     tile_field,
+    tile_reach,
     tile_share,
 )
 from app.jobs.registry import JobContext, task
@@ -51,8 +52,11 @@ from app.store import clutter_review
 from app.store.models import Decision
 from app.store.surveys import get_survey, survey_footprint
 
-CLUTTER_BYTES_PER_POINT = 150.0  # per-frame evidence, maps, review units (measured: ~100)
-SEGMENTER_MB = 700.0  # ESPNetv2 and torch's buffers (measured: ~640 MB on SemanticKITTI 04)
+# per point a tile reads: its evidence, maps and review units (`python -m bench.clutter_memory`:
+# a worker's peak grows by about 50 bytes per point read on a simulated profile survey, the
+# free-space map included; SemanticKITTI 04's ten frames took 308 MB in all without the camera)
+CLUTTER_BYTES_PER_POINT = 80.0
+SEGMENTER_MB = 800.0  # ESPNetv2 and torch's buffers (measured: 755 MB more on SemanticKITTI 04)
 # a reviewer's decision as the review units' verdict: removed, kept, the pipeline's flag
 VERDICT = {Decision.approved: 1, Decision.rejected: 0, Decision.pending: -1}
 
@@ -76,15 +80,15 @@ def estimate_run(session: Session, survey: int | None, config: dict[str, Any]) -
     if survey is None:
         return MemoryEstimate("no survey")
     footprint = survey_footprint(session, survey)
-    tile_reach = tile_length + 2 * clutter_halo(cfg)
-    share = tile_share(footprint, tile_reach)
-    field = tile_field(share)
+    reach_m = tile_reach(tile_length, clutter_halo(cfg))
+    share = tile_share(footprint, reach_m)
+    field = tile_field(footprint, tile_length)
     reach = 2 * SENSOR_REACH_M
     estimate = MemoryEstimate(survey_text(footprint))
     estimate.add(
         field,
         points_mb(footprint, CLUTTER_BYTES_PER_POINT * share),
-        f"{CLUTTER_BYTES_PER_POINT:.0f} bytes per point of a {tile_reach:.0f} m tile "
+        f"{CLUTTER_BYTES_PER_POINT:.0f} bytes per point of a {reach_m:.0f} m tile "
         f"({share:.0%} of the survey)",
     )
     estimate.add(

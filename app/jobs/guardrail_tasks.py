@@ -23,7 +23,16 @@ from app.core.errors import ConfigError
 from app.core.settings import Settings
 from app.io import open_survey
 from app.jobs.cluster import log_tiles, tile_map, tile_progress
-from app.jobs.memory import MB, MemoryEstimate, points_mb, survey_text, tile_field, tile_share
+from app.jobs.memory import (
+    MB,
+    MemoryEstimate,
+    bounded_tile_points,
+    points_mb,
+    survey_text,
+    tile_field,
+    tile_reach,
+    tile_share,
+)
 from app.jobs.model_choice import model_for_job
 from app.jobs.registry import JobContext, task
 from app.jobs.task_config import refuse_model_path, validated
@@ -178,15 +187,12 @@ def estimate_run(session: Session, survey: int | None, config: dict[str, Any]) -
         return MemoryEstimate("no survey")
     footprint = survey_footprint(session, survey)
     halo = guardrail_halo(cfg.with_correction({}))
-    reach = option.tile_length + 2 * halo
+    reach = tile_reach(option.tile_length, halo)
     share = tile_share(footprint, reach)
-    # a tile is cut shorter where its window would hold more than TILE_POINTS (`tiled`), down
-    # to the shortest tile, whose window is still its halo
-    shortest = tile_share(footprint, 2 * INDEX_CELL + 2 * halo)
-    tile_points = min(footprint.points * share, max(TILE_POINTS, footprint.points * shortest))
+    tile_points = bounded_tile_points(footprint, reach, halo, INDEX_CELL, TILE_POINTS)
     estimate = MemoryEstimate(survey_text(footprint))
     estimate.add(
-        tile_field(share),
+        tile_field(footprint, option.tile_length),
         tile_points * GUARDRAIL_BYTES_PER_POINT / MB,
         f"{GUARDRAIL_BYTES_PER_POINT:.0f} bytes per point of a {reach:.0f} m tile "
         f"({share:.0%} of the survey, at most {TILE_POINTS:,} points)",
@@ -286,7 +292,7 @@ def rebuild_guardrail_models(context: JobContext, config: dict[str, Any]) -> dic
         )
         guardrails = rebuild_guardrails(
             stage, labels, cfg, lambda step, f: context.progress(0.05 + 0.85 * f, step),
-            guardrail_writer(context.workdir),
+            guardrail_writer(context.workdir), tile_map(context.settings),
         )  # fmt: skip
     models = model_records(slices, guardrails, cfg)
     context.progress(0.95, "storing models")

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from app.core.errors import ConfigError
+from app.geometry.tiles import EVEN_STRETCH
 from app.store.surveys import SurveyFootprint
 
 MB = 1024**2
@@ -79,6 +80,12 @@ def extent_text(footprint: SurveyFootprint) -> str:
     return f"{x:,.0f} x {y:,.0f} m"
 
 
+def tile_reach(tile_length: float, halo: float) -> float:
+    """Metres of trajectory a tile reads at most: its length, stretched as far as evening the
+    tiles over the workers may (`TileLayout.along`), and its halo on both sides."""
+    return EVEN_STRETCH * tile_length + 2 * halo
+
+
 def tile_share(footprint: SurveyFootprint, metres: float) -> float:
     """The share of the survey's points a tiled run reads for `metres` of trajectory (a tile
     and its halo): the length is taken as the trajectory's bounding-box diagonal, shorter than
@@ -87,10 +94,21 @@ def tile_share(footprint: SurveyFootprint, metres: float) -> float:
     return min(1.0, metres / max(float(np.linalg.norm(high - low)), 1.0))
 
 
-def tile_field(share: float) -> str:
+def bounded_tile_points(
+    footprint: SurveyFootprint, reach: float, halo: float, cell: float, max_points: int
+) -> float:
+    """Points a tile of `reach` metres reads, where the tile index cuts a tile shorter once its
+    window would hold more than `max_points` (`io.tile_index`), down to the shortest tile (two
+    `cell`s), whose window is still its halo."""
+    shortest = tile_share(footprint, 2 * cell + 2 * halo)
+    share = tile_share(footprint, reach)
+    return min(footprint.points * share, max(max_points, footprint.points * shortest))
+
+
+def tile_field(footprint: SurveyFootprint, tile_length: float) -> str:
     """The config field a tile's memory answers to: shorter tiles need less while the survey
     spans several; a survey within one tile cannot."""
-    return "config.tile_length" if share < 1.0 else "survey_id"
+    return "config.tile_length" if tile_share(footprint, tile_length) < 1.0 else "survey_id"
 
 
 def points_mb(footprint: SurveyFootprint, bytes_per_point: float) -> float:

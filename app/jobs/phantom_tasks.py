@@ -20,14 +20,22 @@ from app.core.errors import ConfigError
 from app.core.settings import Settings
 from app.io import open_survey
 from app.jobs.cluster import log_tiles, shared_threads, tile_map, tile_progress
-from app.jobs.memory import MemoryEstimate, points_mb, survey_text, tile_field, tile_share
+from app.jobs.memory import (
+    MB,
+    MemoryEstimate,
+    bounded_tile_points,
+    survey_text,
+    tile_field,
+    tile_reach,
+    tile_share,
+)
 from app.jobs.model_choice import model_for_job
 from app.jobs.registry import JobContext, task
 from app.jobs.task_config import validated
 from app.pipelines.phantom.config import PhantomConfig
 from app.pipelines.phantom.model import SHIPPED, read_card
 from app.pipelines.phantom.run import run_phantom_to_folder
-from app.pipelines.phantom.tiled import TILE_LENGTH, phantom_halo
+from app.pipelines.phantom.tiled import INDEX_CELL, TILE_LENGTH, TILE_POINTS, phantom_halo
 from app.pipelines.sensor_models import ModelChoice
 from app.store.model_labels import store_model_labels
 from app.store.models import ModelVersion, Pipeline, Survey
@@ -71,13 +79,16 @@ def estimate_memory(session: Session, survey: int | None, config: dict[str, Any]
     if survey is None:
         return MemoryEstimate("no survey")
     footprint = survey_footprint(session, survey)
-    reach = parse_config(config).tile_length + 2 * phantom_halo(PhantomConfig())
+    tile_length = parse_config(config).tile_length
+    halo = phantom_halo(PhantomConfig())
+    reach = tile_reach(tile_length, halo)
     share = tile_share(footprint, reach)
+    tile_points = bounded_tile_points(footprint, reach, halo, INDEX_CELL, TILE_POINTS)
     return MemoryEstimate(survey_text(footprint)).add(
-        tile_field(share),
-        points_mb(footprint, PHANTOM_BYTES_PER_POINT * share),
+        tile_field(footprint, tile_length),
+        tile_points * PHANTOM_BYTES_PER_POINT / MB,
         f"{PHANTOM_BYTES_PER_POINT:.0f} bytes per point of a {reach:.0f} m tile "
-        f"({share:.0%} of the survey)",
+        f"({share:.0%} of the survey, at most {TILE_POINTS:,} points)",
     )
 
 

@@ -28,7 +28,8 @@ PLAN = "plan.json"
 MAPS = ("cleaned", "removed")  # the maps a removing pipeline writes, OUT/<map>.laz
 
 # runs `fn(spec, index, tile)` for the tiles given and yields the summaries as they finish, in
-# any order: in this process by default, on a Dask cluster from `app.jobs.cluster`
+# any order: in this process by default, on a Dask cluster from `app.jobs.cluster` (whose
+# `workers` attribute says how many tiles run at once: `tile_workers`)
 TileMap = Callable[[Callable[..., dict], Any, Any, list[int]], Generator[dict]]
 
 
@@ -36,6 +37,13 @@ def in_process(fn: Callable[..., dict], spec: Any, index: Any, tiles: list[int])
     """The tiles one after the other in this process."""
     for tile in tiles:
         yield fn(spec, index, tile)
+
+
+def tile_workers(map_tiles: TileMap) -> int | None:
+    """How many tiles `map_tiles` runs at once (its `workers`, set by `app.jobs.cluster`), None
+    for tiles one after the other: the tile layouts round a short survey's tile count up to a
+    multiple of it (`TileLayout.along`)."""
+    return getattr(map_tiles, "workers", None)
 
 
 def scan_map(map_tiles: TileMap) -> TileMap | None:

@@ -46,6 +46,27 @@ def test_dense_stretches_get_shorter_tiles() -> None:
     assert layout.cut_by_points(station, points, 10**9, 2.0).edges == layout.edges
 
 
+def test_tiles_are_evened_over_the_workers() -> None:
+    """150 m in tiles of 40 m is 4 tiles (40, 40, 40, 30); on 3 workers the nearest multiple
+    (3) of 50 m, on 8 workers 8 of 18.75 m; on 2 workers 4 equal tiles. Never more than
+    EVEN_STRETCH times the length, and one tile stays one whatever the workers."""
+    from app.geometry.tiles import EVEN_STRETCH
+
+    for workers, count in ((1, 4), (2, 4), (3, 3), (5, 5), (8, 8)):
+        layout = TileLayout.along(_bend(), length=40.0, halo=5.0, workers=workers)
+        assert layout.count == count, workers
+        sizes = np.diff([*layout.edges, layout.total])
+        np.testing.assert_allclose(sizes, 150.0 / count)
+        assert layout.length == pytest.approx(150.0 / count)
+        assert layout.length <= EVEN_STRETCH * 40.0
+    assert TileLayout.along(_bend(), length=200.0, halo=5.0, workers=2).count == 1
+    # a layout evened first is cut by points with its own length (the cut keeps its edges)
+    even = TileLayout.along(_bend(), length=40.0, halo=5.0, workers=3)
+    assert even.cut_by_points(np.zeros(1), np.ones(1), 10**9, 2.0).edges == even.edges
+    # the worst case: just under 3 lengths on 2 workers is 2 tiles of 1.5 lengths at most
+    assert TileLayout.along(_bend(), length=50.01, halo=5.0, workers=2).length <= 75.0 + 1e-9
+
+
 def test_bad_layouts_are_refused() -> None:
     with pytest.raises(ValueError, match="tile length"):
         TileLayout.along(_bend(), length=0.0, halo=1.0)

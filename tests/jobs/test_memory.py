@@ -119,7 +119,6 @@ def test_each_refusal_names_what_grows(engine: Engine, limited: Settings) -> Non
             "config.tile_length",
         ),
         ("run:phantom", {}, dense, "survey_id"),
-        ("run:phantom", {"tile_length": 1000.0}, huge, "config.tile_length"),
         ("run:guardrail", {}, dense, "survey_id"),
         ("train:phantom", {"per_class": 1_000_000}, None, "config.per_class"),
     ):
@@ -129,7 +128,9 @@ def test_each_refusal_names_what_grows(engine: Engine, limited: Settings) -> Non
         assert enqueue(session, "run:phantom", {}, huge, None, limited).id
         no_rays = {"use_camera": False, "use_free_space": False}
         assert enqueue(session, "run:clutter", no_rays, huge, None, limited).id
-        # a guardrail tile is cut shorter where it holds too many points, whatever its length
+        # phantom and guardrail tiles are cut shorter where they hold too many points, whatever
+        # their length
+        assert enqueue(session, "run:phantom", {"tile_length": 1000.0}, huge, None, limited).id
         assert enqueue(session, "run:guardrail", {"tile_length": 1000.0}, huge, None, limited).id
         assert "MMSCLEAN_JOB_MEMORY_MB" in str(error)
 

@@ -40,15 +40,15 @@ from app.pipelines.tiling import (
     finished_tiles,
     in_process,
     tile_name,
+    tile_workers,
     write_summary,
 )
 
 # metres of trajectory per tile, at most. A tile reads its halo's frames on both sides as well
-# (80 m of frames with the defaults), so longer tiles read each frame fewer times (the length
-# series in bench/RESULTS.md ran 200 m tiles), but a job's memory estimate grows with the tile's
-# share of the survey's points (`jobs/clutter_tasks.estimate_run`, not measured again since the
-# frames' evidence is spilled to disk) and refuses 200 m tiles of a dense survey on a 2 GB limit
-TILE_LENGTH = 100.0
+# (80 m of frames with the defaults), so longer tiles read each frame fewer times; what a tile
+# holds is bounded by `TILE_MAP_MB` whatever its length (`python -m bench.clutter_memory`: a
+# worker's peak grows by about 50 bytes per point read, DUFOMap's map included)
+TILE_LENGTH = 200.0
 # megabytes of free-space map a tile's frames may add up to (`map_budget.frame_map_mb`: what each
 # frame adds, estimated). A tile's worker held about 220 MB besides the map (simulated profile
 # surveys), so a full tile stays near 850 MB, and one whose single frame's context is over the
@@ -271,7 +271,7 @@ def run_clutter_tiled(
     halo = clutter_halo(config) if halo is None else halo
     budget = map_mb if config.use_free_space else None
     weights = None if budget is None else frame_map_mb(survey, config)
-    tiles = FrameTiles.build(survey, length, halo, budget, weights)
+    tiles = FrameTiles.build(survey, length, halo, budget, weights, tile_workers(map_tiles))
     spec = ClutterTileSpec(  # absolute paths: a cluster's workers run elsewhere
         str(Path(survey.source).resolve()), survey.format, config.model_dump_json(),
         str(Path(out).resolve()), tuple(maps_offset(survey).tolist()),

@@ -4,7 +4,7 @@ poles, unit shapes, superimposition, pipe / beam reconstruction -> meshes."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -176,7 +176,7 @@ def group_guardrails(
     """Guardrails of the slice labels (`guardrail_groups`) with their points.
     `above_ground` is the height above ground of every point `s` indexes."""
     return [
-        GuardrailInstance(f"guardrail_{i:03d}", members, rail_points(s, above_ground, members, cfg))
+        GuardrailInstance(guardrail_id(i), members, rail_points(s, above_ground, members, cfg))
         for i, members in enumerate(guardrail_groups(s, labels, cfg))
     ]
 
@@ -447,6 +447,7 @@ def rebuild_guardrails(
     config: GuardrailConfig | None = None,
     progress: Progress | None = None,
     write: Callable[[GuardrailInstance], dict[str, str]] | None = None,
+    map_each: Callable[..., Iterator[GuardrailInstance]] | None = None,
 ) -> list[GuardrailInstance]:
     """Guardrails (grouped, joined and reconstructed as in a run) from given slice labels, e.g.
     the labels a human corrected; `config` defaults to the run's (grouped only, with their
@@ -456,7 +457,12 @@ def rebuild_guardrails(
     grouping reads its slices only, and each guardrail's points are read for it alone. With
     `write` (its meshes to disk: `GuardrailInstance.files`), each guardrail is written as soon
     as it is reconstructed and its mesh let go. Stored and written, a run holds one guardrail at
-    a time, however long the survey."""
+    a time, however long the survey.
+
+    With `map_each` (a tiled run's `map_tiles`: `fn(spec, shared, [items])`, results as they
+    finish) and a stage stored in parts by several tiles, the guardrails are rebuilt there side
+    by side (a cluster's workers read their points from the parts and write their meshes);
+    else one after the other here (a survey of one tile never starts a cluster for this)."""
     if isinstance(saved, (str, Path)):
         saved = StoredStage.open(Path(saved))
     stored = saved if isinstance(saved, StoredStage) else None
@@ -467,24 +473,49 @@ def rebuild_guardrails(
     if len(labels) != len(index.slices):
         raise ValueError(f"{len(labels)} labels for {len(index.slices)} slices")
     groups = guardrail_groups(index.slices, labels, cfg)
-    guardrails = []
-    for i, members in enumerate(groups):
-        report("reconstruction", i / max(len(groups), 1))
-        held = index
-        if stored is not None:
-            wanted = np.zeros(len(labels), dtype=bool)
-            wanted[members] = True
-            held = stored.with_points(wanted)
-        points = rail_points(held.slices, held.above_ground, members, cfg)
-        g = GuardrailInstance(f"guardrail_{i:03d}", members, points)
-        if cfg.reconstruct:
-            reconstruct_instance(held.xyz, held.trajectory, g, cfg.reconstruction)
-        if write is not None and g.model is not None:
-            g.files = write(g)
-            g.model = g.model.without_mesh()  # type: ignore[attr-defined]
-        guardrails.append(g)
+    spec = (cfg, write)
+    tiled = stored is not None and stored.parts is not None and len(stored.parts) > 1
+    if tiled and map_each is not None and len(groups) > 1:
+        built = {}
+        for g in map_each(rebuild_one, spec, (stored, groups), list(range(len(groups)))):
+            built[g.id] = g
+            report("reconstruction", len(built) / len(groups))
+        guardrails = [built[guardrail_id(i)] for i in range(len(groups))]
+    else:
+        guardrails = []
+        for i in range(len(groups)):
+            report("reconstruction", i / max(len(groups), 1))
+            guardrails.append(rebuild_one(spec, (stored or index, groups), i))
     report("done", 1.0)
     return guardrails
+
+
+def guardrail_id(number: int) -> str:
+    return f"guardrail_{number:03d}"
+
+
+def rebuild_one(
+    spec: tuple[GuardrailConfig, Callable[[GuardrailInstance], dict[str, str]] | None],
+    shared: tuple[ReconstructionInput | StoredStage, list[np.ndarray]],
+    number: int,
+) -> GuardrailInstance:
+    """Guardrail `number` of `rebuild_guardrails`' groups: its points (read for it alone from a
+    stored stage), its reconstruction and, with a writer, its meshes written and let go."""
+    (cfg, write), (saved, groups) = spec, shared
+    members = groups[number]
+    held = saved
+    if isinstance(saved, StoredStage):
+        wanted = np.zeros(len(saved.index.slices), dtype=bool)
+        wanted[members] = True
+        held = saved.with_points(wanted)
+    points = rail_points(held.slices, held.above_ground, members, cfg)
+    g = GuardrailInstance(guardrail_id(number), members, points)
+    if cfg.reconstruct:
+        reconstruct_instance(held.xyz, held.trajectory, g, cfg.reconstruction)
+    if write is not None and g.model is not None:
+        g.files = write(g)
+        g.model = g.model.without_mesh()  # type: ignore[attr-defined]
+    return g
 
 
 def _join_groups(

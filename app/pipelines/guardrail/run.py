@@ -122,8 +122,8 @@ def run_guardrail_report(
     clock = time.perf_counter()
     if run.rails is not None:
         every = np.ones(len(run.rails.index.slices), dtype=bool)  # `rails` are guardrail slices
-        guardrails = rebuild_guardrails(  # one at a time: read, rebuilt, written, let go
-            run.rails, every, cfg, _reconstruction(progress), guardrail_writer(out)
+        guardrails = rebuild_guardrails(  # each read, rebuilt, written and let go
+            run.rails, every, cfg, _reconstruction(progress), guardrail_writer(out), map_tiles
         )
     timings = {**run.timings, "reconstruction": round(time.perf_counter() - clock, 3)}
     entries = []

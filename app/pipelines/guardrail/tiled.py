@@ -63,6 +63,7 @@ from app.pipelines.tiling import (
     save_tile_arrays,
     scan_map,
     tile_name,
+    tile_workers,
     write_summary,
 )
 
@@ -365,7 +366,9 @@ def run_guardrail_tiled(
     the tiles' parts: `ReconstructionInput.save_parts`) and `features_path` holds their
     classifier inputs (the web app's review, rebuild and retraining read them)."""
     halo = guardrail_halo(pipeline.config) if halo is None else halo
-    index = TileIndex.build(survey, length, halo, INDEX_CELL, max_points, scan_map(map_tiles))
+    index = TileIndex.build(
+        survey, length, halo, INDEX_CELL, max_points, scan_map(map_tiles), tile_workers(map_tiles)
+    )
     model = pipeline.model_path.resolve()
     spec = GuardrailTileSpec(  # absolute paths: a cluster's workers run elsewhere
         str(Path(survey.source).resolve()), survey.format, str(model),

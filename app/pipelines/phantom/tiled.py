@@ -36,6 +36,7 @@ from app.pipelines.tiling import (
     finished_tiles,
     in_process,
     scan_map,
+    tile_workers,
 )
 
 TILE_LENGTH = 100.0  # metres of trajectory per tile, at most
@@ -193,7 +194,9 @@ def run_phantom_tiled(
     a cluster. Tiles are `length` metres, shorter where their window would hold more than
     `max_points` points (None: no bound)."""
     halo = phantom_halo(pipeline.config) if halo is None else halo
-    index = TileIndex.build(survey, length, halo, INDEX_CELL, max_points, scan_map(map_tiles))
+    index = TileIndex.build(
+        survey, length, halo, INDEX_CELL, max_points, scan_map(map_tiles), tile_workers(map_tiles)
+    )
     spec = PhantomTileSpec(  # absolute paths: a cluster's workers run elsewhere
         str(Path(survey.source).resolve()), survey.format, str(pipeline.model_path.resolve()),
         pipeline.config.model_dump_json(), str(Path(out).resolve()),

@@ -126,6 +126,19 @@ def test_guardrails_are_built_one_at_a_time(street: Path, tmp_path: Path, monkey
         assert len(a.points) == len(b.points) and b.model is not None and a.model is not None
         assert np.array_equal([p.centre for p in a.model.poles], [p.centre for p in b.model.poles])
 
+    # side by side (a cluster's map: results in any order), from the tiles' parts
+    assert len(done.run.rails.parts) > 1
+
+    def reversed_map(fn, spec, shared, items):
+        for item in reversed(items):
+            yield fn(spec, shared, item)
+
+    side_by_side = rebuild_guardrails(done.run.rails, every, map_each=reversed_map)
+    assert [g.id for g in side_by_side] == [g.id for g in at_once]
+    for a, b in zip(at_once, side_by_side, strict=True):
+        assert np.array_equal(a.slices, b.slices) and b.model is not None and a.model is not None
+        assert np.array_equal([p.centre for p in a.model.poles], [p.centre for p in b.model.poles])
+
 
 def test_components_are_joined_across_tile_edges() -> None:
     """Tile 0's component 1 shares points at the edge with tile 1's components 0 and 1: all
