@@ -7,7 +7,8 @@ Prints a table and appends it to RESULTS.md.
   guardrail tile workers on one survey (--speedup-km), same run: the speed-up
   agreement tiled against whole-drive clutter labels on a 150 m rotating-scanner street
   guardrail-agreement  tiled against whole-survey guardrails (labels, guardrails, poles) on a
-            150 m profile and a 150 m rotating-scanner street
+            150 m profile and a 150 m rotating-scanner street, and (with MMSCLEAN_REAL_DATA) on
+            the real SemanticKITTI sequences 04, 05 and 08 in three tiles each
   viewer    the viewer's map of the longest survey (--lengths' last): building its cache, then in
             a fresh process what a first scene needs (open the cache, the overview's points and
             pillars) and a tile in focus, and the memory while every tile is read in turn, as a
@@ -21,8 +22,8 @@ Prints a table and appends it to RESULTS.md.
 Each measurement runs in a fresh process (`one`) with a fresh local Dask cluster, so the peaks
 are that run's: a worker's is its whole life (`ru_maxrss` after each tile, in the tile's summary).
 Surveys are synthetic (app.simulate, `--scanner` profile or hdl64, scene mixed, seed 901, the
-van at 9.5 m/s at every length),
-cached under $MMSCLEAN_DATA_DIR/cache/bench.
+van at 9.5 m/s at every length), cached under $MMSCLEAN_DATA_DIR/cache/bench; only
+guardrail-agreement's real rows are real.
 
 Usage: python -m bench.scale phantom|clutter|guardrail|agreement|guardrail-agreement|viewer|
        viewer-wire|viewer-browser
@@ -347,9 +348,13 @@ def part_agreement(args) -> tuple[str, str, str]:
 
 
 def part_guardrail_agreement(args) -> tuple[str, str, str]:
-    """Tiled against whole-survey guardrails on a profile and a rotating-scanner street."""
+    """Tiled against whole-survey guardrails on a profile and a rotating-scanner street, and on
+    the real SemanticKITTI sequences (with MMSCLEAN_REAL_DATA) in three tiles each."""
+    import os
+
     import numpy as np
 
+    from app.geometry.trajectory import arc_length
     from app.io import open_survey
     from app.pipelines.guardrail.classifier import read_classifier_card
     from app.pipelines.guardrail.pipeline import SHIPPED, GuardrailPipeline
@@ -359,9 +364,15 @@ def part_guardrail_agreement(args) -> tuple[str, str, str]:
     from bench.phantom import simulated
 
     metres, tile, rows = 150.0, 50.0, []
-    streets = [("profile", 7), ("hdl64", 3)]  # seeds outside both classifiers' training sets
-    for scanner, seed in streets:
-        survey = open_survey(simulated("urban", metres, seed, scanner), "sim")
+    # seeds outside both classifiers' training sets
+    streets = [(f"simulated {s}", open_survey(simulated("urban", metres, seed, s), "sim"), tile)
+               for s, seed in (("profile", 7), ("hdl64", 3))]  # fmt: skip
+    real = os.environ.get("MMSCLEAN_REAL_DATA")
+    for name in ("04", "05", "08") if real else ():
+        survey = open_survey(Path(real) / "semantickitti" / "sequences" / name, "semantickitti")
+        drive = float(arc_length(survey.poses()[:, :3, 3])[-1])
+        streets.append((f"real SemanticKITTI {name}", survey, drive / 3))
+    for label, survey, tile_m in streets:
         model = choose_model("guardrail", SHIPPED, survey, read_classifier_card, None, None)
         started = time.perf_counter()
         whole = GuardrailPipeline(None, model.path).run(survey)
@@ -369,7 +380,7 @@ def part_guardrail_agreement(args) -> tuple[str, str, str]:
         truth = whole.frame_labels()
         with tempfile.TemporaryDirectory() as out:
             started = time.perf_counter()
-            done = run_guardrail_report(survey, Path(out), model=model, tile_length=tile)
+            done = run_guardrail_report(survey, Path(out), model=model, tile_length=tile_m)
             tiled_s = time.perf_counter() - started
             equal = sum(
                 int((np.load(Path(out) / "labels" / f"{f}.npy") == v).sum())
@@ -384,20 +395,22 @@ def part_guardrail_agreement(args) -> tuple[str, str, str]:
             poles[1] += len(pb)
             if len(pa) == len(pb) and pa:
                 moved = max(moved, float(np.abs(np.array(pa) - np.array(pb)).max()))
-        rows.append([scanner, f"{points:,}", str(done.run.index.count), f"{whole_s:.0f}",
-                     f"{tiled_s:.0f}", f"{100 * equal / points:.4f}",
+        rows.append([label, f"{points:,}", f"{done.run.index.count} of {tile_m:.1f} m",
+                     f"{whole_s:.0f}", f"{tiled_s:.0f}", f"{100 * equal / points:.4f}",
                      f"{len(whole.guardrails)} / {len(done.guardrails)}",
                      f"{poles[0]} / {poles[1]}", f"{100 * moved:.2f}"])  # fmt: skip
     table = markdown_table(
-        ["scanner", "points", "tiles", "whole s", "tiled s", "labels equal to whole %",
+        ["street", "points", "tiles", "whole s", "tiled s", "labels equal to whole %",
          "guardrails whole / tiled", "poles whole / tiled", "largest pole shift cm"],
         rows,
     )  # fmt: skip
     notes = (
-        f"Synthetic: simulated {metres:g} m urban streets (profile scanner seed 7, HDL-64E-like "
-        f"seed 3, no camera: every slice takes the geometry head), the guardrail pipeline with "
-        f"the shipped classifier of each sensor kind, in this process (no cluster): the whole "
-        f"survey against {tile:g} m tiles with the pipeline's halo. Pole shift: the largest "
+        f"Synthetic rows: simulated {metres:g} m urban streets (profile scanner seed 7, "
+        f"HDL-64E-like seed 3, no camera: every slice takes the geometry head). Real rows "
+        f"(when MMSCLEAN_REAL_DATA is set): SemanticKITTI's ten frames per sequence (HDL-64E, "
+        f"camera crops), cut into three tiles of a third of the drive, with the same halo. "
+        f"The guardrail pipeline with the shipped classifier of each sensor kind, in this "
+        f"process (no cluster): the whole survey against the tiles. Pole shift: the largest "
         f"distance between a pole of the whole run and the same pole of the tiled run "
         f"(guardrails paired in order of station)."
     )

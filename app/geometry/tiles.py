@@ -34,7 +34,8 @@ def _flat(xy: np.ndarray) -> np.ndarray:
 
 
 # tiles evened over the workers (`TileLayout.along`) are at most this times the length asked:
-# the nearest multiple of the workers is at least the tile count less half the workers
+# the nearest multiple of the workers (at least one multiple) is at least the tile count less
+# half the workers
 EVEN_STRETCH = 1.5
 
 
@@ -60,10 +61,11 @@ class TileLayout:
         """The layout of a trajectory (M, 2 or 3) in driving order: tiles every `length` m.
 
         With `workers` (how many tiles run at once), a count of more than one becomes the
-        multiple of `workers` nearest to it, and the tiles equal: a short survey's 100, 100
-        and 40 m on two workers ran its last tile alone while the other worker idled; two
-        tiles of 120 m keep both busy. Rounding up instead (four of 60 m) costs more than it
-        saves: each tile reads its halo again. Evened tiles are at most `EVEN_STRETCH` times
+        multiple of `workers` nearest to it (half-way: the fewer), and the tiles equal: a short
+        survey's 100, 100 and 40 m on two workers ran its last tile alone while the other
+        worker idled; two tiles of 120 m keep both busy. Rounding up instead (four of 60 m)
+        cost more than it saved (phantom and guardrail, 0.25 km): each tile reads its halo
+        again. Evened tiles are at most `EVEN_STRETCH` times
         `length` (a job's memory estimate counts with that), and the layout's `length` is
         theirs."""
         if not length > 0 or not halo >= 0:
@@ -77,7 +79,7 @@ class TileLayout:
         if count == 1 or workers is None:
             return cls(index, float(length), float(halo), tuple(np.arange(count) * float(length)))
         share = max(int(workers), 1)
-        count = max(int(np.floor(count / share + 0.5)), 1) * share  # nearest, half-way up
+        count = max(int(np.ceil(count / share - 0.5)), 1) * share  # nearest, half-way down
         even = total / count  # the layout's length: later cuts (by points, by budget) keep it
         return cls(index, even, float(halo), tuple(np.arange(count) * even))
 

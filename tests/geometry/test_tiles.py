@@ -48,8 +48,9 @@ def test_dense_stretches_get_shorter_tiles() -> None:
 
 def test_tiles_are_evened_over_the_workers() -> None:
     """150 m in tiles of 40 m is 4 tiles (40, 40, 40, 30); on 3 workers the nearest multiple
-    (3) of 50 m, on 8 workers 8 of 18.75 m; on 2 workers 4 equal tiles. Never more than
-    EVEN_STRETCH times the length, and one tile stays one whatever the workers."""
+    (3) of 50 m, on 8 workers 8 of 18.75 m (at least one multiple), on 2 workers 4 equal
+    tiles; half-way between two multiples, the fewer tiles. Never more than EVEN_STRETCH
+    times the length, and one tile stays one whatever the workers."""
     from app.geometry.tiles import EVEN_STRETCH
 
     for workers, count in ((1, 4), (2, 4), (3, 3), (5, 5), (8, 8)):
@@ -60,6 +61,7 @@ def test_tiles_are_evened_over_the_workers() -> None:
         assert layout.length == pytest.approx(150.0 / count)
         assert layout.length <= EVEN_STRETCH * 40.0
     assert TileLayout.along(_bend(), length=200.0, halo=5.0, workers=2).count == 1
+    assert TileLayout.along(_bend(), length=30.0, halo=5.0, workers=2).count == 4  # 5: 4 or 6
     # a layout evened first is cut by points with its own length (the cut keeps its edges)
     even = TileLayout.along(_bend(), length=40.0, halo=5.0, workers=3)
     assert even.cut_by_points(np.zeros(1), np.ones(1), 10**9, 2.0).edges == even.edges
