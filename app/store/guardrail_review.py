@@ -29,7 +29,6 @@ from app.geometry.trajectory import arc_length
 from app.store.audit import audit
 from app.store.db import commit, write_transaction
 from app.store.models import (
-    Frame,
     GuardrailKind,
     GuardrailModel,
     GuardrailSlice,
@@ -39,7 +38,7 @@ from app.store.models import (
     User,
     utcnow,
 )
-from app.store.surveys import get_survey
+from app.store.surveys import get_survey, survey_trajectory
 from app.store.users import has_role
 from app.store.versions import check_versions
 
@@ -156,12 +155,9 @@ def next_uncertain(session: Session, survey_id: int) -> tuple[GuardrailSlice | N
 
 def trajectory_position(session: Session, survey_id: int, station_m: float) -> list[float] | None:
     """World position of the sensor at `station_m` metres along the survey's frame poses."""
-    poses = session.exec(
-        select(Frame.pose).where(Frame.survey_id == survey_id).order_by(Frame.frame_index)
-    ).all()
-    if not poses:
+    xyz = survey_trajectory(session, survey_id)
+    if not len(xyz):
         return None
-    xyz = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)[:, :3, 3]
     s = arc_length(xyz)
     return [float(np.interp(station_m, s, xyz[:, a])) for a in range(3)]
 

@@ -349,3 +349,12 @@ def delete_survey(
     session.delete(survey)
     commit(session)
     return survey
+
+
+def survey_trajectory(session: Session, survey_id: int) -> np.ndarray:
+    """(M, 3) float64 world positions of the sensor, frame by frame in recorded order (its
+    frames' poses; a map's one frame gives one position)."""
+    poses = session.exec(
+        select(Frame.pose).where(Frame.survey_id == survey_id).order_by(Frame.frame_index)
+    ).all()
+    return np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)[:, :3, 3]

@@ -31,8 +31,9 @@ from app.core.errors import (
 )
 from app.store import pillar_labels
 from app.store.models import Role, User
-from app.store.surveys import list_surveys
+from app.store.surveys import list_surveys, survey_trajectory
 from app.store.users import has_role
+from app.viewer.drive import DriveControls
 from app.viewer.modes import MODES
 from app.viewer.modes.base import Mode
 from app.viewer.tickets import Ticket
@@ -58,6 +59,7 @@ class ViewerSession:
         self.view: SurveyView | None = None
         self.mode: Mode | None = None
         self.mode_folder: Any = None
+        self.drive: DriveControls | None = None
         self.closed = False
         self._executor = ThreadPoolExecutor(1, thread_name_prefix=f"viewer-{client.client_id}")
         self._camera_pending = threading.Event()
@@ -148,6 +150,7 @@ class ViewerSession:
         if self.view is not None and self.view.survey_id == survey_id:
             return
         self._leave_mode()
+        self._remove_drive()
         if self.view is not None:
             self.view.unsubscribe(self._labels_changed)
             self.viewer.views.release(self.view)
@@ -161,7 +164,24 @@ class ViewerSession:
             loading.remove()
         self.view.subscribe(self._labels_changed)
         self._place_camera()
+        self._add_drive()
         self.switch_mode(mode_name)
+
+    def _add_drive(self) -> None:
+        """The "Drive" controls of the open survey (`drive.py`), where it has a drive."""
+        survey_map = self.view.map
+        with self.db() as session:
+            trajectory = survey_trajectory(session, self.view.survey_id) - survey_map.origin
+        self.drive = DriveControls.maybe(
+            self.client.gui, trajectory,
+            lambda xy: float(survey_map.ground.height(xy[None])[0]) if len(survey_map) else 0.0,
+            self.move_camera, self.submit,
+        )  # fmt: skip
+
+    def _remove_drive(self) -> None:
+        if self.drive is not None:
+            self.drive.remove()
+            self.drive = None
 
     def _place_camera(self) -> None:
         """Look down at the middle of the map, a little from behind-left: at the overview's

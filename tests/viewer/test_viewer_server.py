@@ -9,6 +9,7 @@ import ipaddress
 import socket
 import subprocess
 import time
+from pathlib import Path
 from urllib.parse import unquote
 
 import httpx
@@ -19,6 +20,7 @@ from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
 from app.core.sensors import SensorKind
+from app.io import open_survey
 from app.store.db import make_engine
 from app.store.model_labels import store_model_labels
 from app.store.model_versions import register_version
@@ -320,3 +322,34 @@ def test_model_prelabels_from_another_process_show_lighter_hide_and_lead_the_cam
         run_coroutine(session())
     finally:
         engine.dispose()
+
+
+def test_the_drive_controls_take_the_camera_along_the_drive(viewer_server: Server) -> None:
+    """ "Ahead 100 m" on the 58 m sample drive looks at its end; the slider at 20 m looks at
+    the drive 20 m from its start, from behind it (`app/viewer/drive.py`)."""
+    token = login_token(viewer_server)
+    origin = np.array(viewer_server.client().get("/surveys/1").json()["origin"])
+    sample = Path(__file__).resolve().parents[2] / "data_samples" / "urban-60m"
+    path = open_survey(sample, "sim").poses()[:, :3, 3] - origin
+
+    def looked_at(message: dict) -> bool:
+        return message.get("type") == "SetCameraLookAtMessage"
+
+    async def session() -> None:
+        client = await WireClient.open(ws_url(viewer_server, "?survey=1"), token)
+        await client.hello()
+        await client.wait_for(is_point_cloud, SCENE_TIMEOUT)  # past the first camera
+        await client.send(button_press(client.gui_uuid("Ahead 100 m")))
+        _, look = await client.wait_for(looked_at, 10)
+        assert np.hypot(*(np.asarray(look["look_at"][:2]) - path[-1, :2])) < 0.01
+        slider = client.gui_uuid("Along the drive (m)", "GuiSliderMessage")
+        await client.send(gui_set(slider, 20.0))
+        _, look = await client.wait_for(looked_at, 10)
+        step = np.hypot(*np.diff(path[:, :2], axis=0).T)
+        at = np.asarray(look["look_at"][:2])
+        assert np.hypot(*(path[:, :2] - at).T).min() < 0.5  # on the drive
+        along = np.interp(20.0, np.r_[0, np.cumsum(step)], np.arange(len(path)))
+        assert np.hypot(*(at - path[int(round(along)), :2])) < max(step) + 0.5
+        await client.close()
+
+    run_coroutine(session())
