@@ -266,11 +266,23 @@ def part_viewer_browser(args) -> tuple[str, str, str]:
     from bench.viewer_browser import measure
 
     km = float(args.lengths.split(",")[-1])
-    got = measure(simulated(SCENE, km * 1000.0, SEED, args.scanner, DRIVE_SPEED))
-    first, again, flight = got["first"], got["again"], got["flight"]
+    steps = int(km * 10)  # "Ahead 100 m" from the start to the end of the drive
+    got = measure(simulated(SCENE, km * 1000.0, SEED, args.scanner, DRIVE_SPEED), steps=steps)
+    first, again, flight, drive = got["first"], got["again"], got["flight"], got["drive"]
     seconds = (
         "-" if flight["tile_s_median"] is None
         else f"{flight['tile_s_median']:.2f} / {flight['tile_s_max']:.2f}"
+    )  # fmt: skip
+    along = (
+        "-" if drive["tile_s_median"] is None
+        else f"{drive['tile_s_median']:.2f} / {drive['tile_s_p90'] or 0:.2f} / "
+        f"{drive['tile_s_max']:.2f}"
+    )  # fmt: skip
+    flown = markdown_table(
+        ["km", "steps of 100 m with a new tile", "tile drawn after a step s: median / p90 / max",
+         "server RSS / anonymous MB along the drive, most"],
+        [[f"{km:g}", f"{drive['tiles']} of {drive['steps']}", along,
+          f"{drive['rss_mb_max'] or 0:.0f} / {drive['anon_mb_max'] or 0:.0f}"]],
     )  # fmt: skip
     table = markdown_table(
         ["km", "points",
@@ -297,7 +309,11 @@ def part_viewer_browser(args) -> tuple[str, str, str]:
         f"across the canvas, round a square (the camera pans), per drag the seconds from the "
         f"release to the next tile drawn, and the server process's memory after it (RSS counts "
         f"mapped file pages the kernel can drop; anonymous is what it holds). Page errors: "
-        f"JavaScript errors seen."
+        f"JavaScript errors seen (over the whole run, the flight below included).\n\n"
+        f"Then a flight along the drive in the same tab: the viewer's Drive folder opened and "
+        f'its "Ahead 100 m" button pressed {steps} times, from the drive\'s start to its end '
+        f"(the camera above the drive, looking ahead); per press the seconds to the next tile "
+        f"drawn and the server's memory after it:\n\n{flown}"
     )
     return "Scale: the viewer of a long survey in a real browser", table, notes
 

@@ -7,7 +7,9 @@ page and scripts loaded), to the overview's points received and drawn, and to th
 drawn (drawn: the point cloud's message received, then three animation frames of the page, so
 the frame that draws it has passed); then the camera panned by right-button drags across the
 canvas, round a square, as a user moves about the street: per drag, the seconds to the next
-tile drawn; the server's memory after each.
+tile drawn; the server's memory after each. Last, a flight along the drive: the viewer's "Ahead
+100 m" button (`app/viewer/drive.py`) pressed from the drive's start to its end, as an operator
+goes through a survey: per step, the seconds to the next tile drawn and the server's memory.
 
 Run through `python -m bench.scale viewer-browser` (the longest of --lengths).
 """
@@ -122,7 +124,35 @@ def pan(tab: Tab, server: Server, drags: int, pixels: int) -> dict:
     }  # fmt: skip
 
 
-def measure(source: Path, drags: int = 12, pixels: int = 500) -> dict:
+def fly_along(tab: Tab, server: Server, steps: int) -> dict:
+    """The Drive folder opened, its slider at the start, then "Ahead 100 m" pressed `steps`
+    times; per press, seconds to the next tile drawn, the server's memory after it."""
+    tab.page.get_by_text("Drive", exact=True).click()
+    ahead = tab.page.get_by_role("button", name="Ahead 100 m")
+    ahead.wait_for(timeout=10_000)
+    seconds, rss, anon, stayed = [], [], [], 0
+    for _ in range(steps):
+        before = len(tab.clouds)
+        ahead.click()
+        pressed = time.perf_counter()
+        drawn = tab.drawn_after(before + 1, DRAG_TIMEOUT_S)
+        if drawn is None:
+            stayed += 1
+            continue
+        seconds.append(drawn - pressed)
+        r, a = process_memory_mb(server.process.pid)
+        rss.append(r)
+        anon.append(a)
+    return {
+        "steps": steps, "tiles": len(seconds), "no_new_tile": stayed,
+        "tile_s_median": statistics.median(seconds) if seconds else None,
+        "tile_s_p90": statistics.quantiles(seconds, n=10)[-1] if len(seconds) > 1 else None,
+        "tile_s_max": max(seconds) if seconds else None,
+        "rss_mb_max": max(rss) if rss else None, "anon_mb_max": max(anon) if anon else None,
+    }  # fmt: skip
+
+
+def measure(source: Path, drags: int = 12, pixels: int = 500, steps: int = 40) -> dict:
     """Import `source` into a fresh server, wait for its map, open it twice in the browser and
     pan along it in the second tab."""
     from playwright.sync_api import sync_playwright
@@ -142,9 +172,10 @@ def measure(source: Path, drags: int = 12, pixels: int = 500) -> dict:
             again = open_scene(tab)
             after_open = process_memory_mb(server.process.pid)
             flight = pan(tab, server, drags, pixels)
+            drive = fly_along(tab, server, steps)
             errors = first_tab.errors + tab.errors
             tab.close()
             browser.close()
     return {"points": int(record["point_count"]), "prepared_s": prepared_s, "first": first,
-            "again": again, "after_open_mb": after_open, "flight": flight,
+            "again": again, "after_open_mb": after_open, "flight": flight, "drive": drive,
             "page_errors": errors}  # fmt: skip

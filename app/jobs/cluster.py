@@ -27,6 +27,7 @@ from app.core.settings import Settings
 from app.jobs.registry import JobContext
 
 TILES_PROGRESS = (0.02, 0.85)  # the share of a job's bar its tiles fill
+PRELOAD = "app.jobs.tile_preload"  # what a tile worker imports as it starts
 
 _lock = threading.Lock()
 _clients: dict[tuple, Client] = {}
@@ -48,7 +49,8 @@ def tile_client(settings: Settings) -> Client:
 
 
 def embedded_cluster(settings: Settings) -> LocalCluster:
-    """A local cluster of `settings.workers` tile worker processes."""
+    """A local cluster of `settings.workers` tile worker processes, each importing the
+    pipelines as it starts (`tile_preload`)."""
     return _in_own_thread(
         lambda: LocalCluster(
             n_workers=settings.workers,
@@ -57,6 +59,7 @@ def embedded_cluster(settings: Settings) -> LocalCluster:
             memory_limit=f"{settings.tile_worker_memory_mb}MiB",
             dashboard_address="127.0.0.1:0",  # loopback only: an admin tunnels to it
             host="127.0.0.1",
+            preload=[PRELOAD],
         )
     )
 

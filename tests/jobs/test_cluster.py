@@ -76,7 +76,8 @@ def dask_cluster(tmp_path: Path):
     commands = {
         "scheduler": ["scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"],
         **{f"w{k}": ["worker", address, "--nworkers", "1", "--nthreads", "1", "--no-dashboard",
-                     "--name", f"w{k}", "--memory-limit", "2GiB"] for k in range(2)},
+                     "--name", f"w{k}", "--memory-limit", "2GiB",
+                     "--preload", "app.jobs.tile_preload"] for k in range(2)},
     }  # fmt: skip
     files = contextlib.ExitStack()
     processes = [
