@@ -486,10 +486,11 @@ def part_pipeline(args) -> tuple[str, str, str]:
         f"{DRIVE_SPEED:g} m/s at every length, no camera), "
         f"{how}, {tile_length:g} m tiles, on a fresh local Dask cluster per run. Wall time from "
         f"the start of the run to report.json (tiles, assembly of labels, LAZ and the rest; the "
-        f"cluster's start and the simulation not counted). Time per km spread from the "
-        f"fastest to the slowest length: {spread:.0f} %. Peak memory: ru_maxrss of each tile "
-        f"worker process over its life (it imports torch and the network), and of the "
-        f"process that ran the job and assembled the outputs."
+        f"cluster's start, in which its workers import the pipelines as the server's do, and "
+        f"the simulation not counted). Time per km spread from the fastest to the slowest "
+        f"length: {spread:.0f} %. Peak memory: ru_maxrss of each tile worker process over its "
+        f"life (it imports torch, open3d and the networks), and of the process that ran the "
+        f"job and assembled the outputs."
     )
     title = f"Scale: the tiled {pipeline} pipeline by survey length ({args.scanner})"
     return title, table + "\n\n" + speed, notes
