@@ -115,6 +115,7 @@ def tile_map(settings: Settings) -> Callable[..., Iterator[Any]]:
     def map_tiles(fn: Callable[..., Any], spec: Any, index: Any, tiles: list[int]):
         client = tile_client(settings)
         shared = client.submit(_the, index, pure=False)
+        client.replicate([shared])  # on every worker: else the tiles queue where it was made
         futures = [client.submit(fn, spec, shared, tile, pure=False) for tile in tiles]
         try:
             for future in as_completed(futures):
