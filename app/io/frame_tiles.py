@@ -50,7 +50,11 @@ class FrameTiles:
         """Tiles of `length` metres; with `budget`, a tile also ends before the frames it reads
         (its own and their halo's, a drive's other passes included) would weigh more than
         that, or more than one of its frames' context and a third of `budget` where that
-        context alone is over `budget`. `weights`: (F,) what each frame weighs (default 1)."""
+        context alone is over `budget`. `weights`: (F,) what each frame weighs (default 1).
+        `workers`: the tiles are evened over them (`TileLayout.along`), and where the budget
+        then cuts a count that is no multiple of them, the cut is made again from shorter
+        equal tiles (0.5 km on two workers: two tiles of 240 m, one cut by the budget, were
+        three, the last running alone)."""
         poses = survey.poses()
         if len(poses) == 0:
             raise ValueError(f"{survey.source}: no frames to cut into tiles")
@@ -63,6 +67,8 @@ class FrameTiles:
             if weight.shape != (len(poses),):
                 raise ValueError(f"{len(weight)} frame weights for {len(poses)} frames")
             layout = _cut_by_budget(layout, station, near, weight, budget)
+            if workers and layout.count > 1 and layout.count % workers:
+                layout = _evened_cut(layout, workers, station, near, weight, budget)
         owner = layout.owner(station)
         frames = []
         for tile in range(layout.count):
@@ -82,6 +88,31 @@ class FrameTiles:
     def tile_survey(self, survey: Survey, tile: int) -> Survey:
         """The survey with only the frames tile `tile` reads (same order)."""
         return replace(survey, frames=[survey.frames[int(k)] for k in self.frames[tile]])
+
+
+def _evened_cut(
+    layout: TileLayout,
+    workers: int,
+    station: np.ndarray,
+    near: list,
+    weight: np.ndarray,
+    budget: float,
+    tries: int = 3,
+) -> TileLayout:
+    """`layout` (cut by the budget into a count that is no multiple of `workers`: the evened
+    tiles' budget cut added some) cut again from equal tiles of the next multiples' lengths,
+    the first whose budget cut is a multiple of `workers`; else `layout` as it was."""
+    count = -(-layout.count // workers) * workers
+    for _ in range(tries):
+        equal = TileLayout(
+            layout.stations_of, layout.total / count, layout.halo,
+            tuple(np.arange(count) * (layout.total / count)),
+        )  # fmt: skip
+        cut = _cut_by_budget(equal, station, near, weight, budget)
+        if cut.count % workers == 0:
+            return cut
+        count += workers
+    return layout
 
 
 def _cut_by_budget(

@@ -162,6 +162,27 @@ def test_a_frame_budget_cuts_tiles_shorter(street: Path) -> None:
     )
 
 
+def test_budget_cut_tiles_are_evened_over_the_workers(street: Path) -> None:
+    """On 2 workers, 8 m tiles that a 15-frame budget cuts into an odd count are cut again from
+    shorter equal tiles into an even one, within the budget; where the budget alone decides
+    every edge (8 frames), no shorter length helps and the cut stays as it was. Tiles by length
+    alone (no budget) are the nearest multiple."""
+    survey = open_survey(street, "sim")
+    alone = FrameTiles.build(survey, 8.0, 5.0, budget=15)
+    evened = FrameTiles.build(survey, 8.0, 5.0, budget=15, workers=2)
+    assert alone.count % 2 == 1 and evened.count % 2 == 0 and evened.count > 1
+    assert max(len(f) for f in evened.frames) <= 15
+    assert sorted(np.concatenate([evened.own(t) for t in range(evened.count)])) == list(
+        range(len(survey.frames))
+    )
+    tight = FrameTiles.build(survey, 8.0, 5.0, budget=8)
+    assert tight.count % 2 == 1
+    assert (
+        FrameTiles.build(survey, 8.0, 5.0, budget=8, workers=2).layout.edges == tight.layout.edges
+    )
+    assert FrameTiles.build(survey, 25.0, 5.0, workers=2).count % 2 == 0
+
+
 def test_the_way_back_has_its_own_tiles() -> None:
     """A drive that comes back along its street: each frame's tile follows its own station
     (the way back's frames are not put at the way out's stations), each frame's context holds
