@@ -335,7 +335,7 @@ class StoredStage:
 
     @classmethod
     def open(cls, path: Path) -> StoredStage:
-        path = Path(path)
+        path = Path(path).resolve()  # a cluster's workers read the parts from its folder
         with np.load(path, allow_pickle=False) as z:
             if "parts" not in z.files:
                 return cls(path, _one_file(z, slices_only=True), None, None, None)

@@ -109,7 +109,7 @@ def run_guardrail_report(
     earlier attempt in `out` finished are kept; `map_tiles` may spread them over a cluster.
     `keep_stage`: also `STAGE_FILE` and `FEATURES_FILE` (every slice: the web app's review)."""
     started = time.perf_counter()
-    out = Path(out)
+    out = Path(out).resolve()  # the guardrails are written there by the cluster's workers too
     if model is None:
         model = choose_model("guardrail", SHIPPED, survey, read_classifier_card, model_path, sensor)
     pipeline = GuardrailPipeline(config, model.path)
