@@ -65,9 +65,8 @@ class TileLayout:
         survey's 100, 100 and 40 m on two workers ran its last tile alone while the other
         worker idled; two tiles of 120 m keep both busy. Rounding up instead (four of 60 m)
         cost more than it saved (phantom and guardrail, 0.25 km): each tile reads its halo
-        again. Evened tiles are at most `EVEN_STRETCH` times
-        `length` (a job's memory estimate counts with that), and the layout's `length` is
-        theirs."""
+        again. Evened tiles are at most `EVEN_STRETCH` times `length` (a job's memory
+        estimate counts with that), and the layout's `length` is theirs (`equal`)."""
         if not length > 0 or not halo >= 0:
             raise ValueError(f"tile length {length} must be > 0 and halo {halo} >= 0")
         if len(trajectory) == 0:
@@ -80,8 +79,13 @@ class TileLayout:
             return cls(index, float(length), float(halo), tuple(np.arange(count) * float(length)))
         share = max(int(workers), 1)
         count = max(int(np.ceil(count / share - 0.5)), 1) * share  # nearest, half-way down
-        even = total / count  # the layout's length: later cuts (by points, by budget) keep it
-        return cls(index, even, float(halo), tuple(np.arange(count) * even))
+        return cls(index, float(length), float(halo)).equal(count)
+
+    def equal(self, count: int) -> TileLayout:
+        """The same trajectory in `count` equal tiles, whose length the layout keeps: later
+        cuts (by points, by budget) cut with it."""
+        even = self.total / count
+        return replace(self, length=even, edges=tuple(np.arange(count) * even))
 
     def cut_by_points(
         self, station: np.ndarray, points: np.ndarray, max_points: int, min_length: float

@@ -104,11 +104,7 @@ def _evened_cut(
     the first whose budget cut is a multiple of `workers`; else `layout` as it was."""
     count = -(-layout.count // workers) * workers
     for _ in range(tries):
-        equal = TileLayout(
-            layout.stations_of, layout.total / count, layout.halo,
-            tuple(np.arange(count) * (layout.total / count)),
-        )  # fmt: skip
-        cut = _cut_by_budget(equal, station, near, weight, budget)
+        cut = _cut_by_budget(layout.equal(count), station, near, weight, budget)
         if cut.count % workers == 0:
             return cut
         count += workers
