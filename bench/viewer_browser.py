@@ -44,7 +44,7 @@ class Tab:
         self.context = browser.new_context(viewport=VIEWPORT)
         self.context.add_cookies([{"name": "mmsclean_token", "value": token, "url": server.url}])
         self.page = self.context.new_page()
-        self.clouds: list[float] = []  # arrival times of point cloud messages
+        self.clouds: list[float] = []  # arrival time of each point cloud message
         self.socket_at: float | None = None  # when the page opened its websocket
         self.errors: list[str] = []
         self.page.on("pageerror", lambda exc: self.errors.append(str(exc)))
@@ -58,8 +58,9 @@ class Tab:
             if not isinstance(payload, bytes):
                 return
             arrived = time.perf_counter()
-            if any(is_point_cloud(m) for m in decode_frame(payload)):
-                self.clouds.append(arrived)
+            # viser batches messages: one frame may carry the overview and the tile in focus
+            clouds = sum(1 for m in decode_frame(payload) if is_point_cloud(m))
+            self.clouds.extend([arrived] * clouds)
 
         ws.on("framereceived", received)
 
