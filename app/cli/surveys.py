@@ -45,7 +45,13 @@ def info(
 
 def simulate(
     out: Annotated[Path, typer.Option("--out", "-o", help="output folder (KITTI-raw-like)")],
-    scene: Annotated[str, typer.Option(help="urban, highway, mixed or interchange")] = "urban",
+    scene: Annotated[
+        str,
+        typer.Option(
+            help="a street: urban, highway, mixed, interchange; or a situation clutter removal "
+            "finds hard: receding, approaching, walkers, market, shadow"
+        ),
+    ] = "urban",
     length: Annotated[float, typer.Option(help="metres of street driven")] = 60.0,
     seed: Annotated[int, typer.Option(help="same seed, same bytes")] = 0,
     scanner: Annotated[str, typer.Option(help="hdl64 (frames) or profile (MLS map)")] = "hdl64",

@@ -4,7 +4,8 @@ Camera frame (OpenCV / KITTI): x right, y down, z forward. One ray per pixel cen
 (u + 0.5, v + 0.5) through the pinhole, all at one `time` (global shutter: moving bodies are
 placed at that time). Shading is plain, per class: `COLORS[semantic]` (or each body's own
 `Body.color` with `body_colors=True`) times (0.35 + 0.65 |n . l|), a mild darkening with
-distance (fog) so depth reads, and `SKY_COLOR` where nothing is hit. The LiDAR halo never
+distance (fog) so depth reads, a body's `shade` (deep shadow, dark paint), and `SKY_COLOR`
+where nothing is hit. The LiDAR halo never
 shows in the camera.
 """
 
@@ -102,7 +103,8 @@ def render(
     fog = 0.55 + 0.45 * np.exp(-hits.distance[hit] / FOG_DISTANCE)
     rgb = np.empty((H * W, 3))
     rgb[:] = SKY_COLOR
-    rgb[hit] = color_of[body_idx] * ((0.35 + 0.65 * lambert) * fog)[:, None]
+    shade_of = np.array([b.shade for b in scene.bodies] or [1.0], dtype=np.float64)
+    rgb[hit] = color_of[body_idx] * ((0.35 + 0.65 * lambert) * fog * shade_of[body_idx])[:, None]
     return Render(
         rgb=np.clip(np.rint(rgb), 0, 255).astype(np.uint8).reshape(H, W, 3),
         semantic=semantic.reshape(H, W),

@@ -108,13 +108,14 @@ class SceneBuilder:
         halo: float = 0.0,
         reflectivity: float | None = None,
         guardrail: int = -1,
+        shade: float = 1.0,
     ) -> int:
         """A countable object of one or more (mesh, class) pieces sharing one instance id."""
         instance = self.new_instance()
         for mesh, semantic in pieces:
             refl = REFLECTIVITY.get(semantic, 0.4) if reflectivity is None else reflectivity
             body = Body(name, mesh, semantic, instance, COLORS[semantic], refl, motion, guardrail,
-                        halo)  # fmt: skip
+                        halo, shade)  # fmt: skip
             self.bodies.append(body)
         return instance
 

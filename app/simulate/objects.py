@@ -171,6 +171,114 @@ def tram(rng: np.random.Generator) -> StreetObject:
     return _finish("tram", {"body": Mesh.merge(parts)}, params)
 
 
+def trailer(rng: np.random.Generator) -> StreetObject:
+    """Box trailer on one axle with a drawbar (SemanticKITTI other-vehicle; an image model
+    trained on Cityscapes has no class for it). 2.5-4.5 x 1.5-2.1 x 1.2-2.3 m."""
+    L, W = rng.uniform(2.5, 4.5), rng.uniform(1.5, 2.1)
+    H = rng.uniform(1.2, 2.3)
+    r, floor = rng.uniform(0.25, 0.32), rng.uniform(0.5, 0.65)
+    bar = rng.uniform(1.0, 1.4)
+    body = box((L, W, H - floor), (-0.5 * bar, 0.0, 0.5 * (H + floor)))
+    drawbar = box((bar, 0.12, 0.1), (0.5 * L, 0.0, floor - 0.05))
+    parts = [body, drawbar, *_wheels([-0.5 * bar], W, r, 0.18)]
+    return _finish("trailer", {"body": Mesh.merge(parts)}, {"length": L, "width": W, "height": H})
+
+
+def excavator(rng: np.random.Generator) -> StreetObject:
+    """Tracked excavator at rest: two crawler tracks, the turning upper body, the cab on its
+    left, the boom and stick folded forward down to the bucket on the ground."""
+    track_len, gauge = rng.uniform(3.0, 3.8), rng.uniform(2.2, 2.5)
+    body_h, cab_h = rng.uniform(0.9, 1.1), rng.uniform(1.4, 1.7)
+    tracks = [box((track_len, 0.55, 0.75), (0.0, sgn * 0.5 * gauge, 0.375)) for sgn in (-1, 1)]
+    upper = box((2.8, gauge, body_h), (-0.3, 0.0, 0.8 + 0.5 * body_h))
+    cab_z = 0.8 + body_h
+    cab = box((1.0, 0.95, cab_h), (0.4, 0.5 * gauge - 0.5, cab_z + 0.5 * cab_h))
+    boom_top = np.array([1.6, -0.3, cab_z + rng.uniform(1.6, 2.2)])
+    boom = tube(np.stack([[0.8, -0.3, cab_z - 0.2], boom_top]), 0.22, 8)
+    bucket_at = np.array([boom_top[0] + rng.uniform(1.2, 1.8), -0.3, 0.45])
+    stick = tube(np.stack([boom_top, bucket_at]), 0.16, 8)
+    bucket = box((0.8, 1.0, 0.7), bucket_at + [0.2, 0.0, -0.05])
+    parts = [*tracks, upper, cab, boom, stick, bucket]
+    params = {"track_length": track_len, "gauge": gauge}
+    return _finish("excavator", {"body": Mesh.merge(parts)}, params)
+
+
+def road_roller(rng: np.random.Generator) -> StreetObject:
+    """Tandem road roller: a steel drum at each end (cylinders across y), the engine body
+    between them and an open cab with a roof on four posts. 3.5-4.5 x 1.5-2.1 m."""
+    L, W = rng.uniform(3.5, 4.5), rng.uniform(1.5, 2.1)
+    r = rng.uniform(0.55, 0.7)
+    drums = [
+        cylinder((x, -0.5 * W, r), (x, 0.5 * W, r), r, 20) for x in (0.5 * L - r, -0.5 * L + r)
+    ]
+    body = box((L - 2.2 * r, W * 0.9, 1.0), (0.0, 0.0, r + 0.3))
+    roof_z = r + rng.uniform(2.0, 2.3)
+    posts = [
+        cylinder((x, y, r + 0.8), (x, y, roof_z), 0.04, 6)
+        for x in (-0.5, 0.5)
+        for y in (-0.4 * W, 0.4 * W)
+    ]
+    roof = box((1.4, W * 0.95, 0.08), (0.0, 0.0, roof_z))
+    parts = [*drums, body, *posts, roof]
+    return _finish("roller", {"body": Mesh.merge(parts)}, {"length": L, "width": W})
+
+
+# ----------------------------------------------------------------------------- market
+
+
+def market_stall(rng: np.random.Generator) -> StreetObject:
+    """A market stall: a table of goods (counter box) and a sloping awning on four posts that
+    reaches out over the sidewalk in front of it (local -y: the side the customers stand).
+    2-4 m wide, the awning 2-3 m deep at 2.1-2.6 m."""
+    width, depth = rng.uniform(2.0, 4.0), rng.uniform(0.8, 1.2)
+    reach = rng.uniform(2.0, 3.0)  # awning depth, from the back of the stall
+    high, low = rng.uniform(2.4, 2.8), rng.uniform(2.1, 2.3)
+    counter = box((width, depth, 0.9), (0.0, 0.0, 0.45))
+    goods = box((width - 0.2, depth - 0.2, 0.25), (0.0, 0.0, 1.02))
+    back_y, front_y = 0.5 * depth, 0.5 * depth - reach
+    posts = [
+        cylinder((x, y, 0.0), (x, y, z), 0.03, 6)
+        for x in (-0.5 * width, 0.5 * width)
+        for y, z in ((back_y, high), (front_y, low))
+    ]
+    awning = _side_profile(
+        [(front_y, low), (back_y, high), (back_y, high + 0.04), (front_y, low + 0.04)], width
+    )  # built in (y, z): turn it so its slope runs across the stall
+    awning.vertices = awning.vertices[:, [1, 0, 2]]
+    params = {"width": width, "depth": depth, "reach": reach}
+    return _finish("stall", {"body": Mesh.merge([counter, goods, *posts, awning])}, params)
+
+
+def crates(rng: np.random.Generator) -> StreetObject:
+    """A stack of produce crates: 2-6 boxes of 0.5 x 0.35 x 0.3 m in up to three layers."""
+    pieces = []
+    count = int(rng.integers(2, 7))
+    for k in range(count):
+        column, layer = divmod(k, 3)
+        pieces.append(box((0.5, 0.35, 0.3), (0.55 * column, 0.0, 0.15 + 0.31 * layer)))
+    return _finish("crates", {"body": Mesh.merge(pieces)}, {"count": float(count)})
+
+
+def bike_rack(rng: np.random.Generator, hoops: int) -> StreetObject:
+    """Sheffield stands: `hoops` inverted-U tubes 0.8 m high, 0.7 m long, 1 m apart along x;
+    bicycles park along y beside them."""
+    pieces = []
+    for k in range(hoops):
+        x = k * 1.0
+        u = np.array([[x, -0.35, 0.0], [x, -0.35, 0.8], [x, 0.35, 0.8], [x, 0.35, 0.0]])
+        pieces.append(tube(u, 0.025, 8))
+    return _finish("bike-rack", {"body": Mesh.merge(pieces)}, {"hoops": float(hoops)})
+
+
+def canopy(rng: np.random.Generator, length: float) -> StreetObject:
+    """A shop's canopy fixed to its facade: a slab `length` long reaching 1.5-2.5 m out over the
+    sidewalk (local -y) at 2.6-3.0 m, hung from the wall (no posts)."""
+    reach, z = rng.uniform(1.5, 2.5), rng.uniform(2.6, 3.0)
+    slab = box((length, reach, 0.12), (0.0, -0.5 * reach, z))
+    # not stood on the ground (`_finish`): it hangs at its height
+    return StreetObject("canopy", {"body": slab}, (length, reach, z), {"reach": reach})
+
+
 # ----------------------------------------------------------------------------- people
 
 

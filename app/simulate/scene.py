@@ -127,6 +127,7 @@ class Body:
     motion: Motion | None = None  # None: static, mesh in world coordinates
     guardrail: int = -1  # index into Scene.guardrails, -1 for anything else
     halo_margin: float = 0.0  # metres: laser-bounce "halo" around car bodies (clutter paper)
+    shade: float = 1.0  # the camera's brightness factor: < 1 in deep shadow or dark paint
 
     @property
     def moving(self) -> bool:

@@ -31,6 +31,7 @@ from app.simulate.layout import build_scene
 from app.simulate.raycast import RayCaster
 from app.simulate.scanners import HDL64Config, ProfileConfig, hdl64_pattern, profile_pattern, scan
 from app.simulate.scene import Scene
+from app.simulate.situations import SITUATIONS, build_situation
 
 FRAME_RATE = 10.0  # Hz: scanner frames and camera images
 # camera 0.27 m ahead of the roof sensor mast, 1.65 m above the ground (KITTI-like); the
@@ -41,7 +42,10 @@ T_VEHICLE_CAMERA = make_transform(
 
 
 class SimulationConfig(BaseModel):
-    scene: Literal["urban", "highway", "mixed", "interchange"] = "urban"
+    scene: Literal[
+        "urban", "highway", "mixed", "interchange",  # street presets (`layout.py`)
+        "receding", "approaching", "walkers", "market", "shadow",  # situations (`situations.py`)
+    ] = "urban"  # fmt: skip
     length: float = Field(60.0, gt=5.0, le=5000.0, description="metres of street driven")
     seed: int = Field(0, ge=0)
     scanner: Literal["hdl64", "profile"] = "hdl64"
@@ -156,7 +160,8 @@ def _seeds(config: SimulationConfig) -> list[np.random.SeedSequence]:
 def rebuild_scene(config: SimulationConfig) -> Scene:
     """The exact scene a simulation with this config used (tests, evaluation)."""
     rng = np.random.default_rng(_seeds(config)[0])
-    scene = build_scene(config.scene, config.length, rng, config.drive_speed)
+    build = build_situation if config.scene in SITUATIONS else build_scene
+    scene = build(config.scene, config.length, rng, config.drive_speed)
     scene.seed = config.seed
     return scene
 

@@ -74,6 +74,11 @@ class ClutterConfig(BaseModel):
         12.0, gt=0, description="metres: larger clusters are background merged with an object"
     )
     max_object_height: Metres = Field(4.5, gt=0, description="metres above ground, ditto")
+    class_sizes: bool = Field(
+        True,
+        description="a mask takes its whole cluster only where an object of the mask's class "
+        "can be that large (a person is not a market stall; `expansion.CLASS_EXTENT`)",
+    )
     halo_radius: ObjectMetres = Field(
         0.3,
         ge=0,
@@ -100,6 +105,35 @@ class ClutterConfig(BaseModel):
     # tracking
     track_gate: Metres = Field(2.5, gt=0, description="metres a cluster may be from its prediction")
     min_speed: Speed = Field(0.5, description="m/s: slower tracks did not move")
+    walk_measure: Literal["lower_body", "registered"] = Field(
+        "lower_body",
+        description="how a person's motion is measured: its lower body's centroid from the first "
+        "to the last frame (min_walk_speed), or registration like any object (min_speed)",
+    )
+    min_walk_speed: Speed = Field(
+        0.5,
+        description="m/s: a person whose lower body went slower (first to last frame) did not walk",
+    )
+    track_motion: bool = Field(
+        True,
+        description="a track the camera never classed (outside the view, or missed) moved when "
+        "its registered speed reaches min_track_speed along one direction (min_straightness)",
+    )
+    min_track_speed: Speed = Field(
+        3.0, description="m/s: ditto; above the registration noise of parked cars (<= 1.3)"
+    )
+    min_straightness: Share = Field(
+        0.8, description="share of the way a track went that took it away from its start"
+    )
+    min_motion_frames: Count = Field(
+        5, ge=2, description="frames a track the camera never classed needs to have moved"
+    )
+    max_track_speed: Speed = Field(
+        45.0, description="m/s: faster is a wrong link (ground rings sweeping with the scanner)"
+    )
+    min_track_height: ObjectMetres = Field(
+        0.7, ge=0, description="metres: a lower track's top (road patches, curbs) did not drive"
+    )
     min_track_points: Count = Field(20, ge=1, description="smaller clusters are not tracked")
     min_track_frames: Count = Field(
         3, ge=2, description="frames a track needs to estimate its speed"

@@ -3,9 +3,12 @@
 A cluster is taken as a clutter object when at least `min_mask_fraction` of its points that the
 camera sees lie on the front layer of a mask instance. An object-sized cluster that the instance
 explains (at least `min_seed_share` of all its points are instance points) goes whole: its laser
-halo, the parts outside the image and the parts the mask missed. Any other chosen cluster is an
-object merged with background (a car against a hedge), or background that a mask grazes at the
-image border (a fence running out of the view): only its instance points and the points within
+halo, the parts outside the image and the parts the mask missed. Object-sized means no larger
+than what an object of the mask's class can be (`CLASS_EXTENT`, `CLASS_HEIGHT`: a person is
+not 3 m wide, a bicycle not 2.5 m tall), so a person under a market stall's awning or a bicycle
+against a bike rack does not take the stall or the rack. Any other chosen cluster is an object
+merged with background (a car against a hedge), or background that a mask grazes at the image
+border (a fence running out of the view): only its instance points and the points within
 `halo_radius` of them go. Masked points at ground level within `halo_radius` of a removed
 point (wheels, feet) go with it.
 """
@@ -20,6 +23,14 @@ from scipy.spatial import cKDTree
 from app.pipelines.clutter.clusters import FrameClusters
 
 
+# The largest object of each camera class (index: the segmenter's clutter code, 0 = none; then
+# person, rider, car, truck, bus, train, motorcycle, bicycle), metres: horizontal extent (the
+# longer side of its box) and top above the ground. Generous (a person with a pram, a camper
+# van, an articulated bus), far below a stall with its awning, a shop front or a bike rack.
+CLASS_EXTENT = np.array([np.inf, 1.6, 2.6, 7.0, 20.0, 20.0, 60.0, 2.8, 2.4])
+CLASS_HEIGHT = np.array([np.inf, 2.3, 2.5, 3.2, 4.5, 4.5, 4.8, 2.3, 2.2])
+
+
 @dataclass
 class Expansion:
     removed: np.ndarray  # (N,) bool
@@ -27,10 +38,23 @@ class Expansion:
     object_sized: np.ndarray  # (C,) bool
 
 
-def cluster_shapes(
-    xyz: np.ndarray, clusters: FrameClusters, max_extent: float, max_height: float
-) -> np.ndarray:
-    """(C,) bool: the cluster fits in a `max_extent` box and stays below `max_height`."""
+@dataclass
+class ClusterSizes:
+    """Per cluster: the longer side of its horizontal box and its top above the ground."""
+
+    extent: np.ndarray  # (C,) metres
+    top: np.ndarray  # (C,) metres
+
+    def within(self, max_extent: float | np.ndarray, max_height: float | np.ndarray) -> np.ndarray:
+        return (self.extent <= max_extent) & (self.top <= max_height)
+
+    def fit_class(self, cluster_class: np.ndarray) -> np.ndarray:
+        """(C,) bool: an object of the cluster's camera class (0: any) can be that large."""
+        klass = np.clip(cluster_class, 0, len(CLASS_EXTENT) - 1)
+        return self.within(CLASS_EXTENT[klass], CLASS_HEIGHT[klass])
+
+
+def cluster_sizes(xyz: np.ndarray, clusters: FrameClusters) -> ClusterSizes:
     count = clusters.count
     inside = clusters.label >= 0
     label = clusters.label[inside]
@@ -40,7 +64,14 @@ def cluster_shapes(
     np.maximum.at(hi, label, xyz[inside, :2])
     top = np.full(count, -np.inf)
     np.maximum.at(top, label, clusters.above_ground[inside])
-    return (np.max(hi - lo, axis=1) <= max_extent) & (top <= max_height)
+    return ClusterSizes(np.max(hi - lo, axis=1), top)
+
+
+def cluster_shapes(
+    xyz: np.ndarray, clusters: FrameClusters, max_extent: float, max_height: float
+) -> np.ndarray:
+    """(C,) bool: the cluster fits in a `max_extent` box and stays below `max_height`."""
+    return cluster_sizes(xyz, clusters).within(max_extent, max_height)
 
 
 def majority_class(
@@ -66,8 +97,10 @@ def expand_instances(
     halo_radius: float,
     min_seed_share: float = 0.2,
     min_seeds: int = 1,
+    sizes: ClusterSizes | None = None,
 ) -> Expansion:
-    """Grow the instance points of one frame to their clusters (see module docstring)."""
+    """Grow the instance points of one frame to their clusters (see module docstring); with
+    `sizes`, only into clusters an object of the instance's class can be."""
     count = clusters.count
     removed = np.zeros(len(xyz), dtype=bool)
     cluster_class = np.zeros(count, dtype=np.uint8)
@@ -80,9 +113,12 @@ def expand_instances(
     seeds = np.bincount(label[clustered & seed], minlength=count)
     size = np.bincount(label[clustered], minlength=count)
     chosen = (seeds >= max(min_seeds, 1)) & (seeds >= min_mask_fraction * seen)
+    seed_class = majority_class(label, mask_class, count, seed)
     whole = chosen & object_sized & (seeds >= min_seed_share * size)
+    if sizes is not None:
+        whole &= sizes.fit_class(seed_class)
     # only whole objects carry their class on to tracking: a partly covered cluster is background
-    cluster_class[whole] = majority_class(label, mask_class, count, seed)[whole]
+    cluster_class[whole] = seed_class[whole]
     removed[clustered] = whole[label[clustered]]
     partial = chosen & ~whole
     in_partial = clustered & partial[np.where(clustered, label, 0)]

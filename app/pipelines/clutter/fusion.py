@@ -2,9 +2,16 @@
 
 - `dynamic`: objects that moved. A tracked object moved when at least `min_free_fraction` of its
   points lie in observed free space, or when the camera classified it and its speed reaches
-  `min_speed` (the centroid of an unclassified cluster drifts with the viewpoint: a fence whose
-  visible part slides along with the vehicle "moves" at walking pace); it goes in every frame of
-  its track, inside and outside the camera view. Free-space points outside any tracked
+  `min_speed` (a person: its lower body went `min_walk_speed`, `Track.walk_speed`; a walking
+  body is not rigid, registering it is noisy), or (`track_motion`) when the camera never classified it (outside the view, or
+  missed) and its registered surface went `min_track_speed` or faster in one direction
+  (`Track.surface_speed`: links without a registration do not count) over `min_motion_frames`
+  (`min_straightness`), at a speed a vehicle can drive (`max_track_speed`), standing taller than
+  a curb (`min_track_height`: a ground ring of a rotating scanner sweeps along with it): the
+  centroid of an unclassified cluster drifts with the viewpoint (a
+  fence whose visible part slides along with the vehicle "moves" at walking pace), so the bar
+  for objects nobody named is a car's speed, not a walker's. It goes in every frame of its
+  track, inside and outside the camera view. Free-space points outside any tracked
   object (DUFOMap's own decision) go too.
 - `clutter` (the paper's definition, for HD maps): every movable object, parked ones included:
   the camera's expanded instances, every frame of a track the camera ever classified (after the
@@ -24,7 +31,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from app.pipelines.clutter.config import ClutterConfig
+from app.pipelines.clutter.segmenter import CLUTTER_CLASSES
 from app.pipelines.clutter.tracking import TrackEvidence
+
+
+PERSON = 1 + CLUTTER_CLASSES.index("person")  # the camera's class code of a walking person
 
 
 @dataclass
@@ -53,7 +64,22 @@ def outvoted(tracks: TrackEvidence, config: ClutterConfig) -> np.ndarray:
 def track_decisions(tracks: TrackEvidence, config: ClutterConfig) -> tuple[np.ndarray, np.ndarray]:
     """(moving, movable) per track."""
     movable = (tracks.camera_class > 0) & ~outvoted(tracks, config)
-    moving = movable & (tracks.speed >= config.min_speed)
+    walker = movable & (tracks.camera_class == PERSON)
+    moving = movable & ~walker & (tracks.speed >= config.min_speed)
+    if config.walk_measure == "lower_body" and tracks.walk_speed is not None:
+        moving |= walker & (tracks.walk_speed >= config.min_walk_speed)
+    else:
+        moving |= walker & (tracks.speed >= config.min_speed)
+    if config.track_motion and tracks.straightness is not None:
+        frames = np.array([len(t.frames) for t in tracks.tracks], dtype=np.int64)
+        moving |= (
+            ~movable
+            & (frames >= config.min_motion_frames)
+            & (tracks.surface_speed >= config.min_track_speed)
+            & (tracks.surface_speed <= config.max_track_speed)
+            & (tracks.straightness >= config.min_straightness)
+            & (tracks.top >= config.min_track_height)
+        )
     if config.use_free_space:
         moving |= tracks.free_fraction >= config.min_free_fraction
     return moving, movable

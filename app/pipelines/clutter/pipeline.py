@@ -31,7 +31,12 @@ from app.io.survey import Camera, Frame, Survey
 from app.pipelines.clutter.clusters import frame_clusters
 from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.evidence_store import SpilledEvidence
-from app.pipelines.clutter.expansion import cluster_shapes, expand_instances, majority_class
+from app.pipelines.clutter.expansion import (
+    ClusterSizes,
+    cluster_sizes,
+    expand_instances,
+    majority_class,
+)
 from app.pipelines.clutter.freespace import FreeSpaceMap, off_ground
 from app.pipelines.clutter.fusion import FrameEvidence, fuse
 from app.pipelines.clutter.instances import camera_instances, mask_components
@@ -42,6 +47,7 @@ from app.pipelines.clutter.tracking import Observation, Tracker, TrackEvidence
 ClassMaps = Callable[[Frame], np.ndarray]  # frame -> (H, W) uint8 clutter class map
 
 FRAME_PERIOD = 0.1  # seconds between frames when the survey has no timestamps (10 Hz)
+LOW_BODY = 1.0  # metres above the ground: a person's legs and hips (`Track.walk_speed`)
 
 
 @dataclass
@@ -171,9 +177,8 @@ class ClutterPipeline:
             clusters = frame_clusters(
                 xyz, cfg.cluster_voxel, cfg.ground_cell, cfg.ground_tolerance, cfg.max_range
             )
-            object_sized = cluster_shapes(
-                xyz, clusters, cfg.max_object_extent, cfg.max_object_height
-            )
+            sizes = cluster_sizes(xyz, clusters)
+            object_sized = sizes.within(cfg.max_object_extent, cfg.max_object_height)
         n = len(xyz)
         in_view = np.zeros(n, dtype=bool)
         padded = np.zeros(n, dtype=bool)
@@ -209,12 +214,14 @@ class ClutterPipeline:
                     cfg.halo_radius,
                     cfg.min_seed_share,
                     cfg.min_instance_points,
+                    sizes if cfg.class_sizes else None,
                 )
                 camera_removed, cluster_class = grown.removed, grown.cluster_class
         world = xyz @ frame.pose[:3, :3].T + frame.pose[:3, 3]
         observation = _observation(
             index, time_s, world, clusters.label, cluster_class, object_sized,
-            cfg.min_track_points, with_shapes=cfg.use_tracking, in_view=in_view,
+            cfg.min_track_points, with_shapes=cfg.use_tracking, in_view=in_view, sizes=sizes,
+            low=clusters.above_ground <= LOW_BODY,
         )  # fmt: skip
         evidence = FrameEvidence(
             in_view=in_view,
@@ -246,20 +253,16 @@ def _observation(
     min_points: int,
     with_shapes: bool = True,
     in_view: np.ndarray | None = None,
+    sizes: ClusterSizes | None = None,
+    low: np.ndarray | None = None,
 ) -> Observation:
     count = len(object_sized)
     inside = label >= 0
     points = np.bincount(label[inside], minlength=count).astype(np.float64)
-    centroids = (
-        np.stack(
-            [
-                np.bincount(label[inside], weights=world[inside, k], minlength=count)
-                for k in range(3)
-            ],
-            axis=1,
-        )
-        / np.maximum(points, 1)[:, None]
-    )
+    centroids = _centroids(world, label, inside, count)
+    low_centroids = None
+    if low is not None:  # clusters without a lower body keep their centroid
+        low_centroids = _centroids(world, label, inside & low, count, centroids)
     trackable = object_sized & (points >= min_points)
     seen = None
     if in_view is not None:
@@ -274,7 +277,29 @@ def _observation(
         trackable=trackable,
         shapes=_cluster_shapes(world, label, trackable) if with_shapes else None,
         seen=seen,
+        extent=None if sizes is None else sizes.extent,
+        top=None if sizes is None else sizes.top,
+        low_centroids=low_centroids,
     )
+
+
+def _centroids(
+    world: np.ndarray,
+    label: np.ndarray,
+    use: np.ndarray,
+    count: int,
+    empty: np.ndarray | None = None,
+) -> np.ndarray:
+    """(count, 3) centroid of each cluster's points where `use`; `empty`'s rows (default 0)
+    for clusters without such points."""
+    n = np.bincount(label[use], minlength=count).astype(np.float64)
+    sums = np.stack(
+        [np.bincount(label[use], weights=world[use, k], minlength=count) for k in range(3)], axis=1
+    )
+    out = sums / np.maximum(n, 1)[:, None]
+    if empty is not None:
+        out[n == 0] = empty[n == 0]
+    return out
 
 
 def _cluster_shapes(world: np.ndarray, label: np.ndarray, trackable: np.ndarray) -> list:

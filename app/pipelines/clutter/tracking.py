@@ -34,8 +34,16 @@ class Observation:
     free_points: np.ndarray  # (C,) points in observed free space
     trackable: np.ndarray  # (C,) bool: object-sized
     seen: np.ndarray | None = None  # (C,) bool: the camera sees most of the cluster
+    extent: np.ndarray | None = None  # (C,) metres: the longer side of its horizontal box
+    # (C, 3) world centroid of the cluster's lower body (`LOW_BODY`: legs and hips of a
+    # person, whose swinging arms and turning torso make registration noisy); None: centroids
+    low_centroids: np.ndarray | None = None
+    top: np.ndarray | None = None  # (C,) metres above the ground
     # per cluster, its downsampled world points (`motion.object_shape`); None = centroids only
     shapes: list[np.ndarray] | None = None
+
+    def low(self, cluster: int) -> np.ndarray | None:
+        return None if self.low_centroids is None else self.low_centroids[cluster]
 
     def count_free(self, label: np.ndarray, free: np.ndarray) -> None:
         """Set `free_points` from the frame's per-point cluster labels and free-space flags."""
@@ -54,6 +62,8 @@ class Track:
     positions: list[np.ndarray] = field(default_factory=list)  # registered, from the first
     velocity: np.ndarray | None = None
     shape: np.ndarray | None = None  # the last observation's points
+    lows: list[np.ndarray] = field(default_factory=list)  # lower-body centroids
+    registered: list[bool] = field(default_factory=list)  # per link: surfaces registered
 
     def predict(self, time: float) -> np.ndarray:
         if self.velocity is None:
@@ -68,8 +78,10 @@ class Track:
         centroid: np.ndarray,
         shape: np.ndarray | None = None,
         moved: np.ndarray | None = None,
+        low: np.ndarray | None = None,
     ) -> None:
-        """Link an observation; `moved` is its registered displacement (None: centroid step)."""
+        """Link an observation; `moved` is its registered displacement (None: centroid step),
+        `low` its lower-body centroid (None: the centroid)."""
         if not self.centroids:
             self.positions.append(np.zeros(3))
         else:
@@ -78,10 +90,12 @@ class Track:
                 step = centroid_step / (time - self.times[-1])
                 self.velocity = step if self.velocity is None else 0.5 * (self.velocity + step)
             self.positions.append(self.positions[-1] + (centroid_step if moved is None else moved))
+            self.registered.append(moved is not None)
         self.frames.append(frame)
         self.clusters.append(cluster)
         self.times.append(time)
         self.centroids.append(centroid)
+        self.lows.append(centroid if low is None else low)
         self.shape = shape
 
     def speed(self, min_frames: int) -> float:
@@ -99,6 +113,36 @@ class Track:
             return 0.0
         return float(np.median(moved[timed] / dt[timed]))
 
+    def surface_speed(self, min_frames: int) -> float:
+        """m/s: `speed` over the links whose surfaces were registered only (a centroid step
+        is the viewpoint's slide as much as the object's motion); 0 with fewer than
+        `min_frames` - 1 such links."""
+        if sum(self.registered) < max(min_frames - 1, 1):
+            return 0.0
+        dt = np.diff(np.asarray(self.times))
+        moved = np.linalg.norm(np.diff(np.asarray(self.positions)[:, :2], axis=0), axis=1)
+        use = np.asarray(self.registered) & (dt > 0)
+        return float(np.median(moved[use] / dt[use])) if use.any() else 0.0
+
+    def walk_speed(self, min_frames: int) -> float:
+        """m/s: horizontal distance between the first and the last lower-body centroid over the
+        time between them. A person's measure: legs and hips move with the person whatever the
+        arms do, and over the whole track a step's sway averages out. 0 for short tracks."""
+        if len(self.times) < min_frames or self.times[-1] <= self.times[0]:
+            return 0.0
+        went = np.linalg.norm(np.asarray(self.lows[-1][:2]) - np.asarray(self.lows[0][:2]))
+        return float(went / (self.times[-1] - self.times[0]))
+
+    def straightness(self) -> float:
+        """0..1: how far the track's surface got over the way it went (1: one direction all
+        along, as a driving car; near 0: back and forth, as registration noise on a parked
+        car or a hedge)."""
+        if len(self.positions) < 2:
+            return 0.0
+        steps = np.diff(np.asarray(self.positions)[:, :2], axis=0)
+        travelled = float(np.linalg.norm(steps, axis=1).sum())
+        return float(np.linalg.norm(steps.sum(axis=0)) / travelled) if travelled > 0 else 0.0
+
 
 @dataclass
 class TrackEvidence:
@@ -111,6 +155,13 @@ class TrackEvidence:
     class_share: np.ndarray  # (T,) of the frames whose camera saw the object, those that classed it
     seen_frames: np.ndarray  # (T,) frames whose camera saw most of the object
     cluster_track: list[np.ndarray]  # per frame, (C,) int32 track id, -1 = untracked
+    # (T,) the largest horizontal extent and top of its clusters over the frames, metres
+    # (inf where the frames did not measure them)
+    extent: np.ndarray | None = None
+    top: np.ndarray | None = None
+    straightness: np.ndarray | None = None  # (T,) `Track.straightness`
+    walk_speed: np.ndarray | None = None  # (T,) m/s, `Track.walk_speed`
+    surface_speed: np.ndarray | None = None  # (T,) m/s, `Track.surface_speed`
 
 
 class Tracker:
@@ -148,7 +199,8 @@ class Tracker:
             for (track, cluster), displacement in zip(links, moved, strict=True):
                 shape = None if shapes is None else shapes[cluster]
                 centroid = obs.centroids[cluster]
-                tracks[track].add(obs.frame, cluster, obs.time, centroid, shape, displacement)
+                tracks[track].add(obs.frame, cluster, obs.time, centroid, shape, displacement,
+                                  obs.low(cluster))  # fmt: skip
                 ids[cluster] = track
                 matched_clusters.add(cluster)
         for cluster in candidates:
@@ -156,7 +208,8 @@ class Tracker:
                 continue
             track = Track()
             shape = None if shapes is None else shapes[cluster]
-            track.add(obs.frame, int(cluster), obs.time, obs.centroids[cluster], shape)
+            track.add(obs.frame, int(cluster), obs.time, obs.centroids[cluster], shape,
+                      low=obs.low(cluster))  # fmt: skip
             ids[cluster] = len(tracks)
             still.append(len(tracks))
             tracks.append(track)
@@ -222,8 +275,12 @@ def _evidence(
     free = np.zeros(n)
     seen = np.zeros(n)
     classed = np.zeros(n)
+    extent = np.zeros(n)
+    top = np.zeros(n)
     for obs, ids in zip(observations, cluster_track, strict=True):
         tracked = ids >= 0
+        np.maximum.at(extent, ids[tracked], np.inf if obs.extent is None else obs.extent[tracked])
+        np.maximum.at(top, ids[tracked], np.inf if obs.top is None else obs.top[tracked])
         np.add.at(votes, (ids[tracked], obs.camera_class[tracked]), 1)
         np.add.at(points, ids[tracked], obs.points[tracked])
         np.add.at(free, ids[tracked], obs.free_points[tracked])
@@ -236,6 +293,10 @@ def _evidence(
     with np.errstate(invalid="ignore", divide="ignore"):
         free_fraction = np.where(points > 0, free / points, 0.0)
         class_share = np.where(seen > 0, classed / seen, 0.0)
+    straightness = np.array([t.straightness() for t in tracks]) if n else np.zeros(0)
+    walk = np.array([t.walk_speed(min_frames) for t in tracks]) if n else np.zeros(0)
+    surface = np.array([t.surface_speed(min_frames) for t in tracks]) if n else np.zeros(0)
     return TrackEvidence(
-        tracks, speed, camera_class, free_fraction, class_share, seen, cluster_track
-    )
+        tracks, speed, camera_class, free_fraction, class_share, seen, cluster_track,
+        extent, top, straightness, walk, surface,
+    )  # fmt: skip

@@ -7,11 +7,12 @@ import numpy as np
 from app.io.survey import Camera
 from app.pipelines.clutter.clusters import frame_clusters, voxel_components
 from app.pipelines.clutter.config import ClutterConfig
-from app.pipelines.clutter.expansion import cluster_shapes, expand_instances
+from app.pipelines.clutter.expansion import cluster_shapes, cluster_sizes, expand_instances
 from app.pipelines.clutter.freespace import off_ground
 from app.pipelines.clutter.fusion import FrameEvidence, fuse
 from app.pipelines.clutter.instances import camera_instances, mask_components
 from app.pipelines.clutter.masking import mask_points, pad_mask
+from app.pipelines.clutter.motion import object_shape
 from app.pipelines.clutter.tracking import Observation, track_clusters
 
 RNG = np.random.default_rng(0)
@@ -102,6 +103,45 @@ def test_expansion_takes_objects_whole_and_only_the_masked_part_of_background() 
     assert not grown.removed[4600 + 100 :].any()
     assert grown.cluster_class[clusters.label[4000]] == 3
     assert grown.cluster_class[clusters.label[4600]] == 0
+
+
+def test_expansion_takes_no_more_than_an_object_of_the_class_can_be() -> None:
+    """A person standing under a market stall's awning is one cluster with the stall: the
+    person's mask takes only its own points there, not the 3 m stall; a person standing
+    alone goes whole (the parts the mask missed too)."""
+    counter, awning = (
+        box((8, 0, 0.55), (3.0, 1.0, 0.7), 800),
+        box((8, -1, 2.0), (3, 2.5, 0.05), 800),
+    )
+    stall = np.r_[counter, awning]
+    under = box((8, -0.75, 0.9), (0.4, 0.4, 1.8), 300)  # touches the counter and the awning
+    alone = box((8, 6, 0.9), (0.5, 0.4, 1.8), 300)
+    xyz = np.r_[ground(), stall, under, alone]
+    clusters = frame_clusters(xyz, 0.3, 1.0, 0.1, 80.0)
+    first_under, first_alone = 5600, 5900
+    assert clusters.label[4000] == clusters.label[first_under]  # the person joins the stall
+    sizes = cluster_sizes(xyz, clusters)
+    sized = sizes.within(12.0, 4.5)
+    n = len(xyz)
+    in_view = np.ones(n, bool)
+    instance = np.full(n, -1, np.int32)
+    mask_class = np.zeros(n, np.uint8)
+    instance[first_under : first_under + 250] = 0  # most of each person masked
+    instance[first_alone : first_alone + 250] = 1
+    mask_class[instance >= 0] = 1  # person
+    args = (xyz, clusters, instance, mask_class, in_view, 0.1, sized, 0.0, 0.1)
+    unbounded = expand_instances(*args)
+    bounded = expand_instances(*args, sizes=sizes)
+    assert unbounded.removed[4000:5600].all()  # without the bound: the stall went with them
+    assert not bounded.removed[4000:5600].any()
+    above = clusters.label >= 0  # (the feet are ground: halo_radius takes them, 0 here)
+    masked_under = np.arange(first_under, first_under + 250)
+    assert bounded.removed[masked_under[above[masked_under]]].all()
+    assert not bounded.removed[first_under + 250 : first_alone].any()
+    whole_alone = np.arange(first_alone, first_alone + 300)
+    assert bounded.removed[whole_alone[above[whole_alone]]].all()  # its unmasked part too
+    assert bounded.cluster_class[clusters.label[first_alone]] == 1
+    assert bounded.cluster_class[clusters.label[first_under]] == 0
 
 
 def _observations(positions: list[np.ndarray], camera_class: int = 3) -> list[Observation]:
@@ -222,3 +262,99 @@ def test_clutter_mode_outvotes_a_mask_the_track_rarely_had() -> None:
     assert not voted[4].any() and not voted[0].any()
     dynamic = fuse(evidence, tracks, ClutterConfig(mode="dynamic", outvote_masks=True))
     assert not any(r.any() for r in dynamic)  # the vote is a clutter-mode rule
+
+
+def box_surface(center, size, step=0.15) -> np.ndarray:
+    """Points on the six faces of a box, `step` apart (what a scanner sees of a solid)."""
+    half = np.asarray(size) / 2
+    faces = []
+    for axis in range(3):
+        u, v = [a for a in range(3) if a != axis]
+        gu = np.arange(-half[u], half[u] + 1e-9, step)
+        gv = np.arange(-half[v], half[v] + 1e-9, step)
+        uu, vv = (g.ravel() for g in np.meshgrid(gu, gv))
+        for sign in (-1.0, 1.0):
+            face = np.zeros((len(uu), 3))
+            face[:, axis], face[:, u], face[:, v] = sign * half[axis], uu, vv
+            faces.append(face)
+    return np.concatenate(faces) + np.asarray(center)
+
+
+def test_a_track_nobody_classed_moved_when_fast_in_one_direction() -> None:
+    """Outside the camera's view, surfaces registered frame to frame: a car driving away at
+    8 m/s moves; a parked car whose clusters jitter back and forth by 0.4 m and a fence whose
+    visible part slides along at 1.5 m/s do not, nor does a car seen in too few frames."""
+    jitter = [0.0, 0.4, 0.0, 0.4, 0.0, 0.4]
+    objects = [
+        lambda i: box_surface((10 + 0.8 * i, 0, 1.0), (4.2, 1.8, 1.4)),  # driving away
+        lambda i: box_surface((20 + jitter[i], 6, 1.0), (4.2, 1.8, 1.4)),  # parked, jittering
+        lambda i: box_surface((0.15 * i, -8, 0.6), (6.0, 0.1, 1.2)),  # a fence sliding
+    ]
+    observations = []
+    for i in range(6):
+        shapes = [object_shape(make(i), seed=k) for k, make in enumerate(objects)]
+        observations.append(
+            Observation(
+                frame=i, time=0.1 * i, centroids=np.stack([c.mean(axis=0) for c in shapes]),
+                points=np.full(3, 300.0), camera_class=np.zeros(3, np.uint8),
+                free_points=np.zeros(3), trackable=np.ones(3, bool), shapes=shapes,
+                top=np.array([1.7, 1.7, 1.2]),
+            )
+        )  # fmt: skip
+    tracks = track_clusters(observations, gate=2.5, min_frames=3)
+    car, parked, fence = (tracks.cluster_track[0][k] for k in range(3))
+    assert abs(tracks.surface_speed[car] - 8.0) < 0.5 and tracks.straightness[car] > 0.99
+    assert tracks.straightness[parked] < 0.5 and tracks.surface_speed[fence] < 1.0
+    evidence = [
+        FrameEvidence(
+            in_view=np.zeros(3, bool),
+            camera_removed=np.zeros(3, bool),
+            padded=np.zeros(3, bool),
+            cluster=np.array([0, 1, 2], np.int32),
+            free=np.zeros(3, bool),
+        )
+        for _ in range(6)
+    ]
+    moved = fuse(evidence, tracks, ClutterConfig(mode="dynamic"))
+    assert all(r.tolist() == [True, False, False] for r in moved)
+    off = fuse(evidence, tracks, ClutterConfig(mode="dynamic", track_motion=False))
+    assert not any(r.any() for r in off)
+    brief = fuse(evidence, tracks, ClutterConfig(mode="dynamic", min_motion_frames=7))
+    assert not any(r.any() for r in brief)
+
+
+def test_a_walking_person_moves_by_its_lower_body() -> None:
+    """A person the camera classed, walking at 1.2 m/s whose torso the registration follows
+    poorly, moves by its lower body; a person standing and swaying does not."""
+    observations = []
+    for i in range(8):
+        centroids = np.array([[5.0 + 0.12 * i, 3.0, 1.0], [8.0, -3.0, 1.0]])
+        observations.append(
+            Observation(
+                frame=i, time=0.1 * i, centroids=centroids, points=np.full(2, 150.0),
+                camera_class=np.full(2, 1, np.uint8), free_points=np.zeros(2),
+                trackable=np.ones(2, bool), seen=np.ones(2, bool),
+                low_centroids=centroids + [[0.0, 0.0, -0.5], [0.04 * (-1) ** i, 0.0, -0.5]],
+            )
+        )  # fmt: skip
+    tracks = track_clusters(observations, gate=2.5, min_frames=3)
+    walker, standing = tracks.cluster_track[0]
+    assert abs(tracks.walk_speed[walker] - 1.2) < 0.05 and tracks.walk_speed[standing] < 0.2
+    evidence = [
+        FrameEvidence(
+            in_view=np.ones(2, bool),
+            camera_removed=np.zeros(2, bool),
+            padded=np.zeros(2, bool),
+            cluster=np.array([0, 1], np.int32),
+            free=np.zeros(2, bool),
+        )
+        for _ in range(8)
+    ]
+    # the walker's registered speed said 0.4 m/s (noisy), below min_speed
+    tracks.speed[:] = [0.4, 0.6]
+    by_body = fuse(evidence, tracks, ClutterConfig(mode="dynamic", min_speed=1.0))
+    by_registration = fuse(
+        evidence, tracks, ClutterConfig(mode="dynamic", min_speed=1.0, walk_measure="registered")
+    )
+    assert all(r.tolist() == [True, False] for r in by_body)
+    assert not any(r.any() for r in by_registration)
