@@ -118,8 +118,9 @@ VARIANTS = {
     "all (defaults)": {},
 }
 
-HEADER = ["situation", "seed", "pipeline", "scored in", "frames", "moving points", "SA 360", "DA 360",
-          "AA 360", "OA view", "clutter om. view", "map om. view", "map com. view", "run s"]  # fmt: skip
+HEADER = ["situation", "seed", "pipeline", "scored in", "frames", "moving points", "SA 360",
+          "DA 360", "AA 360", "OA view", "clutter om. view", "map om. view", "map com. view",
+          "run s"]  # fmt: skip
 
 
 def main() -> int:

@@ -22,7 +22,6 @@ from scipy.spatial import cKDTree
 
 from app.pipelines.clutter.clusters import FrameClusters
 
-
 # The largest object of each camera class (index: the segmenter's clutter code, 0 = none; then
 # person, rider, car, truck, bus, train, motorcycle, bicycle), metres: horizontal extent (the
 # longer side of its box) and top above the ground. Generous (a person with a pram, a camper

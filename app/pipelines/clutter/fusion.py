@@ -1,18 +1,18 @@
 """Fusion by mode: which points of each frame go.
 
 - `dynamic`: objects that moved. A tracked object moved when at least `min_free_fraction` of its
-  points lie in observed free space, or when the camera classified it and its speed reaches
-  `min_speed` (a person: its lower body went `min_walk_speed`, `Track.walk_speed`; a walking
-  body is not rigid, registering it is noisy), or (`track_motion`) when the camera never classified it (outside the view, or
-  missed) and its registered surface went `min_track_speed` or faster in one direction
-  (`Track.surface_speed`: links without a registration do not count) over `min_motion_frames`
-  (`min_straightness`), at a speed a vehicle can drive (`max_track_speed`), standing taller than
-  a curb (`min_track_height`: a ground ring of a rotating scanner sweeps along with it): the
-  centroid of an unclassified cluster drifts with the viewpoint (a
-  fence whose visible part slides along with the vehicle "moves" at walking pace), so the bar
-  for objects nobody named is a car's speed, not a walker's. It goes in every frame of its
-  track, inside and outside the camera view. Free-space points outside any tracked
-  object (DUFOMap's own decision) go too.
+  points lie in observed free space; or when the camera classified it and its registered speed
+  reaches `min_speed` (a person: its lower body went `min_walk_speed`, `Track.walk_speed`; a
+  walking body is not rigid and registering it is noisy); or (`track_motion`) when the camera
+  never classified it (outside the view, or missed) and, over `min_motion_frames` frames, its
+  registered surface went `min_track_speed` or faster (`Track.surface_speed`: links without a
+  registration do not count) in one direction (`min_straightness`), no faster than a vehicle
+  drives (`max_track_speed`), standing taller than a curb (`min_track_height`: a rotating
+  scanner's ground rings sweep along with it). The centroid of an unclassified cluster drifts
+  with the viewpoint (a fence whose visible part slides along with the vehicle "moves" at
+  walking pace), so the bar for objects nobody named is a car's speed, not a walker's. A moving
+  track goes in every frame, inside and outside the camera view. Free-space points outside any
+  tracked object (DUFOMap's own decision) go too.
 - `clutter` (the paper's definition, for HD maps): every movable object, parked ones included:
   the camera's expanded instances, every frame of a track the camera ever classified (after the
   object left the view; in the view when the camera classed it in at least `min_class_share` of
@@ -33,7 +33,6 @@ import numpy as np
 from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.segmenter import CLUTTER_CLASSES
 from app.pipelines.clutter.tracking import TrackEvidence
-
 
 PERSON = 1 + CLUTTER_CLASSES.index("person")  # the camera's class code of a walking person
 
