@@ -69,8 +69,9 @@ def build_situation(
     building_rows(b, cs, s0, s1)
     street_furniture(b, cs, s0, s1, dz=CURB_HEIGHT)
     parking = (cs.lane_edge + cs.outer_edge) / 2
-    if situation != "shadow":
+    if situation not in ("market", "shadow"):  # the market's stalls face the right curb
         parked_vehicles(b, -parking, s0, s1, 0.0, fill=0.4)
+    if situation != "shadow":
         parked_vehicles(b, parking, s0, s1, np.pi, fill=0.4)
     speed = rng.uniform(8.0, 11.0) if drive_speed is None else drive_speed
     drive, vehicle = survey_drive(b, cs.lane_centres[0], speed, length)

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
 from app.geometry.ground import estimate_ground
 from app.geometry.voxels import voxel_indices
@@ -84,3 +85,40 @@ def frame_clusters(
     objects = np.flatnonzero(near & (above > ground_tolerance))
     label[objects] = voxel_components(xyz[objects], voxel)
     return FrameClusters(label, above)
+
+
+def object_hosts(
+    xyz: np.ndarray,
+    label: np.ndarray,
+    trackable: np.ndarray,
+    near_ground: np.ndarray,
+    ground_radius: float,
+    fragment_radius: float,
+) -> np.ndarray:
+    """(N,) int32: the trackable cluster each loose point belongs to (-1: none, and -1 for the
+    points of trackable clusters themselves).
+
+    A far car breaks into pieces (windows return nothing, 0.4 m voxels do not bridge the gaps
+    between sparse scan lines), and its wheels' lowest points fall within the ground's
+    tolerance; the tracker follows the largest piece. Pieces too small to track take the
+    cluster of their nearest point's trackable neighbour within `fragment_radius`; points at
+    ground level (`near_ground`) only within `ground_radius` (tyres, not the road around them).
+    """
+    host = np.full(len(xyz), -1, dtype=np.int32)
+    clustered = label >= 0
+    anchored = clustered & trackable[np.where(clustered, label, 0)]
+    if not anchored.any():
+        return host
+    anchors = np.flatnonzero(anchored)
+    tree = cKDTree(xyz[anchors])
+    for loose, radius in (
+        (clustered & ~anchored, fragment_radius),
+        (~clustered & near_ground, ground_radius),
+    ):
+        if not loose.any() or radius <= 0:
+            continue
+        at = np.flatnonzero(loose)
+        distance, nearest = tree.query(xyz[at], k=1, distance_upper_bound=radius, workers=-1)
+        found = np.isfinite(distance)
+        host[at[found]] = label[anchors[nearest[found]]]
+    return host

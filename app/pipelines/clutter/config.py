@@ -135,6 +135,14 @@ class ClutterConfig(BaseModel):
         0.7, ge=0, description="metres: a lower track's top (road patches, curbs) did not drive"
     )
     min_track_points: Count = Field(20, ge=1, description="smaller clusters are not tracked")
+    attach_pieces: bool = Field(
+        True,
+        description="a moving object's pieces too small to track (within piece_radius) and its "
+        "ground-level points (within halo_radius) go with it",
+    )
+    piece_radius: ObjectMetres = Field(
+        0.8, ge=0, description="metres from a tracked object within which a loose piece is its"
+    )
     min_track_frames: Count = Field(
         3, ge=2, description="frames a track needs to estimate its speed"
     )

@@ -50,6 +50,8 @@ class FrameEvidence:
     # which camera instance a point lies on (review; fusion keeps only these of outvoted tracks)
     instance: np.ndarray | None = None  # (N,) int32 camera instance id, -1 = none
     mask_class: np.ndarray | None = None  # (N,) uint8 clutter class under the unpadded mask
+    # the trackable cluster a loose point belongs to (`clusters.object_hosts`), -1 = none
+    host: np.ndarray | None = None  # (N,) int32
 
 
 def outvoted(tracks: TrackEvidence, config: ClutterConfig) -> np.ndarray:
@@ -120,6 +122,11 @@ def fuse(
             gone |= camera
         if tracks is not None:
             gone[tracked] |= moving[point_track[tracked]]
+            if ev.host is not None:  # a moving object's loose pieces and tyres go with it
+                hosted = np.flatnonzero(ev.host >= 0)
+                host_track = tracks.cluster_track[i][ev.host[hosted]]
+                linked = host_track >= 0
+                gone[hosted[linked]] |= moving[host_track[linked]]
             if config.mode == "clutter":
                 # a classified object keeps its class where the camera cannot see it; in the view
                 # too when the camera classed it in most frames where it saw it (a missed mask)

@@ -28,7 +28,7 @@ import numpy as np
 from app.core.errors import ConfigError
 from app.core.progress import Progress, Stopwatch
 from app.io.survey import Camera, Frame, Survey
-from app.pipelines.clutter.clusters import frame_clusters
+from app.pipelines.clutter.clusters import frame_clusters, object_hosts
 from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.evidence_store import SpilledEvidence
 from app.pipelines.clutter.expansion import (
@@ -223,7 +223,16 @@ class ClutterPipeline:
             cfg.min_track_points, with_shapes=cfg.use_tracking, in_view=in_view, sizes=sizes,
             low=clusters.above_ground <= LOW_BODY,
         )  # fmt: skip
+        host = None
+        if cfg.use_tracking and cfg.attach_pieces:
+            with clock("tracking"):
+                host = object_hosts(
+                    xyz, clusters.label, observation.trackable,
+                    clusters.above_ground <= cfg.ground_tolerance, cfg.halo_radius,
+                    cfg.piece_radius,
+                )  # fmt: skip
         evidence = FrameEvidence(
+            host=host,
             in_view=in_view,
             camera_removed=camera_removed,
             padded=padded,

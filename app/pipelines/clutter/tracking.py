@@ -21,6 +21,8 @@ from scipy.optimize import linear_sum_assignment
 
 from app.pipelines.clutter.motion import register_many
 
+WALK_WINDOW = 5  # frames over which a person's lower body is followed (half a stride at 10 Hz)
+
 
 @dataclass
 class Observation:
@@ -125,13 +127,19 @@ class Track:
         return float(np.median(moved[use] / dt[use])) if use.any() else 0.0
 
     def walk_speed(self, min_frames: int) -> float:
-        """m/s: horizontal distance between the first and the last lower-body centroid over the
-        time between them. A person's measure: legs and hips move with the person whatever the
-        arms do, and over the whole track a step's sway averages out. 0 for short tracks."""
-        if len(self.times) < min_frames or self.times[-1] <= self.times[0]:
+        """m/s: the median over the track of how far its lower-body centroid went in
+        `WALK_WINDOW` frames, per second. A person's measure: legs and hips move with the
+        person whatever the arms do, a window of half a stride averages a step's sway, and the
+        median outlasts a link to a passer-by. 0 for short tracks."""
+        if len(self.times) < max(min_frames, 2):
             return 0.0
-        went = np.linalg.norm(np.asarray(self.lows[-1][:2]) - np.asarray(self.lows[0][:2]))
-        return float(went / (self.times[-1] - self.times[0]))
+        window = min(WALK_WINDOW, len(self.times) - 1)
+        lows = np.asarray(self.lows)[:, :2]
+        times = np.asarray(self.times)
+        went = np.linalg.norm(lows[window:] - lows[:-window], axis=1)
+        took = times[window:] - times[:-window]
+        timed = took > 0
+        return float(np.median(went[timed] / took[timed])) if timed.any() else 0.0
 
     def straightness(self) -> float:
         """0..1: how far the track's surface got over the way it went (1: one direction all
