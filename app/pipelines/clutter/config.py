@@ -135,6 +135,11 @@ class ClutterConfig(BaseModel):
         0.7, ge=0, description="metres: a lower track's top (road patches, curbs) did not drive"
     )
     min_track_points: Count = Field(20, ge=1, description="smaller clusters are not tracked")
+    keep_static_tracks: bool = Field(
+        True,
+        description="free-space points on an object tracked over min_motion_frames that did not "
+        "move stay (DUFOMap's grazing-ray noise on parked cars)",
+    )
     attach_pieces: bool = Field(
         True,
         description="a moving object's pieces too small to track (within piece_radius) and its "

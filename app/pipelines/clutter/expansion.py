@@ -21,6 +21,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from app.pipelines.clutter.clusters import FrameClusters
+from app.pipelines.clutter.segmenter import CLUTTER_CLASSES
 
 # The largest object of each camera class (index: the segmenter's clutter code, 0 = none; then
 # person, rider, car, truck, bus, train, motorcycle, bicycle), metres: horizontal extent (the
@@ -28,6 +29,7 @@ from app.pipelines.clutter.clusters import FrameClusters
 # van, an articulated bus), far below a stall with its awning, a shop front or a bike rack.
 CLASS_EXTENT = np.array([np.inf, 1.6, 2.6, 7.0, 20.0, 20.0, 60.0, 2.8, 2.4])
 CLASS_HEIGHT = np.array([np.inf, 2.3, 2.5, 3.2, 4.5, 4.5, 4.8, 2.3, 2.2])
+PERSON = 1 + CLUTTER_CLASSES.index("person")  # the camera's class code of a person
 
 
 @dataclass
@@ -49,8 +51,13 @@ class ClusterSizes:
 
     def fit_class(self, cluster_class: np.ndarray) -> np.ndarray:
         """(C,) bool: an object of the cluster's camera class (0: any) can be that large."""
-        klass = np.clip(cluster_class, 0, len(CLASS_EXTENT) - 1)
-        return self.within(CLASS_EXTENT[klass], CLASS_HEIGHT[klass])
+        return fits_class(self.extent, self.top, cluster_class)
+
+
+def fits_class(extent: np.ndarray, top: np.ndarray, klass: np.ndarray) -> np.ndarray:
+    """bool per object: an object of camera class `klass` (0: any) can be that large."""
+    klass = np.clip(np.asarray(klass, dtype=np.int64), 0, len(CLASS_EXTENT) - 1)
+    return (np.asarray(extent) <= CLASS_EXTENT[klass]) & (np.asarray(top) <= CLASS_HEIGHT[klass])
 
 
 def cluster_sizes(xyz: np.ndarray, clusters: FrameClusters) -> ClusterSizes:

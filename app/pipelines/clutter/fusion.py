@@ -12,7 +12,9 @@
   with the viewpoint (a fence whose visible part slides along with the vehicle "moves" at
   walking pace), so the bar for objects nobody named is a car's speed, not a walker's. A moving
   track goes in every frame, inside and outside the camera view. Free-space points outside any
-  tracked object (DUFOMap's own decision) go too.
+  tracked object (DUFOMap's own decision) go too; with `keep_static_tracks`, not those of an
+  object followed over `min_motion_frames` that did not move by any evidence (grazing rays
+  flag a few points of a parked van free).
 - `clutter` (the paper's definition, for HD maps): every movable object, parked ones included:
   the camera's expanded instances, every frame of a track the camera ever classified (after the
   object left the view; in the view when the camera classed it in at least `min_class_share` of
@@ -31,10 +33,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from app.pipelines.clutter.config import ClutterConfig
-from app.pipelines.clutter.segmenter import CLUTTER_CLASSES
+from app.pipelines.clutter.expansion import PERSON, fits_class
 from app.pipelines.clutter.tracking import TrackEvidence
-
-PERSON = 1 + CLUTTER_CLASSES.index("person")  # the camera's class code of a walking person
 
 
 @dataclass
@@ -52,6 +52,9 @@ class FrameEvidence:
     mask_class: np.ndarray | None = None  # (N,) uint8 clutter class under the unpadded mask
     # the trackable cluster a loose point belongs to (`clusters.object_hosts`), -1 = none
     host: np.ndarray | None = None  # (N,) int32
+    # per cluster: the longer side of its horizontal box and its top above the ground, metres
+    cluster_extent: np.ndarray | None = None  # (C,) float32
+    cluster_top: np.ndarray | None = None  # (C,) float32
 
 
 def outvoted(tracks: TrackEvidence, config: ClutterConfig) -> np.ndarray:
@@ -101,6 +104,8 @@ def fuse(
     if tracks is not None:
         moving, movable = track_decisions(tracks, config)
         background = outvoted(tracks, config)
+        frames = np.array([len(t.frames) for t in tracks.tracks], dtype=np.int64)
+        settled = ~moving & (frames >= config.min_motion_frames)
     removed = []
     for i, ev in enumerate(evidence):
         gone = np.zeros(len(ev.free), dtype=bool)
@@ -113,6 +118,10 @@ def fuse(
             clustered = ev.cluster >= 0
             point_track[clustered] = tracks.cluster_track[i][ev.cluster[clustered]]
             tracked = point_track >= 0
+            if config.keep_static_tracks:  # followed over the frames and it did not move
+                still = np.zeros(len(gone), dtype=bool)
+                still[tracked] = settled[point_track[tracked]]
+                gone &= ~still
         if config.mode == "clutter" and config.use_camera:
             camera = ev.camera_removed
             if tracks is not None and ev.instance is not None and background.any():
@@ -121,19 +130,28 @@ def fuse(
                 camera = camera & ~(voted & (ev.instance < 0))
             gone |= camera
         if tracks is not None:
-            gone[tracked] |= moving[point_track[tracked]]
+            # a classified track's decision reaches only clusters its class can be (a person's
+            # track that merged into the stall it stood at does not take the stall)
+            track_ids = tracks.cluster_track[i]
+            fits = np.ones(len(track_ids), dtype=bool)
+            if config.class_sizes and ev.cluster_extent is not None and ev.cluster_top is not None:
+                klass = np.where(track_ids >= 0, tracks.camera_class[track_ids], 0)
+                fits = fits_class(ev.cluster_extent, ev.cluster_top, klass)
+            point_fits = np.zeros(len(gone), dtype=bool)
+            point_fits[clustered] = fits[ev.cluster[clustered]]
+            tracked_fit = tracked & point_fits
+            gone[tracked_fit] |= moving[point_track[tracked_fit]]
             if ev.host is not None:  # a moving object's loose pieces and tyres go with it
                 hosted = np.flatnonzero(ev.host >= 0)
-                host_track = tracks.cluster_track[i][ev.host[hosted]]
-                linked = host_track >= 0
+                host_track = track_ids[ev.host[hosted]]
+                linked = (host_track >= 0) & fits[ev.host[hosted]]
                 gone[hosted[linked]] |= moving[host_track[linked]]
             if config.mode == "clutter":
                 # a classified object keeps its class where the camera cannot see it; in the view
                 # too when the camera classed it in most frames where it saw it (a missed mask)
-                track_ids = tracks.cluster_track[i]
                 hidden = _out_of_view_clusters(ev, len(track_ids))
                 carry = np.zeros(len(track_ids), dtype=bool)
-                linked = track_ids >= 0
+                linked = (track_ids >= 0) & fits
                 held = tracks.class_share[track_ids[linked]] >= config.min_class_share
                 carry[linked] = movable[track_ids[linked]] & (hidden[linked] | held)
                 gone[clustered] |= carry[ev.cluster[clustered]]

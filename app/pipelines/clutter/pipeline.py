@@ -233,6 +233,8 @@ class ClutterPipeline:
                 )  # fmt: skip
         evidence = FrameEvidence(
             host=host,
+            cluster_extent=sizes.extent.astype(np.float32),
+            cluster_top=sizes.top.astype(np.float32),
             in_view=in_view,
             camera_removed=camera_removed,
             padded=padded,

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from app.pipelines.clutter.expansion import PERSON, fits_class
 from app.pipelines.clutter.motion import register_many
 
 WALK_WINDOW = 5  # frames over which a person's lower body is followed (half a stride at 10 Hz)
@@ -47,6 +48,12 @@ class Observation:
     def low(self, cluster: int) -> np.ndarray | None:
         return None if self.low_centroids is None else self.low_centroids[cluster]
 
+    def person_sized(self, cluster: int) -> bool:
+        """The cluster can be one person (True when its size was not measured)."""
+        if self.extent is None or self.top is None:
+            return True
+        return bool(fits_class(self.extent[cluster], self.top[cluster], PERSON))
+
     def count_free(self, label: np.ndarray, free: np.ndarray) -> None:
         """Set `free_points` from the frame's per-point cluster labels and free-space flags."""
         inside = label >= 0
@@ -66,6 +73,7 @@ class Track:
     shape: np.ndarray | None = None  # the last observation's points
     lows: list[np.ndarray] = field(default_factory=list)  # lower-body centroids
     registered: list[bool] = field(default_factory=list)  # per link: surfaces registered
+    person_sized: list[bool] = field(default_factory=list)  # per observation
 
     def predict(self, time: float) -> np.ndarray:
         if self.velocity is None:
@@ -81,6 +89,7 @@ class Track:
         shape: np.ndarray | None = None,
         moved: np.ndarray | None = None,
         low: np.ndarray | None = None,
+        person_sized: bool = True,
     ) -> None:
         """Link an observation; `moved` is its registered displacement (None: centroid step),
         `low` its lower-body centroid (None: the centroid)."""
@@ -98,6 +107,7 @@ class Track:
         self.times.append(time)
         self.centroids.append(centroid)
         self.lows.append(centroid if low is None else low)
+        self.person_sized.append(person_sized)
         self.shape = shape
 
     def speed(self, min_frames: int) -> float:
@@ -130,15 +140,18 @@ class Track:
         """m/s: the median over the track of how far its lower-body centroid went in
         `WALK_WINDOW` frames, per second. A person's measure: legs and hips move with the
         person whatever the arms do, a window of half a stride averages a step's sway, and the
-        median outlasts a link to a passer-by. 0 for short tracks."""
+        median outlasts a link to a passer-by. Windows that start or end on a cluster larger
+        than a person (merged with a stall it stood at: the stall's lower part slides with the
+        viewpoint) do not count. 0 for short tracks."""
         if len(self.times) < max(min_frames, 2):
             return 0.0
         window = min(WALK_WINDOW, len(self.times) - 1)
         lows = np.asarray(self.lows)[:, :2]
         times = np.asarray(self.times)
+        small = np.asarray(self.person_sized, dtype=bool)
         went = np.linalg.norm(lows[window:] - lows[:-window], axis=1)
         took = times[window:] - times[:-window]
-        timed = took > 0
+        timed = (took > 0) & small[window:] & small[:-window]
         return float(np.median(went[timed] / took[timed])) if timed.any() else 0.0
 
     def straightness(self) -> float:
@@ -208,7 +221,7 @@ class Tracker:
                 shape = None if shapes is None else shapes[cluster]
                 centroid = obs.centroids[cluster]
                 tracks[track].add(obs.frame, cluster, obs.time, centroid, shape, displacement,
-                                  obs.low(cluster))  # fmt: skip
+                                  obs.low(cluster), obs.person_sized(cluster))  # fmt: skip
                 ids[cluster] = track
                 matched_clusters.add(cluster)
         for cluster in candidates:
@@ -217,7 +230,7 @@ class Tracker:
             track = Track()
             shape = None if shapes is None else shapes[cluster]
             track.add(obs.frame, int(cluster), obs.time, obs.centroids[cluster], shape,
-                      low=obs.low(cluster))  # fmt: skip
+                      low=obs.low(cluster), person_sized=obs.person_sized(cluster))  # fmt: skip
             ids[cluster] = len(tracks)
             still.append(len(tracks))
             tracks.append(track)
