@@ -138,7 +138,11 @@ class ClutterConfig(BaseModel):
     keep_static_tracks: bool = Field(
         True,
         description="free-space points on an object tracked over min_motion_frames that did not "
-        "move stay (DUFOMap's grazing-ray noise on parked cars)",
+        "move and has few free points (max_static_free) stay (DUFOMap's grazing-ray noise on "
+        "parked cars)",
+    )
+    max_static_free: Share = Field(
+        0.05, description="keep_static_tracks: a share of free points below which they are noise"
     )
     attach_pieces: bool = Field(
         True,

@@ -13,8 +13,9 @@
   walking pace), so the bar for objects nobody named is a car's speed, not a walker's. A moving
   track goes in every frame, inside and outside the camera view. Free-space points outside any
   tracked object (DUFOMap's own decision) go too; with `keep_static_tracks`, not those of an
-  object followed over `min_motion_frames` that did not move by any evidence (grazing rays
-  flag a few points of a parked van free).
+  object followed over `min_motion_frames` that did not move by any evidence and has fewer than
+  `max_static_free` of its points free (grazing rays flag a few points of a parked van free; a
+  car creeping in a queue has more).
 - `clutter` (the paper's definition, for HD maps): every movable object, parked ones included:
   the camera's expanded instances, every frame of a track the camera ever classified (after the
   object left the view; in the view when the camera classed it in at least `min_class_share` of
@@ -105,7 +106,11 @@ def fuse(
         moving, movable = track_decisions(tracks, config)
         background = outvoted(tracks, config)
         frames = np.array([len(t.frames) for t in tracks.tracks], dtype=np.int64)
-        settled = ~moving & (frames >= config.min_motion_frames)
+        settled = (
+            ~moving
+            & (frames >= config.min_motion_frames)
+            & (tracks.free_fraction < config.max_static_free)
+        )
     removed = []
     for i, ev in enumerate(evidence):
         gone = np.zeros(len(ev.free), dtype=bool)
