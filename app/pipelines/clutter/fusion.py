@@ -76,10 +76,9 @@ def track_decisions(tracks: TrackEvidence, config: ClutterConfig) -> tuple[np.nd
     else:
         moving |= walker & (tracks.speed >= config.min_speed)
     if config.track_motion and tracks.straightness is not None:
-        frames = np.array([len(t.frames) for t in tracks.tracks], dtype=np.int64)
         moving |= (
             ~movable
-            & (frames >= config.min_motion_frames)
+            & (tracks.frame_counts >= config.min_motion_frames)
             & (tracks.surface_speed >= config.min_track_speed)
             & (tracks.surface_speed <= config.max_track_speed)
             & (tracks.straightness >= config.min_straightness)
@@ -105,10 +104,9 @@ def fuse(
     if tracks is not None:
         moving, movable = track_decisions(tracks, config)
         background = outvoted(tracks, config)
-        frames = np.array([len(t.frames) for t in tracks.tracks], dtype=np.int64)
         settled = (
             ~moving
-            & (frames >= config.min_motion_frames)
+            & (tracks.frame_counts >= config.min_motion_frames)
             & (tracks.free_fraction < config.max_static_free)
         )
     removed = []

@@ -39,6 +39,7 @@ from app.pipelines.clutter.segmenter import CLUTTER_CLASSES, CachedSegmenter
 
 FREE_SPACE = "free-space"
 PADDED_MASK = "padded-mask"
+MOVED_TRACK = "moved-track"
 
 
 @dataclass
@@ -136,6 +137,13 @@ def frame_instances(
             names.append(CLUTTER_CLASSES[cls - 1])
         elif config.expansion == "pad" and padded[k] > free[k]:
             names.append(PADDED_MASK)
+        elif (
+            track[k] >= 0
+            and track_moving is not None
+            and track_moving[track[k]]
+            and (2 * free[k] < size[k])
+        ):
+            names.append(MOVED_TRACK)  # an object nobody classed, moving by its surface
         else:
             names.append(FREE_SPACE)
     by_free = free >= config.min_free_fraction * np.maximum(size, 1)

@@ -38,10 +38,10 @@ class Observation:
     trackable: np.ndarray  # (C,) bool: object-sized
     seen: np.ndarray | None = None  # (C,) bool: the camera sees most of the cluster
     extent: np.ndarray | None = None  # (C,) metres: the longer side of its horizontal box
+    top: np.ndarray | None = None  # (C,) metres above the ground
     # (C, 3) world centroid of the cluster's lower body (`LOW_BODY`: legs and hips of a
     # person, whose swinging arms and turning torso make registration noisy); None: centroids
     low_centroids: np.ndarray | None = None
-    top: np.ndarray | None = None  # (C,) metres above the ground
     # per cluster, its downsampled world points (`motion.object_shape`); None = centroids only
     shapes: list[np.ndarray] | None = None
 
@@ -183,6 +183,11 @@ class TrackEvidence:
     straightness: np.ndarray | None = None  # (T,) `Track.straightness`
     walk_speed: np.ndarray | None = None  # (T,) m/s, `Track.walk_speed`
     surface_speed: np.ndarray | None = None  # (T,) m/s, `Track.surface_speed`
+
+    @property
+    def frame_counts(self) -> np.ndarray:
+        """(T,) observations per track."""
+        return np.array([len(t.frames) for t in self.tracks], dtype=np.int64)
 
 
 class Tracker:
