@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from app.io.survey import Camera
-from app.pipelines.clutter.clusters import frame_clusters, voxel_components
+from app.pipelines.clutter.clusters import frame_clusters, object_hosts, voxel_components
 from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.expansion import cluster_shapes, cluster_sizes, expand_instances
 from app.pipelines.clutter.freespace import off_ground
@@ -358,3 +358,23 @@ def test_a_walking_person_moves_by_its_lower_body() -> None:
     )
     assert all(r.tolist() == [True, False] for r in by_body)
     assert not any(r.any() for r in by_registration)
+
+
+def test_loose_pieces_and_tyres_belong_to_their_object() -> None:
+    """A far car's window-split piece (too small to track) 0.6 m from its body and its tyres'
+    ground-level points go with the body's cluster; a road point 1 m away and a piece 2 m away
+    belong to nothing."""
+    body = box_surface((20, 0, 0.7), (4.0, 1.8, 1.0), step=0.1)
+    n = len(body)
+    piece = box((20, 0, 1.75), (1.0, 1.0, 0.1), 8)  # the roof, 0.5 m above the body's top
+    tyres = box((19, 0.9, 0.05), (0.3, 0.2, 0.1), 10)
+    road = np.array([[20.0, 2.3, 0.0]])
+    stray = box((20, 5, 1.0), (0.3, 0.3, 0.3), 8)
+    xyz = np.r_[body, piece, tyres, road, stray]
+    label = np.r_[np.zeros(n), np.ones(8), -np.ones(11), np.full(8, 2)].astype(np.int32)
+    trackable = np.array([True, False, False])
+    near_ground = np.r_[np.zeros(n + 8, bool), np.ones(11, bool), np.zeros(8, bool)]
+    host = object_hosts(xyz, label, trackable, near_ground, 0.3, 0.8)
+    assert (host[:n] == -1).all()  # the body is tracked itself
+    assert (host[n : n + 8] == 0).all() and (host[n + 8 : n + 18] == 0).all()
+    assert host[n + 18] == -1 and (host[n + 19 :] == -1).all()
