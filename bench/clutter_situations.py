@@ -149,10 +149,11 @@ def row(situation: Situation, seed: int, variant: str, got: dict) -> list[str]:
 
 # the pipeline before issue 19 (its changes off), then each change alone, then all (defaults)
 BEFORE = {"class_sizes": False, "track_motion": False, "walk_measure": "registered",
-          "attach_pieces": False, "keep_static_tracks": False}  # fmt: skip
+          "attach_pieces": False, "keep_static_tracks": False,
+          "vehicle_shapes": False}  # fmt: skip
 CHANGES = {"class sizes": "class_sizes", "track motion": "track_motion",
            "lower-body walk": "walk_measure", "pieces": "attach_pieces",
-           "static tracks": "keep_static_tracks"}  # fmt: skip
+           "static tracks": "keep_static_tracks", "vehicle shapes": "vehicle_shapes"}  # fmt: skip
 VARIANTS = {
     "before": BEFORE,
     **{f"+ {name}": {k: v for k, v in BEFORE.items() if k != key} for name, key in CHANGES.items()},
@@ -186,8 +187,8 @@ def main() -> int:
         f"modelled from the simulator's masks (Cityscapes classes only: no trailers or site "
         f"machines; blind below luma {DARK_LUMA}; bled {MASK_BLEED} px), not ESPNetv2 (which "
         "does not read the simulator's flat-shaded renders). Pipelines: 'before' is issue 5's "
-        "fusion (class_sizes, track_motion, attach_pieces, keep_static_tracks off, persons "
-        "registered like any object); each "
+        "fusion (class_sizes, track_motion, attach_pieces, keep_static_tracks, vehicle_shapes "
+        "off, persons registered like any object); each "
         "'+' row adds one of issue 19's changes; 'all' is ClutterConfig's defaults. "
         "Situations: "
         + "; ".join(f"{s.name} ({s.what}, {s.speed:g} m/s)" for s in chosen)

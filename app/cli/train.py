@@ -1,4 +1,5 @@
-"""`mmsclean train phantom | guardrail`: a pipeline's model from simulated (and real) surveys."""
+"""`mmsclean train phantom | guardrail | clutter-shapes`: a pipeline's model from simulated (and
+real) surveys."""
 
 from __future__ import annotations
 
@@ -203,4 +204,54 @@ def train_guardrail(
         "slice F "
         + ", ".join(f"{name} {s['f1']:.1f}" for name, s in scores.items())
         + f"; corrected {card['correction']['validation_slice_f']:.1f}"
+    )
+
+
+@train_app.command("clutter-shapes")
+def train_clutter_shapes(
+    out: OutOption = None,
+    sim_seeds: Annotated[str, typer.Option(help="training simulator seeds")] = "301-328",
+    validation_seeds: Annotated[str, typer.Option(help="validation seeds")] = "329-335",
+    epochs: Annotated[int, typer.Option(help="epochs of the classifier")] = 60,
+) -> None:
+    """Train the clutter pipeline's vehicle shape classifier (rotating scanners) on simulated
+    streets: object-sized clusters labelled vehicle or other by the simulator, 3D only."""
+    from app.pipelines.clutter.shapes import ROTATING_MODEL
+    from app.pipelines.clutter.training.shapes import (
+        LENGTH,
+        SCENES,
+        THRESHOLD,
+        samples,
+        scores,
+        train_shapes,
+    )
+
+    seeds = seed_list("--sim-seeds", sim_seeds)
+    validation = seed_list("--validation-seeds", validation_seeds)
+    if set(seeds) & set(validation):
+        from app.core.errors import ConfigError
+
+        raise ConfigError("--validation-seeds", "the validation seeds overlap the training seeds")
+    out = out or ROTATING_MODEL
+    with stage_progress("training") as progress:
+        progress("simulated streets", 0.0)
+        x, y = samples(seeds)
+        vx, vy = samples(validation)
+        progress("training", 0.5)
+        card = {
+            "sensor_kind": "rotating",
+            "simulation": {"scanner": "hdl64", "vary_scanner": True, "seeds": seed_list(
+                "--sim-seeds", sim_seeds), "validation_seeds": validation, "scenes": list(SCENES),
+                "length_m": LENGTH},
+            "threshold": THRESHOLD,
+            "epochs": epochs,
+        }  # fmt: skip
+        model = train_shapes(x, y, epochs, card=card)
+        model.card["training"] = scores(model, x, y, THRESHOLD)
+        model.card["validation"] = scores(model, vx, vy, THRESHOLD)
+        model.save(out)
+    valid = model.card["validation"]
+    console.print(
+        f"{out}: {len(y)} training clusters ({int(y.sum())} vehicles); validation at "
+        f"P >= {THRESHOLD}: precision {valid['precision']:.1f} %, recall {valid['recall']:.1f} %"
     )

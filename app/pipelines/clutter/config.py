@@ -135,6 +135,14 @@ class ClutterConfig(BaseModel):
         0.7, ge=0, description="metres: a lower track's top (road patches, curbs) did not drive"
     )
     min_track_points: Count = Field(20, ge=1, description="smaller clusters are not tracked")
+    vehicle_shapes: bool = Field(
+        True,
+        description="clutter mode: a track whose clusters are vehicle-shaped in 3D (shapes.py, "
+        "rotating scanners) is a vehicle whatever the camera says (shadow, trailers, machines)",
+    )
+    min_vehicle_shape: Share = Field(
+        0.9, description="mean P(vehicle) over a track's frames that makes it one"
+    )
     keep_static_tracks: bool = Field(
         True,
         description="free-space points on an object tracked over min_motion_frames that did not "

@@ -19,7 +19,9 @@
 - `clutter` (the paper's definition, for HD maps): every movable object, parked ones included:
   the camera's expanded instances, every frame of a track the camera ever classified (after the
   object left the view; in the view when the camera classed it in at least `min_class_share` of
-  the frames where it saw it), and everything the dynamic mode removes. With `outvote_masks`
+  the frames where it saw it), every frame of a track whose clusters are vehicle-shaped in 3D
+  (`vehicle_shapes`: a car in deep shadow, a trailer, a site machine the camera cannot name),
+  and everything the dynamic mode removes. With `outvote_masks`
   the vote also goes the other way: a track the camera saw in some frames but classed in fewer
   than `min_class_share` of them is background a mask grazed now and then (a kiosk, an awning,
   a column beside a car): only the points on its camera instances go, not its whole cluster,
@@ -66,18 +68,30 @@ def outvoted(tracks: TrackEvidence, config: ClutterConfig) -> np.ndarray:
     return (tracks.seen_frames > 0) & (tracks.class_share < config.min_class_share)
 
 
+def vehicle_shaped(tracks: TrackEvidence, config: ClutterConfig) -> np.ndarray:
+    """(T,) bool: clutter mode, a track followed over `min_track_frames` whose clusters are
+    vehicle-shaped in 3D (`shapes.py`), whatever the camera says."""
+    if config.mode != "clutter" or not config.vehicle_shapes or tracks.vehicle_shape is None:
+        return np.zeros(len(tracks.tracks), dtype=bool)
+    return (tracks.vehicle_shape >= config.min_vehicle_shape) & (
+        tracks.frame_counts >= config.min_track_frames
+    )
+
+
 def track_decisions(tracks: TrackEvidence, config: ClutterConfig) -> tuple[np.ndarray, np.ndarray]:
     """(moving, movable) per track."""
-    movable = (tracks.camera_class > 0) & ~outvoted(tracks, config)
+    shaped = vehicle_shaped(tracks, config)
+    movable = ((tracks.camera_class > 0) & ~outvoted(tracks, config)) | shaped
     walker = movable & (tracks.camera_class == PERSON)
     moving = movable & ~walker & (tracks.speed >= config.min_speed)
+    classed = movable & ~shaped  # the camera named it (the shape rule is clutter mode's)
     if config.walk_measure == "lower_body" and tracks.walk_speed is not None:
         moving |= walker & (tracks.walk_speed >= config.min_walk_speed)
     else:
         moving |= walker & (tracks.speed >= config.min_speed)
     if config.track_motion and tracks.straightness is not None:
         moving |= (
-            ~movable
+            ~classed
             & (tracks.frame_counts >= config.min_motion_frames)
             & (tracks.surface_speed >= config.min_track_speed)
             & (tracks.surface_speed <= config.max_track_speed)
@@ -103,7 +117,8 @@ def fuse(
     """Per frame, (N,) bool removed."""
     if tracks is not None:
         moving, movable = track_decisions(tracks, config)
-        background = outvoted(tracks, config)
+        shaped = vehicle_shaped(tracks, config)
+        background = outvoted(tracks, config) & ~shaped
         settled = (
             ~moving
             & (tracks.frame_counts >= config.min_motion_frames)
@@ -156,6 +171,7 @@ def fuse(
                 carry = np.zeros(len(track_ids), dtype=bool)
                 linked = (track_ids >= 0) & fits
                 held = tracks.class_share[track_ids[linked]] >= config.min_class_share
+                held |= shaped[track_ids[linked]]  # a vehicle whatever the camera says
                 carry[linked] = movable[track_ids[linked]] & (hidden[linked] | held)
                 gone[clustered] |= carry[ev.cluster[clustered]]
         removed.append(gone)

@@ -27,6 +27,8 @@ import numpy as np
 
 from app.core.errors import ConfigError
 from app.core.progress import Progress, Stopwatch
+from app.core.sensors import SensorKind
+from app.io.sensor_kind import detect_sensor_kind
 from app.io.survey import Camera, Frame, Survey
 from app.pipelines.clutter.clusters import frame_clusters, object_hosts
 from app.pipelines.clutter.config import ClutterConfig
@@ -42,6 +44,7 @@ from app.pipelines.clutter.fusion import FrameEvidence, fuse
 from app.pipelines.clutter.instances import camera_instances, mask_components
 from app.pipelines.clutter.masking import mask_points
 from app.pipelines.clutter.motion import object_shape
+from app.pipelines.clutter.shapes import VehicleShapes, load_vehicle_shapes, shape_features
 from app.pipelines.clutter.tracking import Observation, Tracker, TrackEvidence
 
 ClassMaps = Callable[[Frame], np.ndarray]  # frame -> (H, W) uint8 clutter class map
@@ -70,6 +73,18 @@ class ClutterPipeline:
     def __init__(self, config: ClutterConfig | None = None, class_maps: ClassMaps | None = None):
         self.config = config or ClutterConfig()
         self.class_maps = class_maps
+        self.shapes: VehicleShapes | None = None
+
+    def vehicle_shapes(self, survey: Survey) -> VehicleShapes | None:
+        """The 3D vehicle classifier where clutter mode asks for it and the survey's scanner is
+        of the kind it was trained for (rotating); None elsewhere (a profile scanner's frames
+        are slices, not objects)."""
+        cfg = self.config
+        if cfg.mode != "clutter" or not cfg.vehicle_shapes or not cfg.use_tracking:
+            return None
+        if detect_sensor_kind(survey).kind is not SensorKind.ROTATING:
+            return None
+        return load_vehicle_shapes()
 
     def camera(self, survey: Survey) -> Camera | None:
         """The camera whose images are segmented; None when the survey has none, none of its
@@ -100,6 +115,7 @@ class ClutterPipeline:
         report = progress or (lambda stage, fraction: None)
         clock = Stopwatch()
         camera = self.camera(survey)
+        self.shapes = self.vehicle_shapes(survey)
         if camera is not None and self.class_maps is None:
             raise ConfigError("class_maps", "a camera is in use but no segmenter was given")
         every = list(survey.frames)
@@ -223,6 +239,12 @@ class ClutterPipeline:
             cfg.min_track_points, with_shapes=cfg.use_tracking, in_view=in_view, sizes=sizes,
             low=clusters.above_ground <= LOW_BODY,
         )  # fmt: skip
+        if self.shapes is not None:
+            with clock("shapes"):
+                features = shape_features(
+                    xyz, clusters.label, clusters.above_ground, observation.trackable
+                )
+                observation.vehicle = self.shapes.probability(features)
         host = None
         if cfg.use_tracking and cfg.attach_pieces:
             with clock("tracking"):

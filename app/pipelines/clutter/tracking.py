@@ -42,6 +42,7 @@ class Observation:
     # (C, 3) world centroid of the cluster's lower body (`LOW_BODY`: legs and hips of a
     # person, whose swinging arms and turning torso make registration noisy); None: centroids
     low_centroids: np.ndarray | None = None
+    vehicle: np.ndarray | None = None  # (C,) P(vehicle) by 3D shape (`shapes.py`); None: unknown
     # per cluster, its downsampled world points (`motion.object_shape`); None = centroids only
     shapes: list[np.ndarray] | None = None
 
@@ -183,6 +184,7 @@ class TrackEvidence:
     straightness: np.ndarray | None = None  # (T,) `Track.straightness`
     walk_speed: np.ndarray | None = None  # (T,) m/s, `Track.walk_speed`
     surface_speed: np.ndarray | None = None  # (T,) m/s, `Track.surface_speed`
+    vehicle_shape: np.ndarray | None = None  # (T,) mean P(vehicle) by 3D shape over its frames
 
     @property
     def frame_counts(self) -> np.ndarray:
@@ -303,8 +305,13 @@ def _evidence(
     classed = np.zeros(n)
     extent = np.zeros(n)
     top = np.zeros(n)
+    shape_sum = np.zeros(n)
+    shape_seen = np.zeros(n)
     for obs, ids in zip(observations, cluster_track, strict=True):
         tracked = ids >= 0
+        if obs.vehicle is not None:
+            np.add.at(shape_sum, ids[tracked], obs.vehicle[tracked])
+            np.add.at(shape_seen, ids[tracked], 1.0)
         np.maximum.at(extent, ids[tracked], np.inf if obs.extent is None else obs.extent[tracked])
         np.maximum.at(top, ids[tracked], np.inf if obs.top is None else obs.top[tracked])
         np.add.at(votes, (ids[tracked], obs.camera_class[tracked]), 1)
@@ -322,7 +329,8 @@ def _evidence(
     straightness = np.array([t.straightness() for t in tracks]) if n else np.zeros(0)
     walk = np.array([t.walk_speed(min_frames) for t in tracks]) if n else np.zeros(0)
     surface = np.array([t.surface_speed(min_frames) for t in tracks]) if n else np.zeros(0)
+    vehicle = shape_sum / np.maximum(shape_seen, 1.0) if shape_seen.any() else None
     return TrackEvidence(
         tracks, speed, camera_class, free_fraction, class_share, seen, cluster_track,
-        extent, top, straightness, walk, surface,
+        extent, top, straightness, walk, surface, vehicle,
     )  # fmt: skip

@@ -1,0 +1,150 @@
+"""Vehicle shapes: evidence that an object-sized cluster is a vehicle, from its 3D points alone.
+
+The camera misses vehicles: in deep shadow or low light, and classes a Cityscapes-trained
+network never learnt (trailers, site machines, caravans). They are vehicle-shaped all the same:
+a body 3-12 m long and 1.5-2.6 m wide, most of its points between knee and roof height, closed
+down to the wheels, nothing above 4 m. `shape_features` measures that per cluster of one frame
+(footprint along its own axes, height bands, eigenvalue shape); `VehicleShapes` is a small MLP
+over them, trained on the simulator's labelled objects (`training/shapes.py`, rotating
+scanners of 32 and 64 beams). Tracks average its probability over their frames (`tracking.py`).
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from app.core.errors import InputError
+from app.pipelines.checkpoints import card_of, load_checkpoint
+
+MODELS = Path(__file__).resolve().parents[3] / "models" / "clutter"
+ROTATING_MODEL = MODELS / "vehicle_shapes_rotating.pt"  # rotating scanners (HDL-64E-like)
+BANDS = (0.1, 0.5, 1.0, 1.5, 2.0, 2.5, 3.5)  # metres above the ground: height band edges
+FEATURES = (
+    "log_points", "range", "length", "width", "top", "bottom", "height",
+    *(f"band_{lo:g}_{hi:g}" for lo, hi in zip(BANDS[:-1], BANDS[1:], strict=True)),
+    f"band_above_{BANDS[-1]:g}", "linearity", "planarity", "scattering", "normal_z",
+    "log_density",
+)  # fmt: skip
+HIDDEN = 32
+
+
+def shape_features(
+    xyz: np.ndarray, label: np.ndarray, above_ground: np.ndarray, chosen: np.ndarray
+) -> np.ndarray:
+    """(C, len(FEATURES)) float32 per cluster of one frame (sensor coordinates), NaN rows for
+    clusters not `chosen` or without points. One pass of bincounts, no loop over clusters."""
+    count = len(chosen)
+    out = np.full((count, len(FEATURES)), np.nan, dtype=np.float32)
+    use = (label >= 0) & chosen[np.where(label >= 0, label, 0)]
+    if count == 0 or not use.any():
+        return out
+    lab, p, h = label[use], xyz[use].astype(np.float64), above_ground[use]
+    n = np.bincount(lab, minlength=count).astype(np.float64)
+    has = n > 0
+    safe = np.maximum(n, 1)
+    mean = np.stack([np.bincount(lab, p[:, k], count) for k in range(3)], 1) / safe[:, None]
+    d = p - mean[lab]
+    cov = np.empty((count, 3, 3))
+    for i in range(3):
+        for j in range(i, 3):
+            cov[:, i, j] = cov[:, j, i] = np.bincount(lab, d[:, i] * d[:, j], count) / safe
+    cov[~has] = np.eye(3)
+    values, vectors = np.linalg.eigh(cov)  # ascending
+    l3, l2, l1 = (np.maximum(values[:, k], 1e-12) for k in range(3))
+    # footprint along the cluster's own horizontal axes
+    xy_values, xy_vectors = np.linalg.eigh(cov[:, :2, :2])
+    major = xy_vectors[:, :, 1]
+    along = np.einsum("ij,ij->i", d[:, :2], major[lab])
+    across = np.einsum("ij,ij->i", d[:, :2], xy_vectors[:, :, 0][lab])
+    length = _spread(along, lab, count)
+    width = _spread(across, lab, count)
+    top = np.full(count, -np.inf)
+    bottom = np.full(count, np.inf)
+    np.maximum.at(top, lab, h)
+    np.minimum.at(bottom, lab, h)
+    edges = np.array([*BANDS, np.inf])
+    band = np.clip(np.searchsorted(edges, h, side="right") - 1, 0, len(BANDS) - 1)
+    bands = np.zeros((count, len(BANDS)))
+    np.add.at(bands, (lab, band), 1.0)
+    bands /= safe[:, None]
+    distance = np.linalg.norm(mean[:, :2], axis=1)
+    height = top - bottom
+    area = np.maximum(length, 0.1) * np.maximum(height, 0.1)
+    columns = [
+        np.log(safe), distance, length, width, top, bottom, height, *bands.T,
+        (l1 - l2) / l1, (l2 - l3) / l1, l3 / l1, np.abs(vectors[:, 2, 0]),
+        np.log(safe * np.maximum(distance, 1.0) ** 2 / area),
+    ]  # fmt: skip
+    out[has] = np.stack(columns, 1)[has].astype(np.float32)
+    return out
+
+
+def _spread(values: np.ndarray, label: np.ndarray, count: int) -> np.ndarray:
+    lo = np.full(count, np.inf)
+    hi = np.full(count, -np.inf)
+    np.minimum.at(lo, label, values)
+    np.maximum.at(hi, label, values)
+    return np.where(np.isfinite(hi - lo), hi - lo, 0.0)
+
+
+def mlp(inputs: int) -> nn.Module:
+    return nn.Sequential(
+        nn.Linear(inputs, HIDDEN), nn.ReLU(), nn.Linear(HIDDEN, HIDDEN), nn.ReLU(),
+        nn.Linear(HIDDEN, 1),
+    )  # fmt: skip
+
+
+@dataclass
+class VehicleShapes:
+    """The classifier: standardisation and the network, with its model card."""
+
+    net: nn.Module
+    mean: np.ndarray
+    std: np.ndarray
+    card: dict[str, Any]
+
+    def probability(self, features: np.ndarray) -> np.ndarray:
+        """(C,) P(vehicle) per row; NaN rows (no cluster) give 0."""
+        out = np.zeros(len(features), dtype=np.float32)
+        ok = np.isfinite(features).all(axis=1)
+        if not ok.any():
+            return out
+        x = (features[ok] - self.mean) / self.std
+        with torch.inference_mode():
+            logits = self.net(torch.from_numpy(x.astype(np.float32)))[:, 0]
+        out[ok] = torch.sigmoid(logits).numpy()
+        return out
+
+    def save(self, path: Path) -> None:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        card = {"created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+                "features": list(FEATURES), **self.card}  # fmt: skip
+        blob = {"state": self.net.state_dict(), "mean": torch.from_numpy(self.mean),
+                "std": torch.from_numpy(self.std), "card": card}  # fmt: skip
+        torch.save(blob, path)
+        path.with_suffix(".json").write_text(json.dumps(card, indent=1) + "\n")
+
+
+def load_vehicle_shapes(path: Path = ROTATING_MODEL) -> VehicleShapes:
+    """The classifier at `path` (weights only); InputError naming the file when it is not one."""
+    blob = load_checkpoint(path, "vehicle shape")
+    try:
+        mean = blob["mean"].numpy().astype(np.float32)
+        std = blob["std"].numpy().astype(np.float32)
+        net = mlp(len(mean))
+        net.load_state_dict(blob["state"])
+    except (KeyError, RuntimeError, AttributeError) as exc:
+        raise InputError(path, f"not a vehicle shape checkpoint ({exc})") from None
+    if len(mean) != len(FEATURES):
+        raise InputError(path, f"has {len(mean)} features, this version measures {len(FEATURES)}")
+    card = card_of(path, ".json", lambda p: dict(blob.get("card") or {}))
+    return VehicleShapes(net.eval(), mean, std, card)

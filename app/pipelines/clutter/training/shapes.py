@@ -1,0 +1,139 @@
+"""Training the vehicle shape classifier (`shapes.py`) on the simulator's labelled objects.
+
+Each simulated street (rotating scanners drawn from the seed: 32 or 64 beams, mountings, noise)
+is clustered per frame as the pipeline clusters it; an object-sized, trackable cluster is a
+vehicle when at least `PURE` of its scored points are (SemanticKITTI car, bus, tram, truck,
+other vehicle, parked or moving), other when at most 1 - `PURE` are; mixed ones teach nothing.
+Streets cycle through presets and situations (`SCENES`), so parked cars, site machines,
+trailers and vans stand among stalls, kiosks, hedges, tree trunks, poles and people.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from app.core.settings import get_settings
+from app.io import open_survey
+from app.pipelines.clutter.clusters import frame_clusters
+from app.pipelines.clutter.config import ClutterConfig
+from app.pipelines.clutter.expansion import cluster_sizes
+from app.pipelines.clutter.shapes import FEATURES, VehicleShapes, mlp, shape_features
+
+VEHICLE_IDS = np.array([10, 13, 16, 18, 20, 252, 256, 257, 258, 259])
+SCENES = ("urban", "mixed", "shadow", "market", "walkers", "receding", "approaching")
+PURE = 0.7
+LENGTH = 40.0  # metres per simulated street
+FRAME_STEP = 2  # every second frame: neighbouring frames see the same objects
+THRESHOLD = 0.5  # P(vehicle) the validation scores are given at
+
+
+def simulated_street(seed: int, cache: Path | None = None) -> Path:
+    """A cached simulated street of `seed`, no camera (shapes need none)."""
+    from app.simulate.survey import SimulationConfig, simulate
+
+    cache = cache or get_settings().cache_dir / "clutter-shapes"
+    scene = SCENES[seed % len(SCENES)]
+    folder = cache / f"{scene}-{LENGTH:g}m-seed{seed}"
+    if not folder.is_dir():
+        config = SimulationConfig(
+            scene=scene, length=LENGTH, seed=seed, scanner="hdl64", camera=False,
+            vary_scanner=True, write_map=False,
+        )  # fmt: skip
+        simulate(config, folder)
+    return folder
+
+
+def street_samples(path: Path, config: ClutterConfig | None = None) -> tuple[np.ndarray, ...]:
+    """(features (M, F), label (M,) 1 vehicle / 0 other) of one street's trackable clusters."""
+    cfg = config or ClutterConfig()
+    features, labels = [], []
+    for frame in list(open_survey(path, "sim").frames)[::FRAME_STEP]:
+        xyz = frame.points().xyz
+        semantic = frame.reference_labels()["semantic"] & 0xFFFF
+        clusters = frame_clusters(
+            xyz, cfg.cluster_voxel, cfg.ground_cell, cfg.ground_tolerance, cfg.max_range
+        )
+        count = clusters.count
+        if count == 0:
+            continue
+        sizes = cluster_sizes(xyz, clusters)
+        inside = clusters.label >= 0
+        points = np.bincount(clusters.label[inside], minlength=count)
+        scored = inside & (semantic > 1)
+        total = np.bincount(clusters.label[scored], minlength=count)
+        vehicle = np.bincount(
+            clusters.label[scored & np.isin(semantic, VEHICLE_IDS)], minlength=count
+        )
+        trackable = sizes.within(cfg.max_object_extent, cfg.max_object_height) & (
+            points >= cfg.min_track_points
+        )
+        share = vehicle / np.maximum(total, 1)
+        keep = trackable & (total > 0) & ((share >= PURE) | (share <= 1.0 - PURE))
+        if not keep.any():
+            continue
+        rows = shape_features(xyz, clusters.label, clusters.above_ground, keep)[keep]
+        features.append(rows)
+        labels.append((share[keep] >= PURE).astype(np.int8))
+    if not features:
+        return np.zeros((0, len(FEATURES)), np.float32), np.zeros(0, np.int8)
+    return np.concatenate(features), np.concatenate(labels)
+
+
+def samples(seeds: list[int], cache: Path | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The samples of several streets (each cached next to its street)."""
+    cache = cache or get_settings().cache_dir / "clutter-shapes"
+    xs, ys = [], []
+    for seed in seeds:
+        street = simulated_street(seed, cache)
+        target = street.with_name(street.name + ".samples.npz")
+        if not target.is_file():
+            x, y = street_samples(street)
+            partial = target.with_suffix(".partial.npz")
+            np.savez_compressed(partial, features=x, labels=y)
+            os.replace(partial, target)
+        with np.load(target) as z:
+            xs.append(z["features"])
+            ys.append(z["labels"])
+    return np.concatenate(xs), np.concatenate(ys)
+
+
+def train_shapes(
+    x: np.ndarray, y: np.ndarray, epochs: int = 60, seed: int = 0, card: dict | None = None
+) -> VehicleShapes:
+    """Fit the MLP (class-balanced binary cross-entropy, Adam) on standardised features."""
+    torch.manual_seed(seed)
+    mean = x.mean(axis=0).astype(np.float32)
+    std = np.maximum(x.std(axis=0), 1e-3).astype(np.float32)
+    inputs = torch.from_numpy(((x - mean) / std).astype(np.float32))
+    target = torch.from_numpy(y.astype(np.float32))
+    positives = max(float(target.sum()), 1.0)
+    weight = torch.tensor((len(target) - positives) / positives)
+    net = mlp(x.shape[1])
+    loss_fn = nn.BCEWithLogitsLoss(pos_weight=weight)
+    optimiser = torch.optim.Adam(net.parameters(), lr=3e-3, weight_decay=1e-4)
+    order = torch.Generator().manual_seed(seed)
+    for _ in range(epochs):
+        for batch in torch.randperm(len(target), generator=order).split(512):
+            optimiser.zero_grad()
+            loss = loss_fn(net(inputs[batch])[:, 0], target[batch])
+            loss.backward()
+            optimiser.step()
+    return VehicleShapes(net.eval(), mean, std, dict(card or {}))
+
+
+def scores(model: VehicleShapes, x: np.ndarray, y: np.ndarray, threshold: float) -> dict:
+    """Precision and recall of `vehicle` at `threshold`, per cent."""
+    said = model.probability(x) >= threshold
+    truth = y.astype(bool)
+    hits = int((said & truth).sum())
+    return {
+        "samples": int(len(y)),
+        "vehicles": int(truth.sum()),
+        "precision": round(100.0 * hits / max(int(said.sum()), 1), 2),
+        "recall": round(100.0 * hits / max(int(truth.sum()), 1), 2),
+    }
