@@ -6,6 +6,13 @@ outvote_masks) and reports every SemanticKITTI figure with the grid point chosen
 sequences (leave-one-sequence-out). The defaults here
 are the clutter-mode grid point chosen on all three sequences (04, 05, 08), for use on new data;
 they are not what the reported figures ran with.
+
+Issue 19's evidence (class_sizes, track_motion, walk_measure, attach_pieces, keep_static_tracks,
+vehicle_shapes) has fixed thresholds outside the grid, set on the simulated development streets
+(bench/clutter_situations.py --seeds dev) and checked on 04 / 05 / 08: min_track_speed above
+parked cars' registration noise (<= 1.3 m/s, bench.clutter's motion table), max_static_free and
+min_vehicle_shape where 04 / 05 / 08 in the camera view did not get worse. The held-out
+simulated seeds were never looked at before they were recorded.
 """
 
 from __future__ import annotations
