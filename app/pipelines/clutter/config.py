@@ -162,10 +162,13 @@ class ClutterConfig(BaseModel):
     attach_pieces: bool = Field(
         True,
         description="a moving object's pieces too small to track (within piece_radius) and its "
-        "ground-level points (within halo_radius) go with it",
+        "ground-level points (within tyre_radius) go with it",
     )
     piece_radius: ObjectMetres = Field(
         0.8, ge=0, description="metres from a tracked object within which a loose piece is its"
+    )
+    tyre_radius: ObjectMetres = Field(
+        0.2, ge=0, description="metres from a tracked object within which a ground point is its"
     )
     min_track_frames: Count = Field(
         3, ge=2, description="frames a track needs to estimate its speed"

@@ -250,7 +250,7 @@ class ClutterPipeline:
             with clock("tracking"):
                 host = object_hosts(
                     xyz, clusters.label, observation.trackable,
-                    clusters.above_ground <= cfg.ground_tolerance, cfg.halo_radius,
+                    clusters.above_ground <= cfg.ground_tolerance, cfg.tyre_radius,
                     cfg.piece_radius,
                 )  # fmt: skip
         evidence = FrameEvidence(
