@@ -11,7 +11,7 @@ import torch
 
 from app.core.errors import InputError
 from app.pipelines.clutter.config import ClutterConfig
-from app.pipelines.clutter.fusion import FrameEvidence, fuse
+from app.pipelines.clutter.fusion import fuse
 from app.pipelines.clutter.shapes import (
     FEATURES,
     ROTATING_MODEL,
@@ -21,7 +21,7 @@ from app.pipelines.clutter.shapes import (
 from app.pipelines.clutter.tracking import Observation, track_clusters
 from app.pipelines.clutter.training.shapes import scores, street_samples, train_shapes
 from app.simulate.survey import SimulationConfig, simulate
-from tests.pipelines.clutter.test_steps import box_surface
+from tests.pipelines.clutter.test_steps import box_surface, one_point_per_cluster
 
 
 def test_features_tell_a_car_body_from_a_pole() -> None:
@@ -82,16 +82,7 @@ def test_clutter_mode_takes_a_vehicle_shaped_track_the_camera_never_named() -> N
         )  # fmt: skip
     tracks = track_clusters(observations, gate=2.5, min_frames=3)
     assert tracks.vehicle_shape.tolist() == pytest.approx([0.95, 0.05])
-    evidence = [
-        FrameEvidence(
-            in_view=np.ones(2, bool),
-            camera_removed=np.zeros(2, bool),
-            padded=np.zeros(2, bool),
-            cluster=np.array([0, 1], np.int32),
-            free=np.zeros(2, bool),
-        )
-        for _ in range(5)
-    ]
+    evidence = one_point_per_cluster(2, 5, in_view=True)
     clutter = fuse(evidence, tracks, ClutterConfig(mode="clutter"))
     assert all(r.tolist() == [True, False] for r in clutter)
     off = fuse(evidence, tracks, ClutterConfig(mode="clutter", vehicle_shapes=False))

@@ -280,6 +280,20 @@ def box_surface(center, size, step=0.15) -> np.ndarray:
     return np.concatenate(faces) + np.asarray(center)
 
 
+def one_point_per_cluster(clusters: int, frames: int, in_view: bool) -> list[FrameEvidence]:
+    """Frames of `clusters` points, point k on cluster k, no camera mask, nothing free."""
+    return [
+        FrameEvidence(
+            in_view=np.full(clusters, in_view),
+            camera_removed=np.zeros(clusters, bool),
+            padded=np.zeros(clusters, bool),
+            cluster=np.arange(clusters, dtype=np.int32),
+            free=np.zeros(clusters, bool),
+        )
+        for _ in range(frames)
+    ]
+
+
 def test_a_track_nobody_classed_moved_when_fast_in_one_direction() -> None:
     """Outside the camera's view, surfaces registered frame to frame: a car driving away at
     8 m/s moves; a parked car whose clusters jitter back and forth by 0.4 m and a fence whose
@@ -305,16 +319,7 @@ def test_a_track_nobody_classed_moved_when_fast_in_one_direction() -> None:
     car, parked, fence = (tracks.cluster_track[0][k] for k in range(3))
     assert abs(tracks.surface_speed[car] - 8.0) < 0.5 and tracks.straightness[car] > 0.99
     assert tracks.straightness[parked] < 0.5 and tracks.surface_speed[fence] < 1.0
-    evidence = [
-        FrameEvidence(
-            in_view=np.zeros(3, bool),
-            camera_removed=np.zeros(3, bool),
-            padded=np.zeros(3, bool),
-            cluster=np.array([0, 1, 2], np.int32),
-            free=np.zeros(3, bool),
-        )
-        for _ in range(6)
-    ]
+    evidence = one_point_per_cluster(3, 6, in_view=False)
     moved = fuse(evidence, tracks, ClutterConfig(mode="dynamic"))
     assert all(r.tolist() == [True, False, False] for r in moved)
     off = fuse(evidence, tracks, ClutterConfig(mode="dynamic", track_motion=False))
@@ -340,16 +345,7 @@ def test_a_walking_person_moves_by_its_lower_body() -> None:
     tracks = track_clusters(observations, gate=2.5, min_frames=3)
     walker, standing = tracks.cluster_track[0]
     assert abs(tracks.walk_speed[walker] - 1.2) < 0.05 and tracks.walk_speed[standing] < 0.2
-    evidence = [
-        FrameEvidence(
-            in_view=np.ones(2, bool),
-            camera_removed=np.zeros(2, bool),
-            padded=np.zeros(2, bool),
-            cluster=np.array([0, 1], np.int32),
-            free=np.zeros(2, bool),
-        )
-        for _ in range(8)
-    ]
+    evidence = one_point_per_cluster(2, 8, in_view=True)
     # the walker's registered speed said 0.4 m/s (noisy), below min_speed
     tracks.speed[:] = [0.4, 0.6]
     by_body = fuse(evidence, tracks, ClutterConfig(mode="dynamic", min_speed=1.0))
