@@ -4,12 +4,14 @@
    bicycles), cached per frame;
 2. project the frame's LiDAR points into the image, look up the masks (`masking.py`);
 3. camera instances: mask components split at depth jumps (`instances.py`);
-4. 3D expansion: instances grown to their frame's Euclidean cluster (`expansion.py`), or the
-   paper's padded masks (`expansion="pad"`);
+4. 3D expansion: instances grown to their frame's Euclidean cluster when an object of their
+   class can be that large (`expansion.py`), or the paper's padded masks (`expansion="pad"`);
 5. free-space evidence: every frame's rays into DUFOMap, ground-level flags kept only at the feet
    of free objects (`freespace.py`);
 6. tracking: object-sized clusters linked across frames, their motion measured by registering
-   each object onto its previous frame (`tracking.py`, `motion.py`);
+   each object onto its previous frame (`tracking.py`, `motion.py`), a person's by its lower
+   body; loose pieces and tyres attached to their object (`clusters.object_hosts`); in clutter
+   mode on a rotating scanner, each cluster's vehicle shape (`shapes.py`);
 7. fusion by mode (`fusion.py`): removed points per frame;
 8. accumulation: the kept points of every frame into the world map (`accumulate.py`).
 
