@@ -107,7 +107,7 @@ class ClutterConfig(BaseModel):
         "point above the ground (feet, wheels), or all (DUFOMap's own decision)",
     )
     min_free_fraction: Share = Field(
-        0.3, description="share of a track's points in free space to call it moving"
+        0.1, description="share of a track's points in free space to call it moving"
     )
     # tracking
     track_gate: Metres = Field(2.5, gt=0, description="metres a cluster may be from its prediction")
