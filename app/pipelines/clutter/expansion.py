@@ -73,13 +73,6 @@ def cluster_sizes(xyz: np.ndarray, clusters: FrameClusters) -> ClusterSizes:
     return ClusterSizes(np.max(hi - lo, axis=1), top)
 
 
-def cluster_shapes(
-    xyz: np.ndarray, clusters: FrameClusters, max_extent: float, max_height: float
-) -> np.ndarray:
-    """(C,) bool: the cluster fits in a `max_extent` box and stays below `max_height`."""
-    return cluster_sizes(xyz, clusters).within(max_extent, max_height)
-
-
 def majority_class(
     label: np.ndarray, mask_class: np.ndarray, count: int, where: np.ndarray | None = None
 ) -> np.ndarray:

@@ -177,9 +177,7 @@ class TrackEvidence:
     class_share: np.ndarray  # (T,) of the frames whose camera saw the object, those that classed it
     seen_frames: np.ndarray  # (T,) frames whose camera saw most of the object
     cluster_track: list[np.ndarray]  # per frame, (C,) int32 track id, -1 = untracked
-    # (T,) the largest horizontal extent and top of its clusters over the frames, metres
-    # (inf where the frames did not measure them)
-    extent: np.ndarray | None = None
+    # (T,) the highest top of its clusters over the frames, metres (inf where not measured)
     top: np.ndarray | None = None
     straightness: np.ndarray | None = None  # (T,) `Track.straightness`
     walk_speed: np.ndarray | None = None  # (T,) m/s, `Track.walk_speed`
@@ -303,7 +301,6 @@ def _evidence(
     free = np.zeros(n)
     seen = np.zeros(n)
     classed = np.zeros(n)
-    extent = np.zeros(n)
     top = np.zeros(n)
     shape_sum = np.zeros(n)
     shape_seen = np.zeros(n)
@@ -312,7 +309,6 @@ def _evidence(
         if obs.vehicle is not None:
             np.add.at(shape_sum, ids[tracked], obs.vehicle[tracked])
             np.add.at(shape_seen, ids[tracked], 1.0)
-        np.maximum.at(extent, ids[tracked], np.inf if obs.extent is None else obs.extent[tracked])
         np.maximum.at(top, ids[tracked], np.inf if obs.top is None else obs.top[tracked])
         np.add.at(votes, (ids[tracked], obs.camera_class[tracked]), 1)
         np.add.at(points, ids[tracked], obs.points[tracked])
@@ -332,5 +328,5 @@ def _evidence(
     vehicle = shape_sum / np.maximum(shape_seen, 1.0) if shape_seen.any() else None
     return TrackEvidence(
         tracks, speed, camera_class, free_fraction, class_share, seen, cluster_track,
-        extent, top, straightness, walk, surface, vehicle,
+        top, straightness, walk, surface, vehicle,
     )  # fmt: skip

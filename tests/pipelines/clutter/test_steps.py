@@ -7,7 +7,7 @@ import numpy as np
 from app.io.survey import Camera
 from app.pipelines.clutter.clusters import frame_clusters, object_hosts, voxel_components
 from app.pipelines.clutter.config import ClutterConfig
-from app.pipelines.clutter.expansion import cluster_shapes, cluster_sizes, expand_instances
+from app.pipelines.clutter.expansion import cluster_sizes, expand_instances
 from app.pipelines.clutter.freespace import off_ground
 from app.pipelines.clutter.fusion import FrameEvidence, fuse
 from app.pipelines.clutter.instances import camera_instances, mask_components
@@ -51,7 +51,7 @@ def test_frame_clusters_leave_the_ground_out() -> None:
     assert (clusters.label[:4000] == -1).mean() > 0.99
     assert len(np.unique(clusters.label[4000:4800])) == 1
     assert clusters.label[4000] != clusters.label[4800]
-    sized = cluster_shapes(xyz, clusters, 12.0, 4.5)
+    sized = cluster_sizes(xyz, clusters).within(12.0, 4.5)
     assert sized[clusters.label[4000]]
 
 
@@ -84,7 +84,7 @@ def test_expansion_takes_objects_whole_and_only_the_masked_part_of_background() 
     hedge = box((8, 3, 1.2), (30, 0.6, 1.6), 3000)  # background, far too long
     xyz = np.r_[ground(), car, hedge]
     clusters = frame_clusters(xyz, 0.3, 1.0, 0.25, 80.0)
-    sized = cluster_shapes(xyz, clusters, 12.0, 4.5)
+    sized = cluster_sizes(xyz, clusters).within(12.0, 4.5)
     n = len(xyz)
     in_view = np.zeros(n, bool)
     in_view[4000:4300] = True
