@@ -21,7 +21,8 @@ the image is dark (a vehicle in deep shadow), and bled `MASK_BLEED` pixels into 
 (as real masks are).
 
 Usage: python -m bench.clutter_situations [--seeds dev|held-out] [--situations a,b]
-[--no-record]. Development looks at the dev seeds only; what is recorded is held-out.
+[--variants "before,all (defaults)"] [--no-record]. Development looks at the dev seeds only;
+what is recorded is held-out.
 """
 
 from __future__ import annotations
@@ -169,14 +170,16 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", choices=tuple(SEEDS), default="held-out")
     parser.add_argument("--situations", default=",".join(s.name for s in SITUATIONS))
+    parser.add_argument("--variants", default=",".join(VARIANTS), help="pipelines to run")
     parser.add_argument("--no-record", action="store_true")
     args = parser.parse_args()
     chosen = [s for s in SITUATIONS if s.name in args.situations.split(",")]
+    variants = {k: v for k, v in VARIANTS.items() if k in args.variants.split(",")}
     rows = []
     for situation in chosen:
         for seed in SEEDS[args.seeds]:
             path = simulated(situation, seed)
-            for variant, changes in VARIANTS.items():
+            for variant, changes in variants.items():
                 config = ClutterConfig(mode=situation.mode, **changes)
                 rows.append(row(situation, seed, variant, evaluate(situation, path, config)))
                 print(" | ".join(rows[-1]), flush=True)

@@ -212,7 +212,7 @@ def train_clutter_shapes(
     out: OutOption = None,
     sim_seeds: Annotated[str, typer.Option(help="training simulator seeds")] = "301-328",
     validation_seeds: Annotated[str, typer.Option(help="validation seeds")] = "329-335",
-    epochs: Annotated[int, typer.Option(help="epochs of the classifier")] = 60,
+    epochs: Annotated[int, typer.Option(help="epochs of the classifier")] = 30,
 ) -> None:
     """Train the clutter pipeline's vehicle shape classifier (rotating scanners) on simulated
     streets: object-sized clusters labelled vehicle or other by the simulator, 3D only."""
@@ -235,8 +235,8 @@ def train_clutter_shapes(
     out = out or ROTATING_MODEL
     with stage_progress("training") as progress:
         progress("simulated streets", 0.0)
-        x, y = samples(seeds)
-        vx, vy = samples(validation)
+        inputs, y = samples(seeds)
+        valid_inputs, vy = samples(validation)
         progress("training", 0.5)
         card = {
             "sensor_kind": "rotating",
@@ -246,9 +246,9 @@ def train_clutter_shapes(
             "threshold": THRESHOLD,
             "epochs": epochs,
         }  # fmt: skip
-        model = train_shapes(x, y, epochs, card=card)
-        model.card["training"] = scores(model, x, y, THRESHOLD)
-        model.card["validation"] = scores(model, vx, vy, THRESHOLD)
+        model = train_shapes(inputs, y, epochs, card=card)
+        model.card["training"] = scores(model, inputs, y, THRESHOLD)
+        model.card["validation"] = scores(model, valid_inputs, vy, THRESHOLD)
         model.save(out)
     valid = model.card["validation"]
     console.print(

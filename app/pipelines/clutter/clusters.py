@@ -94,6 +94,7 @@ def object_hosts(
     near_ground: np.ndarray,
     ground_radius: float,
     fragment_radius: float,
+    ground_angle: float = 0.0,
 ) -> np.ndarray:
     """(N,) int32: the trackable cluster each loose point belongs to (-1: none, and -1 for the
     points of trackable clusters themselves).
@@ -102,7 +103,9 @@ def object_hosts(
     between sparse scan lines), and its wheels' lowest points fall within the ground's
     tolerance; the tracker follows the largest piece. Pieces too small to track take the
     cluster of their nearest point's trackable neighbour within `fragment_radius`; points at
-    ground level (`near_ground`) only within `ground_radius` (tyres, not the road around them).
+    ground level (`near_ground`) only within `ground_radius` (tyres, not the road around them),
+    or `ground_angle` radians of the scanner's view where that is wider (`xyz` in sensor
+    coordinates): a far car's lowest scan line lies a beam's spacing below its body's.
     """
     host = np.full(len(xyz), -1, dtype=np.int32)
     clustered = label >= 0
@@ -111,14 +114,17 @@ def object_hosts(
         return host
     anchors = np.flatnonzero(anchored)
     tree = cKDTree(xyz[anchors])
-    for loose, radius in (
-        (clustered & ~anchored, fragment_radius),
-        (~clustered & near_ground, ground_radius),
+    for loose, radius, angle in (
+        (clustered & ~anchored, fragment_radius, 0.0),
+        (~clustered & near_ground, ground_radius, ground_angle),
     ):
-        if not loose.any() or radius <= 0:
+        if not loose.any() or max(radius, angle) <= 0:
             continue
         at = np.flatnonzero(loose)
-        distance, nearest = tree.query(xyz[at], k=1, distance_upper_bound=radius, workers=-1)
-        found = np.isfinite(distance)
+        reach = np.maximum(radius, angle * np.linalg.norm(xyz[at], axis=1))
+        distance, nearest = tree.query(
+            xyz[at], k=1, distance_upper_bound=float(reach.max()), workers=-1
+        )
+        found = distance <= reach
         host[at[found]] = label[anchors[nearest[found]]]
     return host

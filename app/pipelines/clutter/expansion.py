@@ -6,10 +6,13 @@ explains (at least `min_seed_share` of all its points are instance points) goes 
 halo, the parts outside the image and the parts the mask missed. Object-sized means no larger
 than what an object of the mask's class can be (`CLASS_EXTENT`, `CLASS_HEIGHT`: a person is
 not 3 m wide, a bicycle not 2.5 m tall), so a person under a market stall's awning or a bicycle
-against a bike rack does not take the stall or the rack. Any other chosen cluster is an object
-merged with background (a car against a hedge), or background that a mask grazes at the image
-border (a fence running out of the view): only its instance points and the points within
-`halo_radius` of them go. Masked points at ground level within `halo_radius` of a removed
+against a bike rack does not take the stall or the rack. A person merged with such a structure
+gives up its masked points even where they are a small share of the cluster (below
+`min_mask_fraction`), those within `PERSON_RADIUS` of the instance's centre and no higher than a
+person (a mask bleeds onto the stall behind and the awning above). Any other chosen cluster is
+an object merged with background (a car against a hedge), or background that a mask grazes at
+the image border (a fence running out of the view): only its instance points and the points
+within `halo_radius` of them go. Masked points at ground level within `halo_radius` of a removed
 point (wheels, feet) go with it.
 """
 
@@ -30,6 +33,7 @@ from app.pipelines.clutter.segmenter import CLUTTER_CLASSES
 CLASS_EXTENT = np.array([np.inf, 1.6, 2.6, 7.0, 20.0, 20.0, 60.0, 2.8, 2.4])
 CLASS_HEIGHT = np.array([np.inf, 2.3, 2.5, 3.2, 4.5, 4.5, 4.8, 2.3, 2.2])
 PERSON = 1 + CLUTTER_CLASSES.index("person")  # the camera's class code of a person
+PERSON_RADIUS = 0.5  # metres: a person's masked points lie this close to their mean
 
 
 @dataclass
@@ -119,6 +123,14 @@ def expand_instances(
     # only whole objects carry their class on to tracking: a partly covered cluster is background
     cluster_class[whole] = seed_class[whole]
     removed[clustered] = whole[label[clustered]]
+    if sizes is not None:
+        # a person merged with what it stands at (a stall, an awning's post) gives up its
+        # instance points, however little of the cluster the mask covers, and the column
+        # under and above them (the counter hides its legs from the camera, not the scanner)
+        merged = (seeds >= max(min_seeds, 1)) & ~sizes.fit_class(seed_class) & ~chosen
+        merged &= seed_class == PERSON
+        in_merged = clustered & merged[np.where(clustered, label, 0)]
+        removed |= _person_core(xyz, clusters.above_ground, instance, in_merged & seed)
     partial = chosen & ~whole
     in_partial = clustered & partial[np.where(clustered, label, 0)]
     partial_seeds = in_partial & seed
@@ -131,6 +143,25 @@ def expand_instances(
         near = _within(xyz[loose], xyz[removed], halo_radius)
         removed[np.flatnonzero(loose)[near]] = True
     return Expansion(removed, cluster_class, object_sized)
+
+
+def _person_core(
+    xyz: np.ndarray, above_ground: np.ndarray, instance: np.ndarray, seeds: np.ndarray
+) -> np.ndarray:
+    """(N,) bool: the `seeds` that can be the person of their instance: within `PERSON_RADIUS`
+    of the instance's mean position and no higher than a person (a mask bled onto the stall
+    behind or the awning above lies in the same depth layer)."""
+    out = np.zeros(len(xyz), dtype=bool)
+    at = np.flatnonzero(seeds)
+    if not len(at):
+        return out
+    ids, local = np.unique(instance[at], return_inverse=True)
+    count = np.bincount(local, minlength=len(ids))
+    centre = np.stack([np.bincount(local, xyz[at, k], len(ids)) for k in range(2)], 1)
+    centre /= count[:, None]
+    near = np.linalg.norm(xyz[at, :2] - centre[local], axis=1) <= PERSON_RADIUS
+    out[at[near & (above_ground[at] <= CLASS_HEIGHT[PERSON])]] = True
+    return out
 
 
 def _within(points: np.ndarray, targets: np.ndarray, radius: float) -> np.ndarray:

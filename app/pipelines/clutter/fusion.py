@@ -16,6 +16,7 @@
   object followed over `min_motion_frames` that did not move by any evidence and has fewer than
   `max_static_free` of its points free (grazing rays flag a few points of a parked van free; a
   car creeping in a queue has more).
+- Both modes: an object's loose pieces and tyres (`attach_pieces`) go where most of its points go.
 - `clutter` (the paper's definition, for HD maps): every movable object, parked ones included:
   the camera's expanded instances, every frame of a track the camera ever classified (after the
   object left the view; in the view when the camera classed it in at least `min_class_share` of
@@ -159,11 +160,6 @@ def fuse(
             point_fits[clustered] = fits[ev.cluster[clustered]]
             tracked_fit = tracked & point_fits
             gone[tracked_fit] |= moving[point_track[tracked_fit]]
-            if ev.host is not None:  # a moving object's loose pieces and tyres go with it
-                hosted = np.flatnonzero(ev.host >= 0)
-                host_track = track_ids[ev.host[hosted]]
-                linked = (host_track >= 0) & fits[ev.host[hosted]]
-                gone[hosted[linked]] |= moving[host_track[linked]]
             if config.mode == "clutter":
                 # a classified object keeps its class where the camera cannot see it; in the view
                 # too when the camera classed it in most frames where it saw it (a missed mask)
@@ -174,5 +170,23 @@ def fuse(
                 held |= shaped[track_ids[linked]]  # a vehicle whatever the camera says
                 carry[linked] = movable[track_ids[linked]] & (hidden[linked] | held)
                 gone[clustered] |= carry[ev.cluster[clustered]]
+        if ev.host is not None:
+            gone |= _with_their_hosts(gone, ev)
         removed.append(gone)
     return removed
+
+
+def _with_their_hosts(gone: np.ndarray, ev: FrameEvidence) -> np.ndarray:
+    """(N,) bool: the loose pieces and tyres (`FrameEvidence.host`) of objects whose points
+    mostly go, whatever took them (motion, a mask, a carried class): a parked car's wheels
+    within the ground's tolerance are as much car as its doors."""
+    hosted = np.flatnonzero(ev.host >= 0)
+    if not len(hosted):
+        return np.zeros(len(gone), dtype=bool)
+    clustered = ev.cluster >= 0
+    count = int(max(ev.cluster.max(initial=-1), ev.host.max(initial=-1))) + 1
+    size = np.bincount(ev.cluster[clustered], minlength=count)
+    taken = np.bincount(ev.cluster[clustered & gone], minlength=count)
+    out = np.zeros(len(gone), dtype=bool)
+    out[hosted] = 2 * taken[ev.host[hosted]] > size[ev.host[hosted]]
+    return out

@@ -46,7 +46,7 @@ from app.pipelines.clutter.fusion import FrameEvidence, fuse
 from app.pipelines.clutter.instances import camera_instances, mask_components
 from app.pipelines.clutter.masking import mask_points
 from app.pipelines.clutter.motion import object_shape
-from app.pipelines.clutter.shapes import VehicleShapes, load_vehicle_shapes, shape_features
+from app.pipelines.clutter.shapes import VehicleShapes, load_vehicle_shapes, shape_inputs
 from app.pipelines.clutter.tracking import Observation, Tracker, TrackEvidence
 
 ClassMaps = Callable[[Frame], np.ndarray]  # frame -> (H, W) uint8 clutter class map
@@ -243,17 +243,17 @@ class ClutterPipeline:
         )  # fmt: skip
         if self.shapes is not None:
             with clock("shapes"):
-                features = shape_features(
-                    xyz, clusters.label, clusters.above_ground, observation.trackable
+                inputs = shape_inputs(
+                    xyz, clusters.label, clusters.above_ground, observation.trackable, index
                 )
-                observation.vehicle = self.shapes.probability(features)
+                observation.vehicle = self.shapes.probability(inputs)
         host = None
         if cfg.use_tracking and cfg.attach_pieces:
             with clock("tracking"):
                 host = object_hosts(
                     xyz, clusters.label, observation.trackable,
                     clusters.above_ground <= cfg.ground_tolerance, cfg.tyre_radius,
-                    cfg.piece_radius,
+                    cfg.piece_radius, cfg.tyre_angle,
                 )  # fmt: skip
         evidence = FrameEvidence(
             host=host,

@@ -182,7 +182,8 @@ class TrackEvidence:
     straightness: np.ndarray | None = None  # (T,) `Track.straightness`
     walk_speed: np.ndarray | None = None  # (T,) m/s, `Track.walk_speed`
     surface_speed: np.ndarray | None = None  # (T,) m/s, `Track.surface_speed`
-    vehicle_shape: np.ndarray | None = None  # (T,) mean P(vehicle) by 3D shape over its frames
+    # (T,) P(vehicle) by 3D shape over its frames, weighed by their points
+    vehicle_shape: np.ndarray | None = None
 
     @property
     def frame_counts(self) -> np.ndarray:
@@ -307,8 +308,9 @@ def _evidence(
     for obs, ids in zip(observations, cluster_track, strict=True):
         tracked = ids >= 0
         if obs.vehicle is not None:
-            np.add.at(shape_sum, ids[tracked], obs.vehicle[tracked])
-            np.add.at(shape_seen, ids[tracked], 1.0)
+            # weighed by points: the frames that see most of the object say most about it
+            np.add.at(shape_sum, ids[tracked], obs.vehicle[tracked] * obs.points[tracked])
+            np.add.at(shape_seen, ids[tracked], obs.points[tracked])
         np.maximum.at(top, ids[tracked], np.inf if obs.top is None else obs.top[tracked])
         np.add.at(votes, (ids[tracked], obs.camera_class[tracked]), 1)
         np.add.at(points, ids[tracked], obs.points[tracked])

@@ -15,8 +15,10 @@ from app.pipelines.clutter.fusion import fuse
 from app.pipelines.clutter.shapes import (
     FEATURES,
     ROTATING_MODEL,
+    SHAPE_POINTS,
+    ShapeInputs,
     load_vehicle_shapes,
-    shape_features,
+    shape_inputs,
 )
 from app.pipelines.clutter.tracking import Observation, track_clusters
 from app.pipelines.clutter.training.shapes import scores, street_samples, train_shapes
@@ -30,20 +32,33 @@ def test_features_tell_a_car_body_from_a_pole() -> None:
     xyz = np.r_[car, pole]
     label = np.r_[np.zeros(len(car)), np.ones(len(pole))].astype(np.int32)
     above = xyz[:, 2].copy()
-    rows = shape_features(xyz, label, above, np.array([True, True, False]))
+    inputs = shape_inputs(xyz, label, above, np.array([True, True, False]))
+    rows = inputs.features
     assert rows.shape == (3, len(FEATURES)) and np.isnan(rows[2]).all()
     named = dict(zip(FEATURES, rows[0], strict=True))
     assert abs(named["length"] - 4.4) < 0.15 and abs(named["width"] - 1.8) < 0.15
     assert abs(named["top"] - 1.6) < 0.05 and abs(named["range"] - np.hypot(12, 3)) < 0.1
     pole_row = dict(zip(FEATURES, rows[1], strict=True))
     assert pole_row["length"] < 0.3 and pole_row["linearity"] > 0.8
+    # the point branch sees each cluster in its own frame: along its long axis, across, height
+    points = inputs.points
+    assert points.shape == (3, SHAPE_POINTS, 3) and np.isnan(points[2]).all()
+    along, across, height = points[0].T
+    assert abs(np.ptp(along) - 4.4) < 0.2 and abs(np.ptp(across) - 1.8) < 0.2
+    assert abs(along.mean()) < 0.3 and height.min() >= 0.19 and height.max() <= 1.61
+    again = shape_inputs(xyz, label, above, np.array([True, True, False]))
+    assert np.array_equal(again.points[:2], points[:2])  # drawn the same way every run
 
 
 def test_a_trained_classifier_round_trips_and_a_bad_file_is_one_line(tmp_path: Path) -> None:
     rng = np.random.default_rng(0)
-    x = rng.normal(size=(400, len(FEATURES))).astype(np.float32)
-    y = (x[:, 2] > 0).astype(np.int8)  # "long ones are vehicles"
-    model = train_shapes(x, y, epochs=30, card={"sensor_kind": "rotating"})
+    features = rng.normal(size=(400, len(FEATURES))).astype(np.float32)
+    y = (features[:, 2] > 0).astype(np.int8)  # "long ones are vehicles"
+    # ... and their points reach far along their axis
+    points = rng.uniform(-0.5, 0.5, (400, SHAPE_POINTS, 3)).astype(np.float32)
+    points[:, :, 0] *= np.where(y == 1, 4.0, 1.0)[:, None]
+    x = ShapeInputs(features, points)
+    model = train_shapes(x, y, epochs=20, card={"sensor_kind": "rotating"})
     path = tmp_path / "shapes.pt"
     model.save(path)
     again = load_vehicle_shapes(path)

@@ -144,6 +144,36 @@ def test_expansion_takes_no_more_than_an_object_of_the_class_can_be() -> None:
     assert bounded.cluster_class[clusters.label[first_under]] == 0
 
 
+def test_a_person_merged_with_a_stall_gives_up_its_masked_points() -> None:
+    """However little of the stall's cluster the person's mask covers (below
+    min_mask_fraction), the person's masked points go; those the mask bled onto the awning
+    above or the counter's far end stay, as does the rest of the stall."""
+    counter = box((8, 0, 0.55), (3.0, 1.0, 0.7), 800)
+    awning = box((8, -1, 2.4), (3, 2.5, 0.05), 800)  # above the person's head
+    person = box((8, -0.75, 0.9), (0.4, 0.4, 1.8), 300)
+    xyz = np.r_[ground(), counter, awning, person]
+    clusters = frame_clusters(xyz, 0.3, 1.0, 0.1, 80.0)
+    start = 5600
+    assert clusters.label[4000] == clusters.label[start]
+    sizes = cluster_sizes(xyz, clusters)
+    n = len(xyz)
+    instance = np.full(n, -1, np.int32)
+    instance[start : start + 250] = 0
+    awning_bled = 4800 + np.flatnonzero(np.linalg.norm(awning[:, :2] - [8, -0.75], axis=1) < 0.3)
+    counter_end = 4000 + np.flatnonzero(counter[:, 0] > 9.3)[:20]
+    instance[awning_bled] = 0
+    instance[counter_end] = 0
+    mask_class = np.where(instance >= 0, 1, 0).astype(np.uint8)
+    args = (xyz, clusters, instance, mask_class, np.ones(n, bool), 0.7, sizes.within(12.0, 4.5))
+    grown = expand_instances(*args, 0.0, 0.1, sizes=sizes)
+    above = clusters.label >= 0
+    masked = np.arange(start, start + 250)
+    assert grown.removed[masked[above[masked]]].all()
+    assert not grown.removed[awning_bled].any() and not grown.removed[counter_end].any()
+    assert grown.removed[4000:5600].sum() == 0
+    assert not expand_instances(*args, 0.0, 0.1).removed[masked].any()  # unbounded: not chosen
+
+
 def _observations(positions: list[np.ndarray], camera_class: int = 3) -> list[Observation]:
     return [
         Observation(
@@ -374,3 +404,25 @@ def test_loose_pieces_and_tyres_belong_to_their_object() -> None:
     assert (host[:n] == -1).all()  # the body is tracked itself
     assert (host[n : n + 8] == 0).all() and (host[n + 8 : n + 18] == 0).all()
     assert host[n + 18] == -1 and (host[n + 19 :] == -1).all()
+
+
+def test_a_far_cars_lowest_scan_line_belongs_to_it() -> None:
+    """At 40 m a rotating scanner's beams are a few decimetres apart: the car's ground-level
+    scan line lies 0.35 m below its body's lowest points. It goes with the car within the
+    scanner's angle (0.01 rad: 0.4 m there), not within tyre_radius alone; a road point 1 m
+    off stays free, and a near car takes only its tyre_radius."""
+    far = box_surface((40, 0, 0.9), (4.0, 1.8, 1.0), step=0.1)
+    scan_line = np.array([[39.0, 0.0, 0.05], [41.0, 0.0, 0.05]])  # 0.35 m below the body
+    road = np.array([[40.0, 1.9, 0.0]])
+    near = box_surface((8, 0, 0.9), (4.0, 1.8, 1.0), step=0.1)
+    near_line = np.array([[8.0, 0.0, 0.05]])  # 0.35 m below, at 8 m: the road's
+    xyz = np.r_[far, scan_line, road, near, near_line]
+    n, m = len(far), len(near)
+    label = np.r_[np.zeros(n), -np.ones(3), np.ones(m), -np.ones(1)].astype(np.int32)
+    near_ground = np.r_[np.zeros(n, bool), np.ones(3, bool), np.zeros(m, bool), [True]]
+    trackable = np.array([True, True])
+    plain = object_hosts(xyz, label, trackable, near_ground, 0.2, 0.8)
+    angled = object_hosts(xyz, label, trackable, near_ground, 0.2, 0.8, ground_angle=0.01)
+    assert (plain[n : n + 3] == -1).all()
+    assert (angled[n : n + 2] == 0).all() and angled[n + 2] == -1
+    assert angled[-1] == -1

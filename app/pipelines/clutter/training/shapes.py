@@ -22,7 +22,16 @@ from app.io import open_survey
 from app.pipelines.clutter.clusters import frame_clusters
 from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.expansion import cluster_sizes
-from app.pipelines.clutter.shapes import FEATURES, VehicleShapes, mlp, shape_features
+from app.pipelines.clutter.shapes import (
+    FEATURES,
+    MIRRORS,
+    SHAPE_POINTS,
+    ShapeInputs,
+    ShapeNet,
+    VehicleShapes,
+    mirror_of,
+    shape_inputs,
+)
 
 VEHICLE_IDS = np.array([10, 13, 16, 18, 20, 252, 256, 257, 258, 259])
 SCENES = ("urban", "mixed", "shadow", "market", "walkers", "receding", "approaching")
@@ -30,6 +39,8 @@ PURE = 0.7
 LENGTH = 40.0  # metres per simulated street
 FRAME_STEP = 2  # every second frame: neighbouring frames see the same objects
 THRESHOLD = 0.5  # P(vehicle) the validation scores are given at
+SAMPLES_SUFFIX = ".shape-samples.npz"  # beside each cached street (summary and points)
+JITTER = 0.02  # metres of noise added to the training points
 
 
 def simulated_street(seed: int, cache: Path | None = None) -> Path:
@@ -48,11 +59,14 @@ def simulated_street(seed: int, cache: Path | None = None) -> Path:
     return folder
 
 
-def street_samples(path: Path, config: ClutterConfig | None = None) -> tuple[np.ndarray, ...]:
-    """(features (M, F), label (M,) 1 vehicle / 0 other) of one street's trackable clusters."""
+def street_samples(
+    path: Path, config: ClutterConfig | None = None
+) -> tuple[ShapeInputs, np.ndarray]:
+    """(inputs of M clusters, label (M,) 1 vehicle / 0 other) of one street's trackable
+    clusters."""
     cfg = config or ClutterConfig()
-    features, labels = [], []
-    for frame in list(open_survey(path, "sim").frames)[::FRAME_STEP]:
+    features, clouds, labels = [], [], []
+    for index, frame in enumerate(list(open_survey(path, "sim").frames)[::FRAME_STEP]):
         xyz = frame.points().xyz
         semantic = frame.reference_labels()["semantic"] & 0xFFFF
         clusters = frame_clusters(
@@ -76,59 +90,78 @@ def street_samples(path: Path, config: ClutterConfig | None = None) -> tuple[np.
         keep = trackable & (total > 0) & ((share >= PURE) | (share <= 1.0 - PURE))
         if not keep.any():
             continue
-        rows = shape_features(xyz, clusters.label, clusters.above_ground, keep)[keep]
-        features.append(rows)
+        inputs = shape_inputs(xyz, clusters.label, clusters.above_ground, keep, index)
+        features.append(inputs.features[keep])
+        clouds.append(inputs.points[keep])
         labels.append((share[keep] >= PURE).astype(np.int8))
     if not features:
-        return np.zeros((0, len(FEATURES)), np.float32), np.zeros(0, np.int8)
-    return np.concatenate(features), np.concatenate(labels)
+        empty = ShapeInputs(
+            np.zeros((0, len(FEATURES)), np.float32), np.zeros((0, SHAPE_POINTS, 3), np.float32)
+        )
+        return empty, np.zeros(0, np.int8)
+    inputs = ShapeInputs(np.concatenate(features), np.concatenate(clouds))
+    return inputs, np.concatenate(labels)
 
 
-def samples(seeds: list[int], cache: Path | None = None) -> tuple[np.ndarray, np.ndarray]:
+def samples(seeds: list[int], cache: Path | None = None) -> tuple[ShapeInputs, np.ndarray]:
     """The samples of several streets (each cached next to its street)."""
     cache = cache or get_settings().cache_dir / "clutter-shapes"
-    xs, ys = [], []
+    xs, ps, ys = [], [], []
     for seed in seeds:
         street = simulated_street(seed, cache)
-        target = street.with_name(street.name + ".samples.npz")
+        target = street.with_name(street.name + SAMPLES_SUFFIX)
         if not target.is_file():
-            x, y = street_samples(street)
+            inputs, y = street_samples(street)
             partial = target.with_suffix(".partial.npz")
-            np.savez_compressed(partial, features=x, labels=y)
+            np.savez_compressed(
+                partial, features=inputs.features, points=inputs.points.astype(np.float16),
+                labels=y,
+            )  # fmt: skip
             os.replace(partial, target)
         with np.load(target) as z:
             xs.append(z["features"])
+            ps.append(z["points"].astype(np.float32))
             ys.append(z["labels"])
-    return np.concatenate(xs), np.concatenate(ys)
+    return ShapeInputs(np.concatenate(xs), np.concatenate(ps)), np.concatenate(ys)
 
 
 def train_shapes(
-    x: np.ndarray, y: np.ndarray, epochs: int = 60, seed: int = 0, card: dict | None = None
+    inputs: ShapeInputs, y: np.ndarray, epochs: int = 30, seed: int = 0, card: dict | None = None
 ) -> VehicleShapes:
-    """Fit the MLP (class-balanced binary cross-entropy, Adam) on standardised features."""
+    """Fit the network (class-balanced binary cross-entropy, Adam, the rate a tenth for the
+    last third) on standardised features and the clusters' points, each batch in a random
+    mirror image with `JITTER` of noise."""
     torch.manual_seed(seed)
+    x = inputs.features
     mean = x.mean(axis=0).astype(np.float32)
     std = np.maximum(x.std(axis=0), 1e-3).astype(np.float32)
-    inputs = torch.from_numpy(((x - mean) / std).astype(np.float32))
+    summary = torch.from_numpy(((x - mean) / std).astype(np.float32))
+    points = torch.from_numpy(inputs.points.astype(np.float32))
     target = torch.from_numpy(y.astype(np.float32))
     positives = max(float(target.sum()), 1.0)
     weight = torch.tensor((len(target) - positives) / positives)
-    net = mlp(x.shape[1])
+    net = ShapeNet(x.shape[1])
     loss_fn = nn.BCEWithLogitsLoss(pos_weight=weight)
-    optimiser = torch.optim.Adam(net.parameters(), lr=3e-3, weight_decay=1e-4)
+    optimiser = torch.optim.Adam(net.parameters(), lr=2e-3, weight_decay=1e-4)
+    schedule = torch.optim.lr_scheduler.MultiStepLR(optimiser, [max(1, 2 * epochs // 3)], 0.1)
     order = torch.Generator().manual_seed(seed)
+    mirrors = torch.stack([mirror_of(m) for m in MIRRORS])
     for _ in range(epochs):
-        for batch in torch.randperm(len(target), generator=order).split(512):
+        for batch in torch.randperm(len(target), generator=order).split(256):
+            flip = mirrors[torch.randint(len(MIRRORS), (len(batch),), generator=order)]
+            noise = JITTER * torch.randn(points[batch].shape, generator=order)
             optimiser.zero_grad()
-            loss = loss_fn(net(inputs[batch])[:, 0], target[batch])
+            logits = net(summary[batch], points[batch] * flip[:, None, :] + noise)
+            loss = loss_fn(logits, target[batch])
             loss.backward()
             optimiser.step()
+        schedule.step()
     return VehicleShapes(net.eval(), mean, std, dict(card or {}))
 
 
-def scores(model: VehicleShapes, x: np.ndarray, y: np.ndarray, threshold: float) -> dict:
+def scores(model: VehicleShapes, inputs: ShapeInputs, y: np.ndarray, threshold: float) -> dict:
     """Precision and recall of `vehicle` at `threshold`, per cent."""
-    said = model.probability(x) >= threshold
+    said = model.probability(inputs) >= threshold
     truth = y.astype(bool)
     hits = int((said & truth).sum())
     return {
