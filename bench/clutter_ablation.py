@@ -33,7 +33,8 @@ VARIANTS = {
     "before (all off)": BEFORE,
 }
 HEADER = ["mode", "pipeline", "sequence", "SA 360", "DA 360", "AA 360", "OA view",
-          "clutter om. view", "map om. view", "map com. view"]  # fmt: skip
+          "clutter om. view", "map om. view", "map com. view", "clutter om. 360",
+          "map om. 360"]  # fmt: skip
 
 
 def main() -> int:
@@ -54,10 +55,12 @@ def main() -> int:
                 m = score(seq, result.removed, result.in_view)
                 d = m["full"]["dynamic"]["scores"]
                 e = m["in_view"]["clutter"]["error_matrix"]
+                f = m["full"]["clutter"]["error_matrix"]
                 rows.append([mode, variant, seq.name, f"{d['SA']:.2f}", f"{d['DA']:.2f}",
                              f"{d['AA']:.2f}", f"{e['overall_accuracy']:.2f}",
                              f"{e['clutter_omission']:.2f}", f"{e['map_omission']:.2f}",
-                             f"{e['map_commission']:.3f}"])  # fmt: skip
+                             f"{e['map_commission']:.3f}", f"{f['clutter_omission']:.2f}",
+                             f"{f['map_omission']:.2f}"])  # fmt: skip
                 print(" | ".join(rows[-1]), flush=True)
     table = markdown_table(HEADER, rows)
     notes = (
@@ -65,7 +68,9 @@ def main() -> int:
         "'defaults' is ClutterConfig as shipped; '- X' the defaults with issue 19's change X "
         "off; 'before' all of them off (issue 5's fusion with today's thresholds). Dynamic mode "
         "is scored on the full 360 degree map (SA / DA / AA), clutter mode inside the camera "
-        "view (overall accuracy, clutter omission, map omission, map commission, per cent). "
+        "view as the paper scores it (overall accuracy, clutter omission, map omission, map "
+        "commission, per cent) and, as the exported map holds it, on the full 360 degree map "
+        "(clutter and map omission). "
         "The shipped defaults, not leave-one-sequence-out: the thresholds were developed on "
         "these sequences."
     )

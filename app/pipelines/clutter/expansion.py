@@ -125,8 +125,7 @@ def expand_instances(
     removed[clustered] = whole[label[clustered]]
     if sizes is not None:
         # a person merged with what it stands at (a stall, an awning's post) gives up its
-        # instance points, however little of the cluster the mask covers, and the column
-        # under and above them (the counter hides its legs from the camera, not the scanner)
+        # instance points, however little of the cluster the mask covers
         merged = (seeds >= max(min_seeds, 1)) & ~sizes.fit_class(seed_class) & ~chosen
         merged &= seed_class == PERSON
         in_merged = clustered & merged[np.where(clustered, label, 0)]

@@ -10,7 +10,7 @@ frame (centred, turned onto its long axis, heights above the ground). `VehicleSh
 small PointNet (a shared per-point MLP, max-pooled) beside an MLP over the summary, trained on
 the simulator's labelled objects (`training/shapes.py`, rotating scanners of 32 and 64 beams);
 a cluster's long axis has no front, so it averages the four mirror images. Tracks average its
-probability over their frames (`tracking.py`).
+probability over their frames, weighed by the frames' points (`tracking.py`).
 """
 
 from __future__ import annotations
@@ -51,13 +51,6 @@ class ShapeInputs:
 
     features: np.ndarray  # (C, len(FEATURES)) float32
     points: np.ndarray  # (C, SHAPE_POINTS, 3) float32: along, across, height above the ground
-
-
-def shape_features(
-    xyz: np.ndarray, label: np.ndarray, above_ground: np.ndarray, chosen: np.ndarray
-) -> np.ndarray:
-    """(C, len(FEATURES)) float32 per cluster of one frame (`shape_inputs`)."""
-    return shape_inputs(xyz, label, above_ground, chosen).features
 
 
 def shape_inputs(

@@ -129,7 +129,7 @@ def train_shapes(
     inputs: ShapeInputs, y: np.ndarray, epochs: int = 30, seed: int = 0, card: dict | None = None
 ) -> VehicleShapes:
     """Fit the network (class-balanced binary cross-entropy, Adam, the rate a tenth for the
-    last third) on standardised features and the clusters' points, each batch in a random
+    last third) on standardised features and the clusters' points, each sample in a random
     mirror image with `JITTER` of noise."""
     torch.manual_seed(seed)
     x = inputs.features
