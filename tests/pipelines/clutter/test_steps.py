@@ -9,7 +9,7 @@ from app.pipelines.clutter.clusters import frame_clusters, object_hosts, voxel_c
 from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.expansion import cluster_sizes, expand_instances
 from app.pipelines.clutter.freespace import off_ground
-from app.pipelines.clutter.fusion import FrameEvidence, fuse
+from app.pipelines.clutter.fusion import FrameEvidence, free_groups, fuse
 from app.pipelines.clutter.instances import camera_instances, mask_components
 from app.pipelines.clutter.masking import mask_points, pad_mask
 from app.pipelines.clutter.motion import object_shape
@@ -426,3 +426,43 @@ def test_a_far_cars_lowest_scan_line_belongs_to_it() -> None:
     assert (plain[n : n + 3] == -1).all()
     assert (angled[n : n + 2] == 0).all() and angled[n + 2] == -1
     assert angled[-1] == -1
+
+
+def test_a_parked_van_keeps_its_grazed_points_but_not_a_walker_merged_into_it() -> None:
+    """A parked van followed over six frames, 2 % of its points free: DUFOMap's grazing rays
+    flag a thin band along its far side, and those stay (keep_static_tracks). In one frame a
+    person walking past merged into its cluster: a compact group of free points, which goes."""
+    van = box_surface((12, 4, 1.2), (5.0, 2.0, 2.2), step=0.1)
+    n = len(van)
+    band = np.flatnonzero((np.abs(van[:, 1] - 5.0) < 0.01) & (van[:, 2] > 1.9))[: n // 50]
+    walker = box((12.5, 2.7, 0.9), (0.4, 0.4, 1.6), 60)  # merged at the van's side
+    evidence, observations = [], []
+    for i in range(6):
+        xyz = np.r_[van, walker] if i == 3 else van
+        free = np.zeros(len(xyz), bool)
+        free[band] = True
+        if i == 3:
+            free[n:] = True
+        cluster = np.zeros(len(xyz), np.int32)
+        evidence.append(
+            FrameEvidence(
+                in_view=np.zeros(len(xyz), bool), camera_removed=np.zeros(len(xyz), bool),
+                padded=np.zeros(len(xyz), bool), cluster=cluster, free=free,
+                free_group=free_groups(xyz, cluster, free, 20, 0.4),
+            )
+        )  # fmt: skip
+        observations.append(
+            Observation(
+                frame=i, time=0.1 * i, centroids=xyz.mean(axis=0, keepdims=True),
+                points=np.array([float(len(xyz))]), camera_class=np.zeros(1, np.uint8),
+                free_points=np.array([float(free.sum())]), trackable=np.ones(1, bool),
+            )
+        )  # fmt: skip
+    assert evidence[3].free_group[n:].all()  # the walker: one compact group
+    assert not evidence[3].free_group[:n].any() and not evidence[0].free_group.any()  # 5 m
+    tracks = track_clusters(observations, gate=2.5, min_frames=3)
+    removed = fuse(evidence, tracks, ClutterConfig(mode="dynamic"))
+    assert not any(removed[i].any() for i in (0, 1, 2, 4, 5))
+    assert removed[3][n:].all() and not removed[3][:n].any()
+    unkept = fuse(evidence, tracks, ClutterConfig(mode="dynamic", keep_static_tracks=False))
+    assert unkept[0][band].all()
