@@ -192,7 +192,7 @@ def main() -> int:
         "does not read the simulator's flat-shaded renders). Pipelines: 'before' is issue 5's "
         "fusion (class_sizes, track_motion, attach_pieces, keep_static_tracks, vehicle_shapes "
         "off, persons registered like any object); each "
-        "'+' row adds one of issue 19's changes; 'all' is ClutterConfig's defaults. "
+        "'+' row (where run) adds one of issue 19's changes; 'all' is ClutterConfig's defaults. "
         "Situations: "
         + "; ".join(f"{s.name} ({s.what}, {s.speed:g} m/s)" for s in chosen)
         + ". Targets: dynamic situations "
@@ -206,7 +206,8 @@ def main() -> int:
     print(f"\n{table}\n{notes}")
     if not args.no_record:
         title = f"Clutter: simulated hard situations ({args.seeds} seeds)"
-        append_results(title, f"{COMMAND} --seeds {args.seeds}", table, notes)
+        chosen_variants = "" if len(variants) == len(VARIANTS) else f' --variants "{args.variants}"'
+        append_results(title, f"{COMMAND} --seeds {args.seeds}{chosen_variants}", table, notes)
     return 0
 
 
