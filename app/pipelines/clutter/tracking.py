@@ -15,6 +15,7 @@ its shapes, so a long drive holds one shape per active track, not per frame.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -185,9 +186,9 @@ class TrackEvidence:
     # (T,) P(vehicle) by 3D shape over its frames, weighed by their points
     vehicle_shape: np.ndarray | None = None
 
-    @property
+    @cached_property
     def frame_counts(self) -> np.ndarray:
-        """(T,) observations per track."""
+        """(T,) observations per track (fusion asks for it three times per run)."""
         return np.array([len(t.frames) for t in self.tracks], dtype=np.int64)
 
 
