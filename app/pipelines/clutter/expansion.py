@@ -118,15 +118,16 @@ def expand_instances(
     chosen = (seeds >= max(min_seeds, 1)) & (seeds >= min_mask_fraction * seen)
     seed_class = majority_class(label, mask_class, count, seed)
     whole = chosen & object_sized & (seeds >= min_seed_share * size)
-    if sizes is not None:
-        whole &= sizes.fit_class(seed_class)
+    fits = None if sizes is None else sizes.fit_class(seed_class)
+    if fits is not None:
+        whole &= fits
     # only whole objects carry their class on to tracking: a partly covered cluster is background
     cluster_class[whole] = seed_class[whole]
     removed[clustered] = whole[label[clustered]]
-    if sizes is not None:
+    if fits is not None:
         # a person merged with what it stands at (a stall, an awning's post) gives up its
         # instance points, however little of the cluster the mask covers
-        merged = (seeds >= max(min_seeds, 1)) & ~sizes.fit_class(seed_class) & ~chosen
+        merged = (seeds >= max(min_seeds, 1)) & ~fits & ~chosen
         merged &= seed_class == PERSON
         in_merged = clustered & merged[np.where(clustered, label, 0)]
         removed |= _person_core(xyz, clusters.above_ground, instance, in_merged & seed)

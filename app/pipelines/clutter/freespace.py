@@ -14,6 +14,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from app.core.errors import DependencyMissingError
+from app.pipelines.clutter.clusters import voxel_components
+from app.pipelines.clutter.expansion import CLASS_EXTENT, PERSON
 
 
 def _dufomap_class():
@@ -102,3 +104,25 @@ def off_ground(free: np.ndarray, xyz: np.ndarray, ground: np.ndarray, radius: fl
         )
         kept[np.flatnonzero(flagged)[np.isfinite(distance)]] = True
     return kept
+
+
+def free_groups(
+    xyz: np.ndarray, cluster: np.ndarray, free: np.ndarray, min_points: int, voxel: float
+) -> np.ndarray:
+    """(N,) bool: free points of tracked clusters that form a person-sized group, at least
+    `min_points` connected at `voxel`. DUFOMap's grazing rays flag thin bands along a parked
+    car's surface; a person walking past it, merged into its cluster, is a compact group."""
+    out = np.zeros(len(xyz), dtype=bool)
+    at = np.flatnonzero((cluster >= 0) & free)
+    if len(at) < min_points:
+        return out
+    group = voxel_components(xyz[at], voxel)
+    count = int(group.max()) + 1
+    lo = np.full((count, 2), np.inf)
+    hi = np.full((count, 2), -np.inf)
+    np.minimum.at(lo, group, xyz[at, :2])
+    np.maximum.at(hi, group, xyz[at, :2])
+    many = np.bincount(group, minlength=count) >= min_points
+    compact = many & (np.max(hi - lo, axis=1) <= CLASS_EXTENT[PERSON])
+    out[at] = compact[group]
+    return out

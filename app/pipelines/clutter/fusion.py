@@ -16,7 +16,7 @@
   object followed over `min_motion_frames` that did not move by any evidence and has fewer than
   `max_static_free` of its points free (grazing rays flag a few points of a parked van free; a
   car creeping in a queue has more), except free points that form a person-sized group
-  (`free_groups`: someone walking past, merged into its cluster).
+  (`freespace.free_groups`: someone walking past, merged into its cluster).
 - Both modes: an object's loose pieces and tyres (`attach_pieces`) go where most of its points go.
 - `clutter` (the paper's definition, for HD maps): every movable object, parked ones included:
   the camera's expanded instances, every frame of a track the camera ever classified (after the
@@ -37,9 +37,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from app.pipelines.clutter.clusters import voxel_components
 from app.pipelines.clutter.config import ClutterConfig
-from app.pipelines.clutter.expansion import CLASS_EXTENT, PERSON, fits_class
+from app.pipelines.clutter.expansion import PERSON, fits_class
 from app.pipelines.clutter.tracking import TrackEvidence
 
 
@@ -61,7 +60,7 @@ class FrameEvidence:
     # per cluster: the longer side of its horizontal box and its top above the ground, metres
     cluster_extent: np.ndarray | None = None  # (C,) float32
     cluster_top: np.ndarray | None = None  # (C,) float32
-    # free points in a person-sized group (`free_groups`)
+    # free points in a person-sized group (`freespace.free_groups`)
     free_group: np.ndarray | None = None  # (N,) bool
 
 
@@ -180,28 +179,6 @@ def fuse(
             gone |= _with_their_hosts(gone, ev)
         removed.append(gone)
     return removed
-
-
-def free_groups(
-    xyz: np.ndarray, cluster: np.ndarray, free: np.ndarray, min_points: int, voxel: float
-) -> np.ndarray:
-    """(N,) bool: free points of tracked clusters that form a person-sized group, at least
-    `min_points` connected at `voxel`. DUFOMap's grazing rays flag thin bands along a parked
-    car's surface; a person walking past it, merged into its cluster, is a compact group."""
-    out = np.zeros(len(xyz), dtype=bool)
-    at = np.flatnonzero((cluster >= 0) & free)
-    if len(at) < min_points:
-        return out
-    group = voxel_components(xyz[at], voxel)
-    count = int(group.max()) + 1
-    lo = np.full((count, 2), np.inf)
-    hi = np.full((count, 2), -np.inf)
-    np.minimum.at(lo, group, xyz[at, :2])
-    np.maximum.at(hi, group, xyz[at, :2])
-    many = np.bincount(group, minlength=count) >= min_points
-    compact = many & (np.max(hi - lo, axis=1) <= CLASS_EXTENT[PERSON])
-    out[at] = compact[group]
-    return out
 
 
 def _with_their_hosts(gone: np.ndarray, ev: FrameEvidence) -> np.ndarray:

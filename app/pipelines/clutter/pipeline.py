@@ -41,8 +41,8 @@ from app.pipelines.clutter.expansion import (
     expand_instances,
     majority_class,
 )
-from app.pipelines.clutter.freespace import FreeSpaceMap, off_ground
-from app.pipelines.clutter.fusion import FrameEvidence, free_groups, fuse
+from app.pipelines.clutter.freespace import FreeSpaceMap, free_groups, off_ground
+from app.pipelines.clutter.fusion import FrameEvidence, fuse
 from app.pipelines.clutter.instances import camera_instances, mask_components
 from app.pipelines.clutter.masking import mask_points
 from app.pipelines.clutter.motion import object_shape
@@ -160,9 +160,10 @@ class ClutterPipeline:
                     if cfg.free_ground == "near_objects":
                         free = off_ground(free, xyz, ev.ground, cfg.halo_radius)
                     ev.free = free
-                    ev.free_group = free_groups(
-                        xyz, ev.cluster, free, cfg.min_track_points, cfg.cluster_voxel
-                    )
+                    if tracker is not None and cfg.keep_static_tracks:  # fusion's only reader
+                        ev.free_group = free_groups(
+                            xyz, ev.cluster, free, cfg.min_track_points, cfg.cluster_voxel
+                        )
                     evidence[i] = ev
                     observations[i].count_free(ev.cluster, ev.free)
         tracks = None

@@ -8,8 +8,8 @@ from app.io.survey import Camera
 from app.pipelines.clutter.clusters import frame_clusters, object_hosts, voxel_components
 from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.expansion import cluster_sizes, expand_instances
-from app.pipelines.clutter.freespace import off_ground
-from app.pipelines.clutter.fusion import FrameEvidence, free_groups, fuse
+from app.pipelines.clutter.freespace import free_groups, off_ground
+from app.pipelines.clutter.fusion import FrameEvidence, fuse
 from app.pipelines.clutter.instances import camera_instances, mask_components
 from app.pipelines.clutter.masking import mask_points, pad_mask
 from app.pipelines.clutter.motion import object_shape
