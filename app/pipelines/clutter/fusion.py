@@ -1,9 +1,10 @@
 """Fusion by mode: which points of each frame go.
 
 - `dynamic`: objects that moved. A tracked object moved when at least `min_free_fraction` of its
-  points lie in observed free space; or when the camera classified it and its registered speed
-  reaches `min_speed` (a person: its lower body went `min_walk_speed`, `Track.walk_speed`; a
-  walking body is not rigid and registering it is noisy); or (`track_motion`) when the camera
+  points lie in observed free space and it stands taller than a curb (`min_track_height`); or
+  when the camera classified it and its registered speed reaches `min_speed` (a person: its
+  lower body went `min_walk_speed`, `Track.walk_speed`; a walking body is not rigid and
+  registering it is noisy); or (`track_motion`) when the camera
   never classified it (outside the view, or missed) and, over `min_motion_frames` frames, its
   registered surface went `min_track_speed` or faster (`Track.surface_speed`: links without a
   registration do not count) in one direction (`min_straightness`), no faster than a vehicle
@@ -103,7 +104,10 @@ def track_decisions(tracks: TrackEvidence, config: ClutterConfig) -> tuple[np.nd
             & (tracks.top >= config.min_track_height)
         )
     if config.use_free_space:
-        moving |= tracks.free_fraction >= config.min_free_fraction
+        # a curb or road patch followed over the frames is not an object that moved, however
+        # many of its points DUFOMap flags (rays graze it); its free points still go one by one
+        tall = True if tracks.top is None else tracks.top >= config.min_track_height
+        moving |= (tracks.free_fraction >= config.min_free_fraction) & tall
     return moving, movable
 
 

@@ -358,6 +358,23 @@ def test_a_track_nobody_classed_moved_when_fast_in_one_direction() -> None:
     assert not any(r.any() for r in brief)
 
 
+def test_a_curb_with_free_points_is_not_an_object_that_moved() -> None:
+    """Rays graze a curb followed over the frames and DUFOMap flags a fifth of it free: the curb
+    did not move (its free points are judged one by one); a cart as free stands tall and went."""
+    observations = [
+        Observation(
+            frame=i, time=0.1 * i, centroids=np.array([[12.0, 5.0, 0.1], [20.0, -4.0, 0.8]]),
+            points=np.full(2, 300.0), camera_class=np.zeros(2, np.uint8),
+            free_points=np.full(2, 60.0), trackable=np.ones(2, bool), top=np.array([0.13, 1.5]),
+        )
+        for i in range(6)
+    ]  # fmt: skip
+    tracks = track_clusters(observations, gate=2.5, min_frames=3)
+    assert np.allclose(tracks.free_fraction, 0.2)
+    moved = fuse(one_point_per_cluster(2, 6, in_view=False), tracks, ClutterConfig(mode="dynamic"))
+    assert all(r.tolist() == [False, True] for r in moved)
+
+
 def test_a_walking_person_moves_by_its_lower_body() -> None:
     """A person the camera classed, walking at 1.2 m/s whose torso the registration follows
     poorly, moves by its lower body; a person standing and swaying does not."""
