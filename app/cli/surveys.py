@@ -49,7 +49,7 @@ def simulate(
         str,
         typer.Option(
             help="a street: urban, highway, mixed, interchange; or a situation clutter removal "
-            "finds hard: receding, approaching, walkers, market, shadow"
+            "finds hard: receding, approaching, walkers, market, shadow, parked_rows"
         ),
     ] = "urban",
     length: Annotated[float, typer.Option(help="metres of street driven")] = 60.0,

@@ -184,6 +184,25 @@ def trailer(rng: np.random.Generator) -> StreetObject:
     return _finish("trailer", {"body": Mesh.merge(parts)}, {"length": L, "width": W, "height": H})
 
 
+def caravan(rng: np.random.Generator) -> StreetObject:
+    """Touring caravan: a tall box with a rounded front (bevelled roof edges), one or two axles
+    under its middle, a drawbar with a jockey wheel (SemanticKITTI other-vehicle; Cityscapes has
+    no trained class for it). 5-7.5 x 2.2-2.5 x 2.4-2.7 m with the drawbar."""
+    body_len, W, H = rng.uniform(4.0, 6.3), rng.uniform(2.2, 2.5), rng.uniform(2.4, 2.7)
+    r, floor = rng.uniform(0.28, 0.33), rng.uniform(0.45, 0.55)
+    bar = rng.uniform(1.0, 1.2)
+    x0, x1 = -0.5 * body_len - 0.5 * bar, 0.5 * body_len - 0.5 * bar
+    outline = [(x0, floor), (x1, floor), (x1, H - 0.5), (x1 - 0.25, H), (x0 + 0.1, H),
+               (x0, H - 0.15)]  # fmt: skip
+    drawbar = box((bar, 0.1, 0.1), (x1 + 0.5 * bar, 0.0, floor - 0.05))
+    jockey = cylinder((x1 + 0.6 * bar, 0.0, 0.0), (x1 + 0.6 * bar, 0.0, floor - 0.1), 0.05, 6)
+    middle = 0.5 * (x0 + x1)
+    axles = [middle] if body_len < 5.5 else [middle - 0.45, middle + 0.45]
+    parts = [_side_profile(outline, W), drawbar, jockey, *_wheels(axles, W, r, 0.18)]
+    params = {"length": body_len + bar, "width": W, "height": H}
+    return _finish("caravan", {"body": Mesh.merge(parts)}, params)
+
+
 def excavator(rng: np.random.Generator) -> StreetObject:
     """Tracked excavator at rest: two crawler tracks, the turning upper body, the cab on its
     left, the boom and stick folded forward down to the bucket on the ground."""

@@ -17,7 +17,10 @@ traffic, plus the situation's actors; the drive starts at station 0 and the stre
   mode: the people and the bicycles are clutter; the stalls, crates, rack and canopy are not);
 - `shadow`: parked vehicles a camera barely sees: cars in deep shadow (`Body.shade`), a trailer
   and site machines (an excavator, a road roller; SemanticKITTI other-vehicle), between
-  ordinary parked cars.
+  ordinary parked cars;
+- `parked_rows`: parked vehicles of every length nose to tail on both sides, some closer than a
+  scanner resolves (a row that clusters as one object): buses, lorries, caravans (SemanticKITTI
+  other-vehicle; no Cityscapes class), vans, cars and trailers.
 """
 
 from __future__ import annotations
@@ -47,7 +50,7 @@ from app.simulate.road import Centerline, RoadProfile
 from app.simulate.scene import Scene
 from app.simulate.traffic import SpeedPlan, path_motion
 
-SITUATIONS = ("receding", "approaching", "walkers", "market", "shadow")
+SITUATIONS = ("receding", "approaching", "walkers", "market", "shadow", "parked_rows")
 REACH_BEHIND = 70.0  # metres of street modelled behind the drive's start
 REACH_AHEAD = 40.0  # and beyond its end
 DEEP_SHADOW = 0.1  # camera brightness of a vehicle in deep shadow
@@ -69,9 +72,9 @@ def build_situation(
     building_rows(b, cs, s0, s1)
     street_furniture(b, cs, s0, s1, dz=CURB_HEIGHT)
     parking = (cs.lane_edge + cs.outer_edge) / 2
-    if situation not in ("market", "shadow"):  # the market's stalls face the right curb
+    if situation not in ("market", "shadow", "parked_rows"):  # the stalls face the right curb
         parked_vehicles(b, -parking, s0, s1, 0.0, fill=0.4)
-    if situation != "shadow":
+    if situation not in ("shadow", "parked_rows"):
         parked_vehicles(b, parking, s0, s1, np.pi, fill=0.4)
     speed = rng.uniform(8.0, 11.0) if drive_speed is None else drive_speed
     drive, vehicle = survey_drive(b, cs.lane_centres[0], speed, length)
@@ -199,5 +202,32 @@ def shadow(b: SceneBuilder, drive: Drive, cs: CrossSection, length: float) -> No
             s += vehicle.size[0] + rng.uniform(0.8, 2.5)
 
 
+# parked_rows: (maker, SemanticKITTI class, name, share of the draws)
+ROW_VEHICLES = (
+    (objects.bus, Semantic.BUS, "parked-bus", 0.15),
+    (objects.truck, Semantic.TRUCK, "parked-truck", 0.15),
+    (objects.caravan, Semantic.OTHER_VEHICLE, "caravan", 0.2),
+    (objects.van, Semantic.OTHER_VEHICLE, "parked-van", 0.15),
+    (objects.car, Semantic.CAR, "parked-car", 0.25),
+    (objects.trailer, Semantic.OTHER_VEHICLE, "trailer", 0.1),
+)
+TOUCHING_GAP = 0.15  # metres: closer than the clusters' voxel, two vehicles cluster as one
+
+
+def parked_rows(b: SceneBuilder, drive: Drive, cs: CrossSection, length: float) -> None:
+    rng = b.rng
+    share = np.array([v[3] for v in ROW_VEHICLES])
+    parking = (cs.lane_edge + cs.outer_edge) / 2
+    for side, facing in ((-1.0, 0.0), (1.0, np.pi)):
+        s = -REACH_BEHIND + rng.uniform(0.0, 3.0)
+        while s < length + REACH_AHEAD - 13.0:
+            maker, semantic, name, _ = ROW_VEHICLES[rng.choice(len(share), p=share / share.sum())]
+            vehicle = maker(rng)
+            mesh = b.place(vehicle.mesh, s + vehicle.size[0] / 2, side * parking, facing)
+            b.thing(name, [(mesh, semantic)], halo=HALO_MARGIN)
+            touching = rng.random() < 0.3
+            s += vehicle.size[0] + (TOUCHING_GAP if touching else rng.uniform(0.8, 3.0))
+
+
 ACTORS = {"receding": receding, "approaching": approaching, "walkers": walkers,
-          "market": market, "shadow": shadow}  # fmt: skip
+          "market": market, "shadow": shadow, "parked_rows": parked_rows}  # fmt: skip

@@ -44,7 +44,7 @@ T_VEHICLE_CAMERA = make_transform(
 class SimulationConfig(BaseModel):
     scene: Literal[
         "urban", "highway", "mixed", "interchange",  # street presets (`layout.py`)
-        "receding", "approaching", "walkers", "market", "shadow",  # situations (`situations.py`)
+        "receding", "approaching", "walkers", "market", "shadow", "parked_rows",  # situations
     ] = "urban"  # fmt: skip
     length: float = Field(60.0, gt=5.0, le=5000.0, description="metres of street driven")
     seed: int = Field(0, ge=0)

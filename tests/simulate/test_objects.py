@@ -18,6 +18,7 @@ RANGES = {
     "truck": ((7.0, 10.0), (2.4, 2.5), (3.0, 3.6)),
     "bus": ((10.5, 13.0), (2.5, 2.55), (3.0, 3.3)),
     "tram": ((20.0, 30.0), (2.4, 2.65), (3.3, 3.6)),
+    "caravan": ((5.0, 7.5), (2.2, 2.5), (2.4, 2.7)),
 }
 
 
@@ -50,6 +51,7 @@ def test_vehicle_sizes_in_range_centred_and_grounded(kind: str) -> None:
         objects.truck,
         objects.bus,
         objects.tram,
+        objects.caravan,
         objects.pedestrian,
         objects.cyclist,
         objects.tree,
