@@ -129,9 +129,7 @@ def serve(
     from app.core.settings import get_settings
 
     settings = get_settings()
-    uvicorn.run(
-        create_app(),
-        host=host or settings.host,
-        port=settings.port if port is None else port,
-        log_level="info",
-    )
+    host = host or settings.host
+    port = settings.port if port is None else port
+    console.print(f"mmsclean: open http://{host}:{port}/ and log in (the viewer opens from there)")
+    uvicorn.run(create_app(), host=host, port=port, log_level="info")

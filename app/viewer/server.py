@@ -15,6 +15,8 @@ that keeps them in step with the store.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import logging
 import threading
 from typing import Any
@@ -47,7 +49,12 @@ class ViewerServer:
         self.feed: LabelFeed | None = None
 
     def start(self) -> ViewerServer:
-        self.viser = viser.ViserServer(host=LOOPBACK, port=self.settings.viewer_port, verbose=False)
+        # viser prints its own address whatever `verbose` says; that loopback port serves an
+        # empty scene without a login, so only the app's address may reach the operator
+        with contextlib.redirect_stdout(io.StringIO()):
+            self.viser = viser.ViserServer(
+                host=LOOPBACK, port=self.settings.viewer_port, verbose=False
+            )
         websock = self.viser._websock_server  # runs these before any message goes out
         websock.on_client_connect(self._admit)
         websock.on_client_disconnect(self._forget_admission)
@@ -56,7 +63,7 @@ class ViewerServer:
         self.feed = LabelFeed(
             self.engine, self._on_label_changes, on_reviews=self._on_review_changes
         ).start()
-        log.info("viewer: viser listens on %s:%d (loopback only)", LOOPBACK, self.port)
+        log.debug("viewer: viser listens on %s:%d (loopback only)", LOOPBACK, self.port)
         return self
 
     def stop(self) -> None:

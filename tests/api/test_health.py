@@ -1,8 +1,10 @@
-"""A real server: `mmsclean serve` on a free port answers /health from its SQLite database."""
+"""A real server: `mmsclean serve` on a free port answers /health from its SQLite database and
+prints only its own address."""
 
 from __future__ import annotations
 
 import os
+import re
 import socket
 import sqlite3
 import subprocess
@@ -46,6 +48,10 @@ def test_serve_answers_health(tmp_path: Path) -> None:
     finally:
         server.terminate()
         server.wait(timeout=20)
+    # the viewer's loopback port serves an empty scene without a login: never printed (issue 20)
+    output = server.stdout.read().decode()
+    printed = {int(p) for p in re.findall(r"(?:https?|wss?)://[\w.\-]+:(\d+)", output)}
+    assert printed == {port}, output
     database = data_dir / "mmsclean.sqlite3"
     assert database.is_file()
     with sqlite3.connect(database) as conn:
