@@ -357,6 +357,10 @@ export async function jobView(ctx, root, id) {
     if (j.kind.startsWith("train:") && result.model_version_id !== undefined) {
       parts.push(section("Model", h("p", {}, "The version this training made is on the ", h("a", { href: "#/models" }, "models page"), ".")));
     }
+    if (j.kind === "import:survey" && result.survey_id !== undefined) {
+      const survey = h("a", { href: `#/surveys/${result.survey_id}`, id: "job-survey" }, result.name);
+      parts.push(section("Survey", h("p", {}, "This import registered the survey ", survey, ` (${num(result.frames)} frames).`)));
+    }
     const tables = [];
     if (result.counts) tables.push(h("div", {}, h("h3", {}, "Counts"), keyValueTable(result.counts)));
     if (result.timings) tables.push(h("div", {}, h("h3", {}, "Timings"), keyValueTable(result.timings, { unit: "s" })));

@@ -144,11 +144,23 @@ function importForm(ctx, refresh) {
   const name = h("input", { id: "import-name", name: "name", placeholder: "optional" });
   const submit = h("button", { type: "submit", class: "primary" }, "Import");
   const status = h("p", { class: "note", id: "import-status", hidden: true });
+  const rootPath = h("code", { id: "import-root" }, "…");
+  const rootNote = h(
+    "p",
+    { class: "note" },
+    "A path inside the server's import root, ",
+    rootPath,
+    " (set by MMSCLEAN_IMPORT_ROOT).",
+  );
+  api("/surveys/import-root").then(
+    (answer) => (rootPath.textContent = answer.path),
+    (error) => ctx.error(error),
+  );
   const form = h(
     "form",
     { class: "card form", id: "import-form" },
     h("h2", {}, "Import from the server"),
-    h("p", { class: "note" }, "A path inside the server's import root (MMSCLEAN_IMPORT_ROOT)."),
+    rootNote,
     h("label", {}, "Path", path),
     h("div", { class: "row" }, h("label", {}, "Format", format), h("label", {}, "Name", name)),
     h("label", {}, "Sensor", sensor),
@@ -171,8 +183,8 @@ function importForm(ctx, refresh) {
   return form;
 }
 
-/** Show the import job's progress under the form until it ends, then list the new survey or
- * say why it failed. */
+/** Show the import job's progress under the form until it ends, then list the new survey and
+ * link to it there, or say why it failed. */
 function followImport(ctx, job, path, status, refresh) {
   const link = h("a", { href: `#/jobs/${job.id}` }, `job ${job.id}`);
   const text = h("span");
@@ -184,11 +196,13 @@ function followImport(ctx, job, path, status, refresh) {
       text.textContent = `${j.message || j.status} (${Math.round(j.progress * 100)} %)`;
       return 1000;
     }
-    status.hidden = true;
     if (j.status === "succeeded") {
+      const survey = h("a", { href: `#/surveys/${j.result.survey_id}`, id: "imported-survey" }, j.result.name);
+      status.replaceChildren("Imported survey ", survey, ` (${num(j.result.frames)} frames, `, link, ").");
       ctx.notice(`Imported survey ${j.result.name} (${num(j.result.frames)} frames).`);
       await refresh();
     } else {
+      status.hidden = true;
       ctx.error(new Error(`Import of ${path} ${j.status}: ${j.message}`));
     }
     return null;

@@ -151,6 +151,16 @@ def test_import_refuses_paths_outside_the_root(
     assert "0000000003.laz: outside the allowed import root" in response.json()["detail"]
 
 
+def test_the_import_root_is_named_to_those_who_import(
+    server: Server, annotator: httpx.Client
+) -> None:
+    """The import form names the folder, not only the variable that sets it (issue 20)."""
+    answer = annotator.get("/surveys/import-root")
+    assert answer.status_code == 200, answer.text
+    assert answer.json() == {"path": str(server.data_dir.resolve())}
+    assert httpx.get(f"{server.url}/surveys/import-root").status_code == 401
+
+
 def test_import_missing_or_bad_data_is_422(
     server: Server, annotator: httpx.Client, admin: httpx.Client
 ) -> None:

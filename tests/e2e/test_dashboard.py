@@ -348,13 +348,18 @@ def test_upload_a_survey_with_progress_then_delete_it(page, tmp_path: Path) -> N
 
 @pytest.mark.e2e
 def test_import_from_the_server_runs_as_a_job(page, dashboard_server: Server) -> None:
-    """The import form queues `import:survey`, follows the job under the form and lists the
-    survey when it succeeds; a path outside the import root is refused at once."""
+    """The import form names the server's import root, queues `import:survey`, follows the job
+    under the form and lists the survey when it succeeds, with links to it from the form and from
+    the job's page (issue 20); a path outside the import root is refused at once."""
     rng = np.random.default_rng(5)
     xyz = rng.uniform([0, 0, 0], [30, 10, 3], size=(5_000, 3)) + [512_000.0, 5_400_000.0, 300]
     (dashboard_server.data_dir / "imports").mkdir(exist_ok=True)
     write_laz(dashboard_server.data_dir / "imports" / "street-import.laz", xyz)
     log_in(page)
+    root = str(dashboard_server.data_dir.resolve())
+    page.wait_for_function(
+        "root => document.querySelector('#import-root').textContent === root", arg=root
+    )
     page.fill("#import-path", "/etc")
     page.click("#import-form button[type=submit]")
     page.wait_for_selector("#flash:not([hidden])")
@@ -368,8 +373,17 @@ def test_import_from_the_server_runs_as_a_job(page, dashboard_server: Server) ->
     row = page.locator("#surveys tr[data-survey]", has_text="imported street")
     row.wait_for(timeout=JOB_TIMEOUT_S * 1000)
     assert "5,000" in row.inner_text()
-    assert page.locator("#import-status").is_hidden()
+    survey_id = row.get_attribute("data-survey")
+    imported = page.locator("#import-status #imported-survey")
+    assert imported.inner_text() == "imported street"
+    assert imported.get_attribute("href") == f"#/surveys/{survey_id}"
     assert "Imported survey imported street" in page.locator("#flash").inner_text()
+    page.locator("#import-status a[href^='#/jobs/']").click()
+    job_survey = page.locator("#job-survey")
+    job_survey.wait_for()
+    assert job_survey.get_attribute("href") == f"#/surveys/{survey_id}"
+    page.goto(f"{dashboard_server.url}/#/surveys")
+    row.wait_for()
     page.once("dialog", lambda dialog: dialog.accept())
     row.locator("button[data-action='delete']").click()
     row.wait_for(state="detached")

@@ -88,6 +88,17 @@ def surveys(_: CurrentUser, session: SessionDep) -> list[SurveyPublic]:
     return [SurveyPublic.model_validate(s) for s in list_surveys(session)]
 
 
+class ImportRoot(BaseModel):
+    path: str = Field(description="the server folder imports read from (MMSCLEAN_IMPORT_ROOT)")
+
+
+@router.get("/import-root", response_model=ImportRoot, responses=errors(403))
+def import_root(_: Annotator, settings: SettingsDep) -> ImportRoot:
+    """Where the import form's paths are read from (annotator role: those who may import), so
+    the form can name the folder instead of the variable that sets it."""
+    return ImportRoot(path=str(settings.allowed_import_root))
+
+
 @router.get("/{survey_id}", response_model=SurveyDetail, responses=errors(404))
 def survey_detail(survey_id: Id, _: CurrentUser, session: SessionDep) -> SurveyDetail:
     """One survey: its frames summarised, the newest job of each kind, pillar label counts."""
