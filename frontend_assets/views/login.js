@@ -43,6 +43,11 @@ export async function loginView(ctx, root) {
         json: { username: username.value.trim(), password: password.value },
       });
       session.save(answer.access_token, answer.user);
+      const back = serverPage(new URLSearchParams(location.search).get("next"));
+      if (back) {
+        location.assign(back); // the viewer link that sent a logged-out browser here
+        return;
+      }
       const next = sessionStorage.getItem("mmsclean.next");
       sessionStorage.removeItem("mmsclean.next");
       location.hash = next && next !== "#/login" ? next : "#/surveys";
@@ -56,4 +61,12 @@ export async function loginView(ctx, root) {
   });
   root.append(h("div", { class: "login-page" }, form));
   username.focus();
+}
+
+/** A `next` page of this server (the viewer sends logged-out browsers to `/?next=/viewer...`);
+ * null for anything else, so a crafted link cannot send someone elsewhere after logging in. */
+function serverPage(next) {
+  if (!next || !next.startsWith("/viewer") || next.includes("\\")) return null;
+  const url = new URL(next, location.origin);
+  return url.origin === location.origin ? url.pathname + url.search : null;
 }

@@ -18,6 +18,7 @@ import re
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from urllib.parse import unquote
 
 import httpx
 import numpy as np
@@ -344,6 +345,31 @@ def test_upload_a_survey_with_progress_then_delete_it(page, tmp_path: Path) -> N
     row.locator("button[data-action='delete']").click()
     row.wait_for(state="detached")
     assert page.locator("#surveys tr[data-survey]", has_text="sim-urban-60m").count() == 1
+
+
+@pytest.mark.e2e
+def test_a_viewer_link_opened_logged_out_returns_to_it_after_the_login(
+    page, dashboard_server: Server
+) -> None:
+    """/viewer?survey=N&mode=qa without a login goes through the login page and back to that
+    viewer and mode (issue 20), not to the surveys list; a `next` pointing elsewhere is not
+    followed."""
+    with dashboard_server.client() as admin:
+        survey_id = admin.get("/surveys").json()[0]["id"]
+    # the viser client itself is not what this checks: answer its page with a stand-in
+    page.route("**/viewer?websocket=**", lambda route: route.fulfill(body="viewer stand-in"))
+    page.goto(f"/viewer?survey={survey_id}&mode=qa")
+    page.wait_for_selector("#login-form")
+    page.fill("#login-username", "admin")
+    page.fill("#login-password", ADMIN_PASSWORD)
+    page.click("#login-form button[type=submit]")
+    page.wait_for_url(re.compile(r".*/viewer\?websocket=.*"))
+    assert f"/viewer/ws?survey={survey_id}&mode=qa" in unquote(page.url)
+    page.evaluate("() => { sessionStorage.clear(); localStorage.clear(); }")  # logged out
+    page.context.clear_cookies()
+    page.goto("/?next=https://evil.example/viewer")
+    log_in(page)  # lands on the surveys list
+    assert page.url.startswith(dashboard_server.url)
 
 
 @pytest.mark.e2e

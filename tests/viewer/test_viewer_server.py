@@ -124,6 +124,15 @@ def test_viewer_page_points_viser_at_the_relay(viewer_server: Server) -> None:
         assert client.get(moded.headers["location"]).status_code == 200
         unknown = client.get("/viewer", params={"survey": 1, "mode": "paint"})
         assert unknown.status_code == 422 and unknown.json()["detail"].startswith("mode:")
+        # a person who followed a link reads a page, not the API's JSON (issue 20)
+        html = {"Accept": "text/html"}
+        missing = client.get("/viewer", params={"survey": 999}, headers=html)
+        assert missing.status_code == 404
+        assert missing.headers["content-type"].startswith("text/html")
+        assert "Survey 999 does not exist." in missing.text and 'href="/#/surveys"' in missing.text
+        painted = client.get("/viewer", params={"survey": 1, "mode": "paint"}, headers=html)
+        assert painted.status_code == 422
+        assert "unknown viewer mode &#x27;paint&#x27;" in painted.text
 
 
 # --- viser listens on loopback only ----------------------------------------------------------

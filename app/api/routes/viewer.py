@@ -14,6 +14,7 @@ still live: logout, revocation or a change to the user close the viewer too (100
 from __future__ import annotations
 
 import asyncio
+import html
 from functools import cache
 from pathlib import Path
 from typing import Annotated
@@ -110,16 +111,34 @@ def viewer_page(
     if websocket is not None and survey is None and mode is None:
         survey, mode = _relay_params(websocket)
         mode = mode if mode in MODE_KEYS else None
+    browser = "text/html" in request.headers.get("accept", "")
     if mode is not None and mode not in MODE_KEYS:
-        raise ConfigError("mode", f"unknown viewer mode {mode!r}; known: {MODE_LIST}")
-    if survey is not None:
-        get_survey(session, survey)  # 404 for a survey that is not there
+        message = f"unknown viewer mode {mode!r}; known: {MODE_LIST}"
+        if browser:
+            return _error_page(status.HTTP_422_UNPROCESSABLE_ENTITY, f"mode: {message}")
+        raise ConfigError("mode", message)
+    if survey is not None and not survey_exists(session, survey):
+        if browser:
+            return _error_page(status.HTTP_404_NOT_FOUND, f"Survey {survey} does not exist.")
+        get_survey(session, survey)  # the API's 404
     expected = relay_url(request, survey, mode)
     if websocket != expected:  # only ever point the page at our own relay
         return RedirectResponse(
             f"/viewer?websocket={quote(expected, safe='')}", status.HTTP_303_SEE_OTHER
         )
     return HTMLResponse(client_page(), headers={"Cache-Control": "no-store"})
+
+
+def _error_page(code: int, message: str) -> HTMLResponse:
+    """What a person who followed a link reads (scripts get the API's JSON detail)."""
+    page = (
+        '<!doctype html><html lang="en"><head><meta charset="utf-8"><title>mmsclean viewer'
+        '</title><link rel="stylesheet" href="/assets/style.css"></head><body><main '
+        'class="card"><h1>The viewer cannot open this</h1>'
+        f'<p id="viewer-error">{html.escape(message)}</p>'
+        '<p><a href="/#/surveys">Back to the surveys</a></p></main></body></html>'
+    )
+    return HTMLResponse(page, code, headers={"Cache-Control": "no-store"})
 
 
 def _same_origin(websocket: WebSocket) -> bool:
