@@ -75,8 +75,8 @@ const EXPORTS = [
   { file: "removed.laz", text: "removed points (LAZ)", needs: "clutter" },
   { file: "guardrails.zip?format=glb", text: "approved guardrails (glTF)", needs: "guardrails" },
   { file: "guardrails.zip?format=obj", text: "approved guardrails (OBJ)", needs: "guardrails" },
-  { file: "pillars.csv", text: "pillar labels (CSV)" },
-  { file: "pillars.npz", text: "pillar labels (NumPy)" },
+  { file: "pillars.csv", text: "pillar labels (CSV)", needs: "pillars" },
+  { file: "pillars.npz", text: "pillar labels (NumPy)", needs: "pillars" },
   { file: "qa-report.html", text: "QA report (HTML)", open: true },
 ];
 
@@ -325,11 +325,12 @@ async function latestSucceeded(surveyId, kinds) {
   return jobs[0] || null;
 }
 
-function exportsSection(survey, clutterRun, guardrailModels) {
+function exportsSection(survey, clutterRun, guardrailModels, humanLabels) {
   const approved = guardrailModels.some((m) => m.status === "approved");
   const reasons = {
     clutter: clutterRun ? null : "needs a finished clutter run",
     guardrails: approved ? null : "needs an approved guardrail model",
+    pillars: humanLabels > 0 ? null : "needs human pillar labels (label pillars in the viewer)",
   };
   const items = EXPORTS.map((e) => {
     const reason = e.needs ? reasons[e.needs] : null;
@@ -403,7 +404,8 @@ export async function surveyView(ctx, root, id) {
       latestSucceeded(survey.id, CLUTTER_KINDS),
     ]);
     review.replaceChildren(pillarSection(stats), clutterSection(frames), guardrailSection(models));
-    exportsBox.replaceChildren(exportsSection(survey, clutterRun, models));
+    const humanLabels = stats.human.reduce((a, b) => a + b, 0);
+    exportsBox.replaceChildren(exportsSection(survey, clutterRun, models, humanLabels));
   }
 
   async function refresh() {

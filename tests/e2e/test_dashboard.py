@@ -454,6 +454,38 @@ def test_surveys_show_their_sensor_and_the_survey_page_declares_it(
 
 
 @pytest.mark.e2e
+def test_pillar_label_exports_wait_for_human_labels(page, dashboard_server: Server) -> None:
+    """Without human pillar labels the CSV / NumPy exports are disabled with the reason (they
+    answered 404 and the page showed nothing, issue 20); with labels they download."""
+    rng = np.random.default_rng(6)
+    xyz = rng.uniform([0, 0, 0], [20, 10, 3], size=(2_000, 3)) + [512_000.0, 5_400_000.0, 300]
+    (dashboard_server.data_dir / "imports").mkdir(exist_ok=True)
+    write_laz(dashboard_server.data_dir / "imports" / "unlabelled.laz", xyz)
+    with dashboard_server.client() as admin:
+        answer = admin.post(
+            "/surveys/import", json={"path": "imports/unlabelled.laz", "name": "unlabelled"}
+        )
+        survey_id = answer.json()["id"]
+    log_in(page)
+    page.goto(f"/#/surveys/{survey_id}")
+    exports = page.locator("#exports")
+    exports.locator("li", has_text="pillar labels (CSV)").wait_for()
+    for text in ("pillar labels (CSV)", "pillar labels (NumPy)"):
+        item = exports.locator("li", has_text=text)
+        assert item.locator("a").count() == 0
+        assert "needs human pillar labels" in item.inner_text()
+    with dashboard_server.client() as admin:
+        labels = {"labels": [{"cell_id": 1, "label": 3}, {"cell_id": 2, "label": 1}]}
+        assert admin.put(f"/surveys/{survey_id}/pillars/labels", json=labels).status_code == 200
+        page.reload()
+        link = page.locator("#exports a[data-export='pillars.csv']")
+        link.wait_for()
+        csv = admin.get(link.get_attribute("href"))
+        assert csv.status_code == 200 and len(csv.text.splitlines()) == 3
+        assert admin.delete(f"/surveys/{survey_id}").status_code == 204
+
+
+@pytest.mark.e2e
 def test_an_annotator_sees_only_what_the_role_allows(page, dashboard_server: Server) -> None:
     dashboard_server.add_user("annie", "annotator", password="annotator-pass-1")
     log_in(page, "annie", "annotator-pass-1")
