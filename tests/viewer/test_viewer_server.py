@@ -283,7 +283,8 @@ def test_model_prelabels_from_another_process_show_lighter_hide_and_lead_the_cam
     viewer_server: Server,
 ) -> None:
     """A job process replaces the model pre-labels: open clients recolour them (lighter), hiding
-    their class drops their points, "Next uncertain area" flies the camera to them."""
+    their class drops their points, "Next uncertain area" flies the camera to them (and before
+    any pre-label says there are none yet, not that every doubtful one is reviewed)."""
     token = login_token(viewer_server)
     origin = np.array(viewer_server.client().get("/surveys/1").json()["origin"])
     engine = make_engine(f"sqlite:///{viewer_server.data_dir / 'mmsclean.sqlite3'}")
@@ -296,6 +297,8 @@ def test_model_prelabels_from_another_process_show_lighter_hide_and_lead_the_cam
         spot = np.array([12.0, 4.0])  # local xy: a 3 m patch of unsure phantom pre-labels
         near = np.hypot(*(local[:, :2] - spot).T) < 3.0
         cells = np.unique(STORE_GRID.point_cell_ids(local[near, :2] + origin[:2]))
+        await client.send(button_press(client.gui_uuid("Next uncertain area")))
+        await client.wait_for(lambda m: "No model pre-labels yet" in str(m), 10)
         with Session(engine) as db:
             version = register_version(
                 db, Pipeline.phantom, "test", viewer_server.data_dir / "m.pt", {}, {}, None, False,

@@ -22,7 +22,7 @@ import numpy as np
 from app.core.errors import StaleWriteError
 from app.core.labels import PillarClass
 from app.store.pillar_labels import NO_LABEL
-from app.store.pillar_reads import uncertain_areas
+from app.store.pillar_reads import label_counts, uncertain_areas
 from app.viewer.modes.base import Mode
 from app.viewer.picking import in_screen_rect, pillars_in_disc, ray_ground_hit
 from app.viewer.pillar_colors import CLASS_NAMES, DISPLAY_CLASSES, DISPLAY_NAMES, swatch_html
@@ -254,8 +254,14 @@ class PillarMode(Mode):
         """Fly to the most doubtful area not visited yet in this session (then start over)."""
         with self.session.db() as db:
             areas = uncertain_areas(db, self.view.survey_id, limit=100)
+            prelabelled = not areas and sum(label_counts(db, self.view.survey_id)["model"]) > 0
         if not areas:
-            self.status.content = "No uncertain area: every doubtful model label is reviewed."
+            self.status.content = (
+                "No uncertain area: every doubtful model label is reviewed."
+                if prelabelled
+                else "No model pre-labels yet: run the phantom pipeline on this survey (the "
+                "dashboard's survey page) and its least confident areas come up here."
+            )
             return
         fresh = [a for a in areas if (a.x, a.y) not in self.visited]
         if not fresh:
