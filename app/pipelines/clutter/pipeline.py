@@ -30,6 +30,7 @@ import numpy as np
 from app.core.errors import ConfigError
 from app.core.progress import Progress, Stopwatch
 from app.core.sensors import SensorKind
+from app.geometry.projection import project
 from app.io.sensor_kind import detect_sensor_kind
 from app.io.survey import Camera, Frame, Survey
 from app.pipelines.clutter.clusters import frame_clusters, object_hosts
@@ -71,6 +72,23 @@ class ClutterResult:
         return {f: r.astype(np.uint8) for f, r in zip(self.frame_ids, self.removed, strict=True)}
 
 
+SIGHT_FRAMES = 16  # frames sampled to tell whether the camera ever sees the scanned points
+
+
+def camera_sees_scans(survey: Survey, camera: Camera) -> bool:
+    """Whether the scanner's points fall into the camera's image on any of `SIGHT_FRAMES`
+    frames spread over the survey. A profile scanner sweeps a plane beside and behind a
+    forward-looking camera: no mask can apply to its points, so the run needs neither the
+    segmentation network nor its weights (a tilted profile scanner that scans ahead does)."""
+    framed = [f for f in survey.frames if camera.name in f.image_paths]
+    step = max(1, len(framed) // SIGHT_FRAMES)
+    for frame in framed[::step][:SIGHT_FRAMES]:
+        xyz = frame.points().xyz
+        if project(xyz, camera.P, camera.T_cam_sensor, camera.width, camera.height).in_image.any():
+            return True
+    return False
+
+
 class ClutterPipeline:
     def __init__(self, config: ClutterConfig | None = None, class_maps: ClassMaps | None = None):
         self.config = config or ClutterConfig()
@@ -90,7 +108,8 @@ class ClutterPipeline:
 
     def camera(self, survey: Survey) -> Camera | None:
         """The camera whose images are segmented; None when the survey has none, none of its
-        frames has an image of it, or the camera is off."""
+        frames has an image of it, its images never show what the scanner scans
+        (`camera_sees_scans`), or the camera is off."""
         if not self.config.use_camera or not survey.cameras:
             return None
         name = self.config.camera or next(iter(survey.cameras))
@@ -99,7 +118,8 @@ class ClutterPipeline:
             raise ConfigError("camera", f"survey {survey.name} has no camera {name!r} ({known})")
         if not any(name in f.image_paths for f in survey.frames):
             return None  # calibrated, but no image was recorded: nothing to segment
-        return survey.cameras[name]
+        camera = survey.cameras[name]
+        return camera if camera_sees_scans(survey, camera) else None
 
     def run(
         self,

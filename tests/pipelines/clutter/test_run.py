@@ -17,7 +17,7 @@ from app.io import open_survey
 from app.io.survey import Frame, Survey
 from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.evaluation.removal_metrics import removal_metrics
-from app.pipelines.clutter.pipeline import ClutterPipeline
+from app.pipelines.clutter.pipeline import ClutterPipeline, camera_sees_scans
 from app.pipelines.clutter.run import run_clutter_to_folder
 from app.simulate.survey import SimulationConfig, simulate
 from tests.cli import mmsclean
@@ -152,3 +152,31 @@ def test_bad_mode_is_one_clear_line(tmp_path: Path) -> None:
     assert result.returncode != 0
     assert "--mode" in result.stderr and "sometimes" in result.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_a_camera_that_never_sees_the_scans_needs_no_weights(sim_dir: Path, tmp_path: Path):
+    """The sample survey's profile scanner scans beside and behind its forward camera: no mask
+    could apply, so `run clutter` runs on free space and tracking without the segmentation
+    weights (it stopped with "weights are missing", issue 20); a spinning scanner's survey is
+    seen by its camera and still needs them."""
+    sample = Path(__file__).resolve().parents[3] / "data_samples" / "urban-60m"
+    profile = open_survey(sample, "sim")
+    camera = next(iter(profile.cameras.values()))
+    assert any(camera.name in f.image_paths for f in profile.frames)
+    assert not camera_sees_scans(profile, camera)
+    spinning = open_survey(sim_dir, "sim")
+    assert camera_sees_scans(spinning, next(iter(spinning.cameras.values())))
+    no_weights = tmp_path / "no-weights"
+    no_weights.mkdir()
+    env = {"MMSCLEAN_WEIGHTS_DIR": str(no_weights), "MMSCLEAN_DATA_DIR": str(tmp_path / "var")}
+    out = tmp_path / "out"
+    result = mmsclean(
+        "run", "clutter", str(sample), "--format", "sim", "--out", str(out), env=env
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    report = json.loads((out / "report.json").read_text())
+    assert report["segmenter"] is None and report["counts"]["removed_points"] > 0
+    refused = mmsclean(
+        "run", "clutter", str(sim_dir), "--format", "sim", "--out", str(tmp_path / "o2"), env=env
+    )  # fmt: skip
+    assert refused.returncode != 0 and "weights are missing" in refused.stderr
