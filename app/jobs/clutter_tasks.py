@@ -45,6 +45,7 @@ from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.maps import maps_offset, write_frame_maps
 from app.pipelines.clutter.review_units import apply_decisions
 from app.pipelines.clutter.run import reference_metrics, run_clutter_report
+from app.pipelines.clutter.segmenter import WEIGHTS_FILE
 from app.pipelines.clutter.tiled import TILE_LENGTH, clutter_halo
 from app.pipelines.outputs import write_frame_labels, write_report
 from app.pipelines.tiling import MAPS
@@ -62,6 +63,17 @@ VERDICT = {Decision.approved: 1, Decision.rejected: 0, Decision.pending: -1}
 
 
 # --- run:clutter --------------------------------------------------------------------------
+
+SEGMENTATION_UPSTREAM = (
+    "GitHub sacmehta/EdgeNets, model/segmentation/model_zoo/espnetv2/" + WEIGHTS_FILE
+)
+
+
+def segmentation_weights(settings: Settings) -> tuple[bool, Path]:
+    """(whether the camera masks' ESPNetv2 weights are on this server, where they belong): the
+    dashboard unticks the camera option and says where to get them when they are not."""
+    path = settings.weights_dir / WEIGHTS_FILE
+    return path.is_file(), path
 
 
 def check_run_config(config: dict[str, Any], settings: Settings) -> None:

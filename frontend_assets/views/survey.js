@@ -29,7 +29,7 @@ const PIPELINE_FORMS = [
     paper: "Lee et al., Sensors 2020: camera masks, free space and tracking per frame",
     options: [
       { key: "mode", label: "Remove", type: "select", choices: ["clutter", "dynamic"], default: "clutter" },
-      { key: "use_camera", label: "camera masks", type: "checkbox", default: true },
+      { key: "use_camera", label: "camera masks", type: "checkbox", default: true, needs: "segmentation" },
       { key: "use_free_space", label: "free space", type: "checkbox", default: true },
       { key: "use_tracking", label: "tracking", type: "checkbox", default: true },
       { key: "expansion", label: "Mask expansion", type: "select", choices: ["cluster", "pad"], default: "cluster" },
@@ -124,7 +124,9 @@ function optionInput(kind, option) {
   const id = `opt-${kind.replace(":", "-")}-${option.key}`;
   if (option.type === "checkbox") {
     const input = h("input", { type: "checkbox", id, name: option.key, checked: option.default });
-    return { input, el: h("label", { class: "check" }, input, option.label) };
+    const el = h("label", { class: "check" }, input, option.label);
+    if (option.needs === "segmentation") whenWeightsMissing(input, el);
+    return { input, el };
   }
   let input;
   if (option.type === "model") {
@@ -158,6 +160,28 @@ function optionInput(kind, option) {
     });
   }
   return { input, el: h("label", {}, option.label, input) };
+}
+
+/** The camera masks need the ESPNetv2 weights on the server (never downloaded at run time):
+ * without them the option is unticked and says where to get them, instead of a failed job. */
+function whenWeightsMissing(input, label) {
+  api("/models/segmentation")
+    .then((weights) => {
+      if (weights.available) return;
+      input.checked = false;
+      const where = h("code", {}, weights.file);
+      label.after(
+        h(
+          "p",
+          { class: "note", id: `${input.id}-missing` },
+          "The image segmentation weights are missing on this server: put them at ",
+          where,
+          ` (from ${weights.upstream}; MMSCLEAN_WEIGHTS_DIR names their folder). `,
+          "Without them the run uses free space and tracking.",
+        ),
+      );
+    })
+    .catch(() => {}); // the option stays as it is; a failed run names the missing file
 }
 
 /** The options that differ from the defaults (the server fills in the rest). */

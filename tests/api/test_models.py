@@ -185,3 +185,24 @@ def test_admin_promotes_a_version(trigger_server: Server) -> None:
     annotator = trigger_server.add_user("models-ann", "annotator")
     assert annotator.post(f"/models/{old}/promote").status_code == 403
     annotator.close()
+
+
+def test_the_segmentation_weights_are_reported_where_they_belong(tmp_path: Path) -> None:
+    """Without the ESPNetv2 weights the server says so, with the file it looks for and where
+    to get it (the dashboard unticks the camera option with that, issue 20)."""
+    empty = tmp_path / "weights"
+    empty.mkdir()
+    env = {"MMSCLEAN_SAMPLE_DIR": "", "MMSCLEAN_WEIGHTS_DIR": str(empty)}
+    running = Server(tmp_path / "var", env=env).start()
+    try:
+        with running.client() as client:
+            answer = client.get("/models/segmentation")
+            assert answer.status_code == 200, answer.text
+            weights = answer.json()
+            assert weights["available"] is False
+            assert weights["file"] == str(empty / "espnetv2_s_2.0_city_1024x512.pth")
+            assert "sacmehta/EdgeNets" in weights["upstream"]
+            (empty / "espnetv2_s_2.0_city_1024x512.pth").write_bytes(b"\0")
+            assert client.get("/models/segmentation").json()["available"] is True
+    finally:
+        running.stop()

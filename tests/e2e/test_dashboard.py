@@ -486,6 +486,33 @@ def test_pillar_label_exports_wait_for_human_labels(page, dashboard_server: Serv
 
 
 @pytest.mark.e2e
+def test_the_camera_option_says_when_the_weights_are_missing(
+    page, dashboard_server: Server
+) -> None:
+    """Without the segmentation weights on the server the clutter form's camera option is
+    unticked and says which file is missing and where to get it (issue 20); with them it stays
+    ticked."""
+    log_in(page)
+    page.locator("#surveys a.survey-link").first.click()
+    camera = page.locator("#opt-run-clutter-use_camera")
+    camera.wait_for()
+    page.wait_for_load_state("networkidle")
+    with dashboard_server.client() as admin:
+        present = admin.get("/models/segmentation").json()["available"]
+    assert camera.is_checked() == present
+    missing = {"available": False, "file": "/srv/weights/espnetv2_s_2.0_city_1024x512.pth",
+               "upstream": "GitHub sacmehta/EdgeNets, model/segmentation/model_zoo/espnetv2/"
+               "espnetv2_s_2.0_city_1024x512.pth"}  # fmt: skip
+    page.route("**/models/segmentation", lambda route: route.fulfill(json=missing))
+    page.reload()
+    note = page.locator("#opt-run-clutter-use_camera-missing")
+    note.wait_for()
+    assert not page.locator("#opt-run-clutter-use_camera").is_checked()
+    assert "/srv/weights/espnetv2_s_2.0_city_1024x512.pth" in note.inner_text()
+    assert "sacmehta/EdgeNets" in note.inner_text()
+
+
+@pytest.mark.e2e
 def test_an_annotator_sees_only_what_the_role_allows(page, dashboard_server: Server) -> None:
     dashboard_server.add_user("annie", "annotator", password="annotator-pass-1")
     log_in(page, "annie", "annotator-pass-1")

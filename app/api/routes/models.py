@@ -12,6 +12,7 @@ from app.api.errors import errors
 from app.api.types import Id
 from app.core.errors import ConfigError
 from app.core.sensors import SensorKind
+from app.jobs.clutter_tasks import SEGMENTATION_UPSTREAM, segmentation_weights
 from app.jobs.queue import enqueue
 from app.jobs.retraining import retraining_state
 from app.store.model_versions import get_version, list_versions, promote_version
@@ -62,6 +63,20 @@ def list_models(
 def retraining(_: CurrentUser, session: SessionDep, settings: SettingsDep) -> RetrainingStatus:
     """How many reviewed labels came in since the last training job, and the trigger."""
     return RetrainingStatus(**retraining_state(session, settings).__dict__)
+
+
+class SegmentationWeights(BaseModel):
+    available: bool = Field(description="the clutter pipeline's camera masks can run")
+    file: str = Field(description="where the server looks for the weights")
+    upstream: str = Field(description="where to get them (MMSCLEAN_WEIGHTS_DIR: their folder)")
+
+
+@router.get("/segmentation", response_model=SegmentationWeights)
+def segmentation(_: CurrentUser, settings: SettingsDep) -> SegmentationWeights:
+    """Whether the clutter pipeline's image segmentation weights are on this server (they are
+    never downloaded at run time), so the dashboard can say so next to the camera option."""
+    available, path = segmentation_weights(settings)
+    return SegmentationWeights(available=available, file=str(path), upstream=SEGMENTATION_UPSTREAM)
 
 
 @router.get("/{model_id}", response_model=ModelVersionPublic, responses=errors(404))
