@@ -146,6 +146,18 @@ class TileMaps:
             appender.abort()
 
 
+def placed(report: Progress, steps: dict[str, tuple[float, float]]) -> Progress:
+    """A step's own progress (0-1 within it) placed where the step lies in the whole (`steps`:
+    {step: (start, end)}). A step may say how far it is in brackets, "crop embeddings (120 of
+    900)": it is placed by its name. Unknown steps sit at the end."""
+
+    def step(stage: str, fraction: float = 0.0) -> None:
+        start, end = steps.get(stage.split(" (", 1)[0], (1.0, 1.0))
+        report(stage, start + (end - start) * fraction)
+
+    return step
+
+
 def drive_tiles(
     fn: Callable[..., dict],
     spec: Any,
@@ -174,11 +186,10 @@ def drive_tiles(
         if progress is not None:
             progress(stage, (len(done) + within) / count)
 
-    def tile_steps(stage: str, fraction: float) -> None:
-        start, end = (steps or {}).get(stage, (1.0, 1.0))
-        report(f"tile {len(done) + 1} of {count}: {stage}", start + (end - start) * fraction)
+    def tile_report(stage: str, within: float) -> None:
+        report(f"tile {len(done) + 1} of {count}: {stage}", within)
 
-    local = partial(fn, progress=tile_steps)
+    local = partial(fn, progress=placed(tile_report, steps or {}))
     if len(missing) <= 1:  # one tile fits a worker's memory anyway: no round trip to a cluster
         fn, map_tiles = local, in_process
     elif map_tiles is in_process:

@@ -15,7 +15,7 @@ from __future__ import annotations
 import datetime
 import json
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Literal
 
@@ -70,7 +70,11 @@ class CropEncoder:
         batch = (batch / 255.0 - IMAGENET_MEAN) / IMAGENET_STD
         return torch.from_numpy(batch.transpose(0, 3, 1, 2).copy())
 
-    def embed(self, crops: Sequence[np.ndarray]) -> np.ndarray:
+    def embed(
+        self, crops: Sequence[np.ndarray], done: Callable[[int], None] | None = None
+    ) -> np.ndarray:
+        """(len(crops), EMBEDDING) image embeddings, batch by batch; `done(n)` after each batch
+        with the crops embedded so far (the longest step of a guardrail run reports itself)."""
         out = np.zeros((len(crops), EMBEDDING), dtype=np.float32)
         net = self.net
         with torch.inference_mode():
@@ -78,6 +82,8 @@ class CropEncoder:
                 x = self.preprocess(crops[start : start + self.batch_size])
                 features = net.extract_features(x).mean(dim=(2, 3))
                 out[start : start + len(x)] = features.numpy()
+                if done is not None:
+                    done(start + len(x))
         return out
 
 

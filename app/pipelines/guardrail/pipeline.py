@@ -17,8 +17,9 @@ from app.io.survey import Survey
 from app.pipelines.guardrail.classifier import CropEncoder, load_heads, predict
 from app.pipelines.guardrail.config import GuardrailConfig, ReconstructionConfig
 from app.pipelines.guardrail.correction import correct_labels
-from app.pipelines.guardrail.segmentation import SliceStage, prepare_slices
+from app.pipelines.guardrail.segmentation import SLICE_STEPS, SliceStage, prepare_slices
 from app.pipelines.guardrail.slices import SliceSet
+from app.pipelines.tiling import placed
 
 MODELS = Path(__file__).resolve().parents[3] / "models" / "guardrail"
 DEFAULT_MODEL = MODELS / "slice_classifier.pt"  # profile scanners (simulated VQ-250 surveys)
@@ -87,7 +88,7 @@ class GuardrailPipeline:
         report = progress or no_progress
         uses_image = "image" in self.head
         encoder = CropEncoder() if uses_image and survey.cameras else None
-        stage = prepare_slices(survey, encoder, cfg.spacing, report)
+        stage = prepare_slices(survey, encoder, cfg.spacing, placed(report, SLICE_STEPS))
         clock = Stopwatch()
         with clock("classify"):
             report("classifier", 0.7)

@@ -37,6 +37,17 @@ class SliceStage:
     timings: dict[str, float]
 
 
+# where the slice steps lie in an untiled run's progress (they report 0-1 within themselves;
+# the classifier follows at 0.7, the reconstruction at 0.8)
+SLICE_STEPS = {
+    "points": (0.0, 0.1),
+    "road removal": (0.1, 0.2),
+    "components": (0.2, 0.3),
+    "crops": (0.3, 0.4),
+    "crop embeddings": (0.4, 0.7),
+}
+
+
 def prepare_slices(
     survey: Survey,
     encoder: CropEncoder | None,
@@ -74,10 +85,10 @@ def slice_stage(
     report = progress or no_progress
     clock = Stopwatch()
     with clock("road"):
-        report("road removal", 0.1)
+        report("road removal", 0.0)
         road = road_removal(points.xyz, trajectory, origin=origin)
     with clock("components"):
-        report("components", 0.2)
+        report("components", 0.0)
         origin = points.xyz.mean(axis=0) if origin is None and len(points) else origin
         components = connected_components(
             points, road.keep, above_ground=road.above_ground, origin=origin
@@ -93,14 +104,19 @@ def slice_stage(
     crop_boxes = np.full((k, 4), -1, dtype=np.int64)
     if encoder is not None and survey.cameras and k:
         with clock("crops"):
-            report("crops", 0.4)
+            report("crops", 0.0)
             wanted = None if crop_only is None else crop_only(slices)
             crops = slice_crops(survey, slices, points.xyz, slices=wanted)
         with clock("embeddings"):
-            report("crop embeddings", 0.6)
+            report("crop embeddings", 0.0)
             if crops:
                 which = np.array([c.slice for c in crops], dtype=np.int64)
-                embedding[which] = encoder.embed([c.image for c in crops])
+                total = len(crops)
+
+                def embedded(n: int) -> None:
+                    report(f"crop embeddings ({n:,} of {total:,})", n / total)
+
+                embedding[which] = encoder.embed([c.image for c in crops], embedded)
                 has_crop[which] = True
                 crop_frames[which] = [c.frame for c in crops]
                 crop_boxes[which] = [c.box for c in crops]

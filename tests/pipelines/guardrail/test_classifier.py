@@ -17,6 +17,7 @@ from app.pipelines.guardrail.classifier import (
 )
 from app.pipelines.guardrail.training.dataset import SliceSamples
 from app.pipelines.guardrail.training.train import fit_head, slice_scores
+from app.pipelines.tiling import placed
 
 
 def _samples(n: int, seed: int) -> SliceSamples:
@@ -59,7 +60,26 @@ def test_pretrained_encoder_tells_crops_apart() -> None:
     stripes = np.zeros((60, 200, 3), np.uint8)
     stripes[::10] = 255  # horizontal rails
     noise = rng.integers(0, 255, (60, 200, 3), dtype=np.uint8)
-    emb = CropEncoder(batch_size=2).embed([stripes, stripes.copy(), noise])
+    embedded: list[int] = []  # the crops done after each batch: the step reports itself
+    emb = CropEncoder(batch_size=2).embed([stripes, stripes.copy(), noise], embedded.append)
+    assert embedded == [2, 3]
     assert emb.shape == (3, EMBEDDING) and np.isfinite(emb).all()
     assert np.allclose(emb[0], emb[1])
     assert np.linalg.norm(emb[0] - emb[2]) > 1.0
+
+
+def test_a_step_reports_within_its_share_of_the_run() -> None:
+    """A step's own 0-1 progress lands inside its share of the whole, also when it says how
+    far it is in brackets (the crop embeddings of a guardrail run, issue 20); unknown steps sit
+    at the end."""
+    seen: list[tuple[str, float]] = []
+    step = placed(
+        lambda stage, f: seen.append((stage, f)),
+        {"crops": (0.3, 0.4), "crop embeddings": (0.4, 0.7)},
+    )
+    step("crops", 0.0)
+    for n in (32, 64, 96):
+        step(f"crop embeddings ({n} of 96)", n / 96)
+    step("classifier")
+    assert [round(f, 3) for _, f in seen] == [0.3, 0.5, 0.6, 0.7, 1.0]
+    assert seen[1][0] == "crop embeddings (32 of 96)"
