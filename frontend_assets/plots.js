@@ -29,7 +29,8 @@ export function heatmap(matrix, { rows, cols, title, rowAxis = "reference", colA
   const cellH = 48;
   const left = 120;
   const top = 62;
-  const width = left + m * cellW + 12;
+  // wide enough for the title too (a long one was clipped at both ends)
+  const width = Math.max(left + m * cellW + 12, 24 + 8 * title.length);
   const height = top + n * cellH + 14;
   const svg = s("svg", {
     class: "plot heatmap",
@@ -38,7 +39,7 @@ export function heatmap(matrix, { rows, cols, title, rowAxis = "reference", colA
     role: "img",
     "aria-label": title,
   });
-  svg.append(text(left + (m * cellW) / 2, 16, title, { class: "plot-title", "text-anchor": "middle" }));
+  svg.append(text(width / 2, 16, title, { class: "plot-title", "text-anchor": "middle" }));
   svg.append(
     text(left + (m * cellW) / 2, 34, `${colAxis} →`, { class: "axis-label", "text-anchor": "middle" }),
   );
@@ -111,9 +112,11 @@ export function bars(groups, { series, title, max = 100, unit = "%", seriesLabel
     "aria-label": title,
   });
   svg.append(text(width / 2, 16, title, { class: "plot-title", "text-anchor": "middle" }));
-  for (let k = 0; k <= 4; k += 1) {
-    const value = (max * k) / 4;
-    const y = top + plotH - (plotH * k) / 4;
+  // counts below 4 get one tick per whole number (quarters of 1 would all read 0 or 1)
+  const steps = Number.isInteger(max) && max > 0 && max < 4 ? max : 4;
+  for (let k = 0; k <= steps; k += 1) {
+    const value = (max * k) / steps;
+    const y = top + plotH - (plotH * k) / steps;
     svg.append(s("line", { x1: left, x2: width - 8, y1: y, y2: y, class: k ? "gridline" : "axis" }));
     svg.append(text(left - 5, y + 4, `${num(value)}`, { class: "tick", "text-anchor": "end" }));
   }

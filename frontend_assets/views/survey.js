@@ -276,12 +276,15 @@ function pillarSection(stats) {
   rows.push(["total", num(total(stats.human)), num(total(stats.model))]);
   const groups = names.map((n, i) => ({ label: n, values: { human: stats.human[i], model: stats.model[i] } }));
   const max = niceMax(Math.max(...stats.human, ...stats.model));
+  const none = total(stats.human) + total(stats.model) === 0;
   return h(
     "div",
     { class: "review-block", id: "pillar-stats" },
     h("h3", {}, "Pillar labels"),
     table(["class", "human", "model pre-labels"], rows, { class: "grid numeric compact" }),
-    figure(bars(groups, { series: ["human", "model"], title: "pillars per class", max, unit: "pillars" })),
+    none
+      ? h("p", { class: "note", id: "pillar-stats-none" }, "No pillar labels yet: label pillars in the viewer, or run the phantom pipeline for model pre-labels.")
+      : figure(bars(groups, { series: ["human", "model"], title: "pillars per class", max, unit: "pillars" })),
   );
 }
 

@@ -276,6 +276,14 @@ def test_run_phantom_from_the_survey_page_and_read_its_metrics(
         "#job-metrics [data-metric='phantom-pillar'] svg.heatmap .cell-count"
     ).all_text_contents()  # SVG text has no innerText
     assert [int(c.replace(",", "")) for c in counts] == [v for row in confusion for v in row]
+    titles_fit = page.eval_on_selector_all(
+        "#job-metrics svg.heatmap",
+        """svgs => svgs.every((svg) => {
+            const title = svg.querySelector(".plot-title").getBBox();
+            return title.x >= 0 && title.x + title.width <= svg.viewBox.baseVal.width;
+        })""",
+    )
+    assert titles_fit  # a long matrix title was clipped at both ends (issue 20)
     phantom_f = job["result"]["metrics"]["pillar"]["classes"]["phantom"]["f1"]
     table = page.locator("#job-metrics [data-metric='phantom-pillar'] table").inner_text()
     assert f"{phantom_f:.1f}" in table
@@ -456,7 +464,8 @@ def test_surveys_show_their_sensor_and_the_survey_page_declares_it(
 @pytest.mark.e2e
 def test_pillar_label_exports_wait_for_human_labels(page, dashboard_server: Server) -> None:
     """Without human pillar labels the CSV / NumPy exports are disabled with the reason (they
-    answered 404 and the page showed nothing, issue 20); with labels they download."""
+    answered 404 and the page showed nothing, issue 20) and no empty chart is drawn; with
+    labels they download and the chart's count ticks are whole numbers, each once."""
     rng = np.random.default_rng(6)
     xyz = rng.uniform([0, 0, 0], [20, 10, 3], size=(2_000, 3)) + [512_000.0, 5_400_000.0, 300]
     (dashboard_server.data_dir / "imports").mkdir(exist_ok=True)
@@ -474,6 +483,8 @@ def test_pillar_label_exports_wait_for_human_labels(page, dashboard_server: Serv
         item = exports.locator("li", has_text=text)
         assert item.locator("a").count() == 0
         assert "needs human pillar labels" in item.inner_text()
+    assert page.locator("#pillar-stats svg").count() == 0
+    assert "No pillar labels yet" in page.locator("#pillar-stats-none").inner_text()
     with dashboard_server.client() as admin:
         labels = {"labels": [{"cell_id": 1, "label": 3}, {"cell_id": 2, "label": 1}]}
         assert admin.put(f"/surveys/{survey_id}/pillars/labels", json=labels).status_code == 200
@@ -482,6 +493,11 @@ def test_pillar_label_exports_wait_for_human_labels(page, dashboard_server: Serv
         link.wait_for()
         csv = admin.get(link.get_attribute("href"))
         assert csv.status_code == 200 and len(csv.text.splitlines()) == 3
+        ticks = page.eval_on_selector_all(
+            "#pillar-stats svg text.tick", "texts => texts.map((t) => t.textContent)"
+        )
+        numbers = [t for t in ticks if t.isdigit()]
+        assert numbers == ["0", "1"]  # one label each: the most any class has is 1
         assert admin.delete(f"/surveys/{survey_id}").status_code == 204
 
 
