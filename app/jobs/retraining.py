@@ -1,8 +1,13 @@
 """The retraining trigger: every `settings.retrain_every` newly reviewed pillar labels (human
-labels written since the last phantom training job was queued) queue one `train:phantom` job,
-unless one is already waiting or running, or the labels could not train it: the task's own
-prerequisites (`app.jobs.phantom_training_data`) are checked first, and what blocks training is
-reported (`blocked_by`, in GET /models/retraining) instead of queueing a job bound to fail."""
+labels written since the last phantom training job that succeeded: a failed one used none)
+queue one `train:phantom` job, unless one is already waiting or running, or the labels could
+not train it: the task's own prerequisites (`app.jobs.phantom_training_data`) are checked
+first, and what blocks training is reported (`blocked_by`, in GET /models/retraining) instead of
+queueing a job bound to fail.
+
+`readiness`: per trainable pipeline, what keeps an on-demand retraining from training now (the
+tasks' own checks on the labels as they are) and how its last training job ended, so the
+dashboard offers the button only when it can work and shows a failure where it was started."""
 
 from __future__ import annotations
 
@@ -13,13 +18,18 @@ from dataclasses import dataclass
 from sqlalchemy.engine import Engine
 from sqlmodel import Session
 
-from app.core.errors import MmscleanError
+from app.core.errors import ConfigError, MmscleanError
 from app.core.settings import Settings
 from app.jobs.phantom_training_data import label_counts, training_blocker
 from app.jobs.queue import enqueue
-from app.jobs.training_tasks import PhantomRetrainConfig
+from app.jobs.training_tasks import (
+    GuardrailRetrainConfig,
+    PhantomRetrainConfig,
+    guardrail_training_slices,
+    phantom_training_labels,
+)
 from app.store.jobs import newest_job_of_kind, pending_job_of_kind
-from app.store.models import Job
+from app.store.models import Job, JobStatus
 from app.store.pillar_reads import human_labels_since
 from app.store.training_labels import human_pillar_labels
 
@@ -32,31 +42,64 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class RetrainingState:
     threshold: int  # 0: automatic retraining is off
-    new_labels: int  # human labels written since the last training job was queued
+    new_labels: int  # human labels written since the last training job that succeeded
     pending_job_id: int | None  # a queued or running training job
     blocked_by: str | None = None  # why the due retraining is not queued (checked when due)
+    # since the last training job queued, whatever became of it: the trigger counts these, so a
+    # job that failed for another reason (memory, a lost worker) is not queued again at once
+    since_last_job: int = 0
 
     @property
     def due(self) -> bool:
         return (
             bool(self.threshold)
             and self.pending_job_id is None
-            and (self.new_labels >= self.threshold)
+            and (self.since_last_job >= self.threshold)
         )
 
 
 def retraining_state(session: Session, settings: Settings) -> RetrainingState:
+    succeeded = newest_job_of_kind(session, TRAIN_PHANTOM, JobStatus.succeeded)
     last = newest_job_of_kind(session, TRAIN_PHANTOM)
     pending = pending_job_of_kind(session, TRAIN_PHANTOM)
-    since = None if last is None else last.created_at
     state = RetrainingState(
         threshold=settings.retrain_every,
-        new_labels=human_labels_since(session, since),
+        new_labels=human_labels_since(session, None if succeeded is None else succeeded.created_at),
         pending_job_id=None if pending is None else pending.id,
+        since_last_job=human_labels_since(session, None if last is None else last.created_at),
     )
     if state.due:
         state = RetrainingState(**{**state.__dict__, "blocked_by": training_blocked_by(session)})
     return state
+
+
+@dataclass(frozen=True)
+class Readiness:
+    """An on-demand retraining of one pipeline: what keeps it from training (None: ready) and
+    its newest training job."""
+
+    pipeline: str
+    blocked_by: str | None
+    last_job: Job | None
+
+
+TRAINING = {
+    "phantom": (TRAIN_PHANTOM, PhantomRetrainConfig, phantom_training_labels),
+    "guardrail": ("train:guardrail", GuardrailRetrainConfig, guardrail_training_slices),
+}
+
+
+def readiness(session: Session, pipeline: str, config: dict | None = None) -> Readiness:
+    """The task's own checks on the labels now (`config`: the job's, default all surveys)."""
+    kind, model, gather = TRAINING[pipeline]
+    try:
+        gather(session, model(**(config or {})))
+        blocked = None
+    except ConfigError as exc:  # "labels: 3 human pillar labels; ..." reads as the labels'
+        blocked = exc.message.removeprefix("labels: ") if exc.field == "labels" else exc.message
+    except MmscleanError as exc:  # e.g. a labelled survey whose files are gone
+        blocked = exc.message
+    return Readiness(pipeline, blocked, newest_job_of_kind(session, kind))
 
 
 def training_blocked_by(session: Session) -> str | None:

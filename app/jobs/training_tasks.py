@@ -146,15 +146,23 @@ def class_counts(parts: list[Samples]) -> np.ndarray:
     return sum((labelled_pillars_per_class(p) for p in parts), np.zeros(4, np.int64))
 
 
+def phantom_training_labels(session: Session, cfg: PhantomRetrainConfig):
+    """(sensor kind, survey id -> human labels) that `train:phantom` trains on; ConfigError
+    with the one line that says why they cannot train it (checked before any map is opened,
+    and by the dashboard before it offers the button)."""
+    labels = human_pillar_labels(session, cfg.survey_ids)
+    kind, usable = retraining_kind(session, labels, cfg.sensor_kind)
+    labels = {sid: labels[sid] for sid in usable}
+    refuse_if_blocked(label_counts(labels, cfg), cfg)
+    return kind, labels
+
+
 @task("train:phantom", check=check_phantom_config, estimate=estimate_phantom)
 def train_phantom(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
     cfg = validated(PhantomRetrainConfig, config)
     phantom = PhantomConfig()
     with Session(context.engine) as session:
-        labels = human_pillar_labels(session, cfg.survey_ids)
-        kind, usable = retraining_kind(session, labels, cfg.sensor_kind)
-        labels = {sid: labels[sid] for sid in usable}
-        refuse_if_blocked(label_counts(labels, cfg), cfg)  # before any map is opened
+        kind, labels = phantom_training_labels(session, cfg)
         total = sum(len(s.cells) for s in labels.values())
         reviewed = sum(
             (reviewed_class_counts(session, sid) for sid in labels), np.zeros(4, np.int64)
@@ -322,6 +330,20 @@ def pipeline_scores(heads: dict[str, SliceHead], samples: SliceSamples, head: st
     return {**scores.as_dict(), "accuracy": accuracy}
 
 
+def guardrail_training_slices(session: Session, cfg: GuardrailRetrainConfig):
+    """(sensor kind, survey id -> reviewed slices) that `train:guardrail` trains on;
+    ConfigError when they are too few (checked by the dashboard before it offers the button)."""
+    reviewed = reviewed_slices(session, cfg.survey_ids)
+    kind, usable = retraining_kind(session, reviewed, cfg.sensor_kind)
+    reviewed = {sid: reviewed[sid] for sid in usable}
+    total = sum(len(r) for r in reviewed.values())
+    if total < cfg.min_labels:
+        raise ConfigError(
+            "labels", f"{total} reviewed guardrail slices; retraining needs {cfg.min_labels}"
+        )
+    return kind, reviewed
+
+
 @task("train:guardrail", check=check_guardrail_config)
 def train_guardrail(context: JobContext, config: dict[str, Any]) -> dict[str, Any]:
     """Fine-tune the promoted slice classifier's heads on the slices people labelled (the
@@ -329,14 +351,8 @@ def train_guardrail(context: JobContext, config: dict[str, Any]) -> dict[str, An
     held-out road blocks, promote when not worse."""
     cfg = validated(GuardrailRetrainConfig, config)
     with Session(context.engine) as session:
-        reviewed = reviewed_slices(session, cfg.survey_ids)
-        kind, usable = retraining_kind(session, reviewed, cfg.sensor_kind)
-        reviewed = {sid: reviewed[sid] for sid in usable}
+        kind, reviewed = guardrail_training_slices(session, cfg)
         total = sum(len(r) for r in reviewed.values())
-        if total < cfg.min_labels:
-            raise ConfigError(
-                "labels", f"{total} reviewed guardrail slices; retraining needs {cfg.min_labels}"
-            )
         runs = {s: latest_run(session, s) for s in reviewed}
         base = current_version(
             session, Pipeline.guardrail, kind, GUARDRAIL_SHIPPED, read_classifier_card,

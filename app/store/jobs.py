@@ -248,9 +248,12 @@ def list_jobs(
     return list(session.exec(query).all())
 
 
-def newest_job_of_kind(session: Session, kind: str) -> Job | None:
-    """The job of KIND created last, whatever its status."""
-    return session.exec(select(Job).where(Job.kind == kind).order_by(Job.created_at.desc())).first()
+def newest_job_of_kind(session: Session, kind: str, status: JobStatus | None = None) -> Job | None:
+    """The job of KIND created last (with STATUS, else whatever its status)."""
+    query = select(Job).where(Job.kind == kind)
+    if status is not None:
+        query = query.where(Job.status == status)
+    return session.exec(query.order_by(Job.created_at.desc())).first()
 
 
 def pending_job_of_kind(session: Session, kind: str) -> Job | None:

@@ -93,7 +93,7 @@ function retrainingPanel(ctx, state, jobs, refresh) {
   parts.push(
     facts([
       ["automatic retraining", auto ? `every ${num(state.threshold)} new human pillar labels` : "off"],
-      ["new human labels since the last training", num(state.new_labels)],
+      ["new human labels since the last training that succeeded", num(state.new_labels)],
       [
         "training job waiting or running",
         state.pending_job_id ? h("a", { href: `#/jobs/${state.pending_job_id}` }, `job ${state.pending_job_id}`) : "none",
@@ -122,28 +122,12 @@ function retrainingPanel(ctx, state, jobs, refresh) {
     );
   }
   if (hasRole(ctx.user, "admin")) {
+    const readiness = Object.fromEntries((state.pipelines || []).map((p) => [p.pipeline, p]));
     parts.push(
       h(
         "div",
         { class: "retrain-buttons" },
-        TRAINABLE.map((t) =>
-          h(
-            "button",
-            {
-              type: "button",
-              class: "primary",
-              "data-retrain": t.pipeline,
-              title: `fine-tune the ${t.text}; promoted only if not worse on held-out labels`,
-              onclick: (event) =>
-                ctx.act(event.currentTarget, async () => {
-                  const job = await api("/models/retrain", { method: "POST", json: { pipeline: t.pipeline } });
-                  ctx.notice(`Queued ${job.kind} as job ${job.job_id}.`);
-                  await refresh();
-                }),
-            },
-            `Retrain ${t.pipeline}`,
-          ),
-        ),
+        TRAINABLE.map((t) => retrainRow(ctx, t, readiness[t.pipeline], refresh)),
       ),
       note("A new version is promoted only when it scores at least as well as the current one on held-out labels."),
     );
@@ -151,6 +135,47 @@ function retrainingPanel(ctx, state, jobs, refresh) {
     parts.push(note("Retraining and promotion are for admins."));
   }
   return parts;
+}
+
+/** A retrain button with what it needs: disabled, with the reason, until the labels can train
+ * the model; the last training's failure shown where it was started. */
+function retrainRow(ctx, t, ready, refresh) {
+  const blocked = ready?.blocked_by ?? null;
+  const button = h(
+    "button",
+    {
+      type: "button",
+      class: "primary",
+      "data-retrain": t.pipeline,
+      disabled: blocked !== null,
+      title: `fine-tune the ${t.text}; promoted only if not worse on held-out labels`,
+      onclick: (event) =>
+        ctx.act(event.currentTarget, async () => {
+          const job = await api("/models/retrain", { method: "POST", json: { pipeline: t.pipeline } });
+          ctx.notice(`Queued ${job.kind} as job ${job.job_id}.`);
+          await refresh();
+        }),
+    },
+    `Retrain ${t.pipeline}`,
+  );
+  const needs = h(
+    "span",
+    { class: blocked ? "muted" : "", "data-needs": t.pipeline },
+    blocked ? `Not yet: ${blocked}.` : "Ready: the labels can train it.",
+  );
+  const lines = [needs];
+  if (ready?.last_job_status === "failed") {
+    lines.push(
+      h(
+        "span",
+        { class: "error-text", "data-failed": t.pipeline },
+        "The last retraining failed (",
+        h("a", { href: `#/jobs/${ready.last_job_id}` }, `job ${ready.last_job_id}`),
+        `): ${ready.last_job_message || "no reason given"}`,
+      ),
+    );
+  }
+  return h("div", { class: "retrain-row" }, button, h("div", { class: "retrain-needs" }, lines));
 }
 
 function modelsTable(ctx, models, refresh) {

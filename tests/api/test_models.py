@@ -33,8 +33,8 @@ def add_survey(server: Server) -> int:
         return conn.execute(
             "INSERT INTO survey (created_at, updated_at, version, name, format, source_path,"
             " frame_count, point_count, has_reference_labels, poses_estimated, origin_x,"
-            " origin_y, origin_z) VALUES (datetime('now'), datetime('now'), 1, 'm', 'sim', '/m',"
-            " 0, 0, 0, 0, 0, 0, 0)"
+            " origin_y, origin_z, sensor_kind, sensor_note) VALUES (datetime('now'),"
+            " datetime('now'), 1, 'm', 'sim', '/m', 0, 0, 0, 0, 0, 0, 0, 'profile', 'declared')"
         ).lastrowid
 
 
@@ -72,7 +72,14 @@ def test_new_labels_queue_retraining_once(trigger_server: Server) -> None:
         assert train_jobs(admin) == []  # 3 < 5
         status = admin.get("/models/retraining").json()
         expected = {"threshold": 5, "new_labels": 3, "pending_job_id": None, "blocked_by": None}
-        assert status == expected
+        assert {k: status[k] for k in expected} == expected
+        # on demand: 3 labels cannot train, and the button's line says why (issue 20)
+        phantom = next(p for p in status["pipelines"] if p["pipeline"] == "phantom")
+        assert phantom["blocked_by"] == "3 human pillar labels; retraining needs at least 50"
+        guardrail = next(p for p in status["pipelines"] if p["pipeline"] == "guardrail")
+        assert guardrail["blocked_by"] == "0 reviewed guardrail slices; retraining needs 20"
+        refused = admin.post("/models/retrain", json={"pipeline": "phantom"})
+        assert refused.status_code == 422 and "retraining needs at least 50" in refused.text
         more = trainable_labels(300, first=3)
         assert anna.put(f"/surveys/{survey}/pillars/labels", json={"labels": more}).is_success
         deadline = time.monotonic() + 10
@@ -80,8 +87,10 @@ def test_new_labels_queue_retraining_once(trigger_server: Server) -> None:
             time.sleep(0.1)
         jobs = train_jobs(admin)
         assert len(jobs) == 1 and jobs[0]["config"] == {"trigger": "labels"}
-        # the counter starts again from that job
-        assert admin.get("/models/retraining").json()["new_labels"] == 0
+        # the labels count as used once a training succeeds, not when it is queued (a failed
+        # one reset the counter, issue 20); the pending job keeps the trigger from firing again
+        status = admin.get("/models/retraining").json()
+        assert status["new_labels"] == 303 and status["pending_job_id"] == jobs[0]["id"]
     anna.close()
 
 

@@ -529,6 +529,32 @@ def test_the_camera_option_says_when_the_weights_are_missing(
 
 
 @pytest.mark.e2e
+def test_retraining_says_what_it_needs_and_how_the_last_one_ended(
+    page, dashboard_server: Server
+) -> None:
+    """The retrain buttons state their prerequisites and stay disabled until the labels can
+    train the model; a failed retraining shows where it was started (issue 20: the buttons
+    queued jobs bound to fail, shown only on the Jobs page)."""
+    log_in(page)
+    page.click("nav [data-nav='models']")
+    for pipeline, need in (("phantom", "retraining needs at least 50"), ("guardrail", "needs 20")):
+        page.locator(f"[data-needs='{pipeline}']").wait_for()
+        assert page.locator(f"button[data-retrain='{pipeline}']").is_disabled()
+        assert need in page.locator(f"[data-needs='{pipeline}']").inner_text()
+    with dashboard_server.client() as admin:  # a training queued past the dashboard
+        failed = admin.post("/jobs", json={"kind": "train:guardrail", "config": {}}).json()
+        deadline = time.monotonic() + JOB_TIMEOUT_S
+        while admin.get(f"/jobs/{failed['id']}").json()["status"] != "failed":
+            assert time.monotonic() < deadline
+            time.sleep(0.5)
+    shown = page.locator("[data-failed='guardrail']")
+    shown.wait_for(timeout=15_000)
+    assert f"job {failed['id']}" in shown.inner_text()
+    assert "reviewed guardrail slices" in shown.inner_text()
+    assert shown.locator("a").get_attribute("href") == f"#/jobs/{failed['id']}"
+
+
+@pytest.mark.e2e
 def test_an_annotator_sees_only_what_the_role_allows(page, dashboard_server: Server) -> None:
     dashboard_server.add_user("annie", "annotator", password="annotator-pass-1")
     log_in(page, "annie", "annotator-pass-1")

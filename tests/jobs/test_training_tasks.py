@@ -153,7 +153,9 @@ def test_a_due_retraining_refused_when_queued_is_logged_not_raised(
     the memory limit) is a warning in the log, never an exception in a background task."""
     from app.jobs import retraining
 
-    due = retraining.RetrainingState(threshold=1, new_labels=5, pending_job_id=None)
+    due = retraining.RetrainingState(
+        threshold=1, new_labels=5, pending_job_id=None, since_last_job=5
+    )
     monkeypatch.setattr(retraining, "retraining_state", lambda session, settings: due)
 
     def over_the_limit(*args, **kwargs):

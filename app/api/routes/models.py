@@ -6,6 +6,7 @@ from typing import Any
 
 from fastapi import APIRouter
 from pydantic import BaseModel, ConfigDict, Field
+from sqlmodel import Session
 
 from app.api.deps import Admin, CurrentUser, SessionDep, SettingsDep
 from app.api.errors import errors
@@ -14,7 +15,8 @@ from app.core.errors import ConfigError
 from app.core.sensors import SensorKind
 from app.jobs.clutter_tasks import SEGMENTATION_UPSTREAM, segmentation_weights
 from app.jobs.queue import enqueue
-from app.jobs.retraining import retraining_state
+from app.jobs.registry import check_config
+from app.jobs.retraining import readiness, retraining_state
 from app.store.model_versions import get_version, list_versions, promote_version
 from app.store.models import ModelVersionBase, Pipeline
 
@@ -42,12 +44,37 @@ class JobRef(BaseModel):
     status: str
 
 
+class TrainingReadiness(BaseModel):
+    pipeline: Pipeline
+    blocked_by: str | None = Field(
+        description="what keeps a retraining from training on the labels now; null: ready"
+    )
+    last_job_id: int | None = Field(description="its newest training job")
+    last_job_status: str | None
+    last_job_message: str | None = Field(description="how that job ended (a failure's reason)")
+
+
 class RetrainingStatus(BaseModel):
     threshold: int = Field(description="new human labels that queue retraining; 0 = off")
-    new_labels: int
+    new_labels: int = Field(description="human labels since the last training that succeeded")
     pending_job_id: int | None
     blocked_by: str | None = Field(
         None, description="why the due retraining was not queued (checked once it is due)"
+    )
+    pipelines: list[TrainingReadiness] = Field(
+        default_factory=list, description="per trainable pipeline, whether retraining can run"
+    )
+
+
+def training_readiness(session: Session, pipeline: Pipeline) -> TrainingReadiness:
+    ready = readiness(session, pipeline.value)
+    job = ready.last_job
+    return TrainingReadiness(
+        pipeline=pipeline,
+        blocked_by=ready.blocked_by,
+        last_job_id=None if job is None else job.id,
+        last_job_status=None if job is None else job.status.value,
+        last_job_message=None if job is None else job.message,
     )
 
 
@@ -61,8 +88,10 @@ def list_models(
 
 @router.get("/retraining", response_model=RetrainingStatus)
 def retraining(_: CurrentUser, session: SessionDep, settings: SettingsDep) -> RetrainingStatus:
-    """How many reviewed labels came in since the last training job, and the trigger."""
-    return RetrainingStatus(**retraining_state(session, settings).__dict__)
+    """How many reviewed labels came in since the last training that succeeded, the trigger,
+    and per trainable pipeline whether a retraining can train now and how the last one ended."""
+    pipelines = [training_readiness(session, p) for p in TRAINABLE]
+    return RetrainingStatus(**retraining_state(session, settings).__dict__, pipelines=pipelines)
 
 
 class SegmentationWeights(BaseModel):
@@ -98,5 +127,9 @@ def retrain(
     kind = TRAINABLE.get(body.pipeline)
     if kind is None:
         raise ConfigError("pipeline", f"{body.pipeline.value} has no trainable model")
+    check_config(kind, body.config, settings)  # a bad config's field before the labels' state
+    blocked = readiness(session, body.pipeline.value, body.config).blocked_by
+    if blocked is not None:  # refused now, not a job bound to fail
+        raise ConfigError("labels", blocked)
     job = enqueue(session, kind, body.config, None, admin.id, settings)
     return JobRef(job_id=job.id, kind=job.kind, status=job.status.value)
