@@ -54,10 +54,14 @@ def export(
     include_model: Annotated[
         bool, typer.Option(help="pillars: add the model's pre-labels to the human labels")
     ] = False,
+    source: Annotated[
+        str, typer.Option(help="maps: the run of clutter, phantom, or the newest of both")
+    ] = "newest",
     overwrite: Annotated[bool, typer.Option(help="replace OUT if it exists")] = False,
 ) -> None:
     """Export from the web app's store (as the dashboard's downloads do): the cleaned or removed
-    map of the newest clutter run, approved guardrail meshes, pillar labels, the QA report."""
+    map of the newest clutter or phantom run, approved guardrail meshes, pillar labels, the QA
+    report."""
     import os
     import shutil
 
@@ -66,10 +70,11 @@ def export(
     from app.core.errors import ConfigError
     from app.core.settings import get_settings
     from app.reports.exports import (
-        clutter_map,
+        REMOVERS,
         csv_pieces,
         exported,
         pillar_table,
+        removal_map,
         write_guardrails_zip,
         write_pillars_npz,
     )
@@ -79,6 +84,8 @@ def export(
 
     if what not in EXPORTS:
         raise ConfigError("WHAT", f"must be one of {', '.join(EXPORTS)} (got {what!r})")
+    if source not in ("newest", *REMOVERS):
+        raise ConfigError("--source", f"must be newest, {' or '.join(REMOVERS)} (got {source!r})")
     if mesh_format not in ("glb", "obj"):
         raise ConfigError("--mesh-format", f"must be glb or obj (got {mesh_format!r})")
     if out.exists() and not overwrite:
@@ -92,9 +99,9 @@ def export(
         with Session(get_engine()) as session:
             record = find_survey(session, survey)
             if what in ("cleaned-laz", "removed-laz"):
-                source, job_id = clutter_map(session, settings, record, what.split("-")[0])
-                shutil.copyfile(source, partial)
-                details = {"job_id": job_id, "file": str(source)}
+                path, job = removal_map(session, settings, record, what.split("-")[0], source)
+                shutil.copyfile(path, partial)
+                details = {"job_id": job.id, "file": str(path)}
             elif what == "guardrails":
                 count = write_guardrails_zip(session, record, mesh_format, partial)
                 name, details = "guardrails_zip", {"format": mesh_format, "models": count}

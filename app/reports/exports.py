@@ -24,7 +24,7 @@ from app.reports.qa_report import PIPELINE_JOBS, job_file
 from app.store.audit import audit
 from app.store.db import commit
 from app.store.exports import approved_guardrail_models, pillar_label_rows
-from app.store.models import GuardrailModel, Survey
+from app.store.models import GuardrailModel, Job, Survey
 from app.store.pillar_labels import STORE_GRID
 from app.store.surveys import latest_succeeded_job
 
@@ -49,25 +49,31 @@ def exported(
     commit(session)
 
 
-# --- clutter maps -------------------------------------------------------------------------
+# --- maps of the pipelines that remove points ----------------------------------------------
+
+REMOVERS = ("clutter", "phantom")  # the pipelines whose runs write cleaned / removed maps
 
 
-def clutter_map(
-    session: Session, settings: Settings, survey: Survey, which: str
-) -> tuple[Path, int]:
-    """The `which` ("cleaned" / "removed") map file of the newest finished clutter run."""
-    job = latest_succeeded_job(session, survey.id, PIPELINE_JOBS["clutter"])
+def removal_map(
+    session: Session, settings: Settings, survey: Survey, which: str, source: str = "newest"
+) -> tuple[Path, Job]:
+    """The `which` ("cleaned" / "removed") map file of the newest finished run of `source`
+    ("clutter", "phantom", or "newest": whichever of them finished last)."""
+    pipelines = REMOVERS if source == "newest" else (source,)
+    kinds = [kind for p in pipelines for kind in PIPELINE_JOBS[p]]
+    job = latest_succeeded_job(session, survey.id, kinds)
     if job is None:
+        named = " or ".join(pipelines)
         raise NotFoundError(
-            f"survey {survey.id} has no finished clutter run; run the clutter pipeline first"
+            f"survey {survey.id} has no finished {named} run; run the {named} pipeline first"
         )
     where = (job.result.get("files") or {}).get(which)
     if not where:
-        raise NotFoundError(f"clutter job {job.id} wrote no {which} map")
+        raise NotFoundError(f"{job.kind} job {job.id} wrote no {which} map (nothing {which})")
     path = job_file(settings, job, str(where))
     if not path.is_file():
-        raise NotFoundError(f"{path}: the {which} map of clutter job {job.id} is gone from disk")
-    return path, job.id
+        raise NotFoundError(f"{path}: the {which} map of {job.kind} job {job.id} is gone from disk")
+    return path, job
 
 
 # --- guardrail meshes ---------------------------------------------------------------------

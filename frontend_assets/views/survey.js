@@ -71,8 +71,8 @@ const VIEWER_MODES = [
 ];
 
 const EXPORTS = [
-  { file: "cleaned.laz", text: "cleaned map (LAZ)", needs: "clutter" },
-  { file: "removed.laz", text: "removed points (LAZ)", needs: "clutter" },
+  { file: "cleaned.laz", text: "cleaned map (LAZ)", needs: "removal" },
+  { file: "removed.laz", text: "removed points (LAZ)", needs: "removal" },
   { file: "guardrails.zip?format=glb", text: "approved guardrails (glTF)", needs: "guardrails" },
   { file: "guardrails.zip?format=obj", text: "approved guardrails (OBJ)", needs: "guardrails" },
   { file: "pillars.csv", text: "pillar labels (CSV)", needs: "pillars" },
@@ -81,6 +81,7 @@ const EXPORTS = [
 ];
 
 const CLUTTER_KINDS = ["run:clutter", "clutter:recompute"];
+const REMOVAL_KINDS = [...CLUTTER_KINDS, "run:phantom"]; // the runs that write cleaned maps
 
 function pageHead(survey, tab) {
   return h(
@@ -352,15 +353,19 @@ async function latestSucceeded(surveyId, kinds) {
   return jobs[0] || null;
 }
 
-function exportsSection(survey, clutterRun, guardrailModels, humanLabels) {
+function exportsSection(survey, removalRun, guardrailModels, humanLabels) {
   const approved = guardrailModels.some((m) => m.status === "approved");
   const reasons = {
-    clutter: clutterRun ? null : "needs a finished clutter run",
+    removal: removalRun ? null : "needs a finished clutter or phantom run",
     guardrails: approved ? null : "needs an approved guardrail model",
     pillars: humanLabels > 0 ? null : "needs human pillar labels (label pillars in the viewer)",
   };
   const items = EXPORTS.map((e) => {
-    const reason = e.needs ? reasons[e.needs] : null;
+    let reason = e.needs ? reasons[e.needs] : null;
+    const written = removalRun?.result?.files || {};
+    if (!reason && e.needs === "removal" && !written[e.file.replace(".laz", "")]) {
+      reason = `${removalRun.kind} job ${removalRun.id}, the newest, wrote none (nothing to put in it)`;
+    }
     const href = `/surveys/${survey.id}/exports/${e.file}`;
     // plain links: the login cookie authorises GET requests, so the browser downloads directly
     const link = reason
@@ -377,7 +382,8 @@ function exportsSection(survey, clutterRun, guardrailModels, humanLabels) {
           },
           e.text,
         );
-    return h("li", {}, link, reason ? h("span", { class: "muted" }, ` ${reason}`) : null);
+    const from = e.needs === "removal" && removalRun ? ` of ${removalRun.kind} job ${removalRun.id}, the newest` : "";
+    return h("li", {}, link, h("span", { class: "muted" }, reason ? ` ${reason}` : from));
   });
   return h("ul", { class: "exports", id: "exports" }, items);
 }
@@ -424,15 +430,15 @@ export async function surveyView(ctx, root, id) {
   if (hasRole(user, "reviewer")) root.append(section("Exports", exportsBox));
 
   async function loadReview() {
-    const [stats, frames, models, clutterRun] = await Promise.all([
+    const [stats, frames, models, removalRun] = await Promise.all([
       api(`/surveys/${survey.id}/pillars/stats`),
       api(`/surveys/${survey.id}/clutter/frames`),
       api(`/surveys/${survey.id}/guardrails/models`),
-      latestSucceeded(survey.id, CLUTTER_KINDS),
+      latestSucceeded(survey.id, REMOVAL_KINDS),
     ]);
     review.replaceChildren(pillarSection(stats), clutterSection(frames), guardrailSection(models));
     const humanLabels = stats.human.reduce((a, b) => a + b, 0);
-    exportsBox.replaceChildren(exportsSection(survey, clutterRun, models, humanLabels));
+    exportsBox.replaceChildren(exportsSection(survey, removalRun, models, humanLabels));
   }
 
   async function refresh() {

@@ -120,7 +120,7 @@ def test_nothing_to_export_is_404(survey_id: int, reviewer: httpx.Client) -> Non
     for name in ("cleaned.laz", "removed.laz"):
         response = reviewer.get(f"/surveys/{survey_id}/exports/{name}")
         assert response.status_code == 404
-        assert "has no finished clutter run" in response.json()["detail"]
+        assert "has no finished clutter or phantom run" in response.json()["detail"]
     response = reviewer.get(f"/surveys/{survey_id}/exports/guardrails.zip")
     assert response.status_code == 404 and "no approved guardrail model" in response.text
     response = reviewer.get(f"/surveys/{survey_id}/exports/pillars.csv")
@@ -225,15 +225,30 @@ def test_cleaned_and_removed_maps(
     assert response.status_code == 200, response.text
     assert response.content == cleaned.read_bytes()  # the newest succeeded run, not the failed
     assert response.headers["content-type"] == "application/vnd.laszip"
-    assert 'filename="Main-Street-cleaned.laz"' in response.headers["content-disposition"]
+    assert 'filename="Main-Street-clutter-cleaned.laz"' in response.headers["content-disposition"]
     assert response.headers["content-disposition"].startswith("attachment")
     response = reviewer.get(f"/surveys/{survey_id}/exports/removed.laz")
     assert response.content == removed.read_bytes()
 
+    # a phantom run removes points too: its maps are exported, the newest by default and either
+    # pipeline's when asked (issue 20: the export waited for a clutter run)
+    phantom_dir = server.data_dir / "jobs" / "phantom-new"
+    phantom_cleaned = write_laz(phantom_dir / "cleaned.laz", rng.uniform(0, 5, (33, 3)))
+    add(engine, succeeded_job(survey_id, "run:phantom", {"cleaned": phantom_cleaned}, None))
+    newest = reviewer.get(f"/surveys/{survey_id}/exports/cleaned.laz")
+    assert newest.content == phantom_cleaned.read_bytes()
+    assert 'filename="Main-Street-phantom-cleaned.laz"' in newest.headers["content-disposition"]
+    clutter = reviewer.get(f"/surveys/{survey_id}/exports/cleaned.laz?source=clutter")
+    assert clutter.content == cleaned.read_bytes()
+    nothing = reviewer.get(f"/surveys/{survey_id}/exports/removed.laz?source=phantom")
+    assert nothing.status_code == 404 and "wrote no removed map" in nothing.json()["detail"]
+    bad = reviewer.get(f"/surveys/{survey_id}/exports/cleaned.laz?source=guardrail")
+    assert bad.status_code == 422 and "source" in bad.json()["detail"]
+
     removed.unlink()
-    response = reviewer.get(f"/surveys/{survey_id}/exports/removed.laz")
+    response = reviewer.get(f"/surveys/{survey_id}/exports/removed.laz?source=clutter")
     assert response.status_code == 404 and "gone from disk" in response.json()["detail"]
-    assert exports_audited(engine, survey_id)[-2:] == ["export.cleaned_laz", "export.removed_laz"]
+    assert exports_audited(engine, survey_id)[-2:] == ["export.cleaned_laz", "export.cleaned_laz"]
 
 
 def test_guardrail_meshes(

@@ -267,6 +267,10 @@ def test_run_phantom_from_the_survey_page_and_read_its_metrics(
         "([el, want]) => el.textContent === want", arg=[total.element_handle(), f"{model_labels:,}"]
     )
     save_screenshot(page, tmp_path, "survey", docs=True)
+    # a phantom run removes points: its cleaned map is exported (it waited for a clutter run)
+    cleaned = page.locator("#exports li", has_text="cleaned map")
+    cleaned.locator("a[data-export='cleaned.laz']").wait_for()
+    assert f"run:phantom job {job['id']}" in cleaned.inner_text()
 
     # the job's metrics: confusion heat map cells hold the job's confusion matrix
     page.locator(".latest[data-kind='run:phantom'] a", has_text="results & metrics").click()

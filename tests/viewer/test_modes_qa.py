@@ -78,7 +78,7 @@ def street(tmp_path_factory: pytest.TempPathFactory, weights_dir: Path) -> Itera
     rev = users["rev"][0]
     jobs = {
         kind: run_queued(engine, settings, record.id, rev, kind, config)
-        for kind, config in (("run:clutter", {"threads": 2}), ("run:phantom", {}))
+        for kind, config in (("run:phantom", {}), ("run:clutter", {"threads": 2}))
     }
     driver = Driver(settings, engine)
     yield Street(driver, engine, settings, record.id, users, jobs)
@@ -230,3 +230,29 @@ def test_the_newest_clutter_job_is_shown(street: Street) -> None:
     distance, _ = cKDTree(file_points(job, "removed", mode.origin)).query(removed, workers=1)
     assert distance.max() < 1e-3
     assert f"{job.result['counts']['map_points']:,}" in mode.counts.content
+
+
+def test_a_phantom_run_is_shown_like_a_clutter_run(street: Street) -> None:
+    """A phantom run removes points too: when it is the newest, QA shows its cleaned map and
+    removed points (it said "No clutter run on this survey yet", issue 20)."""
+    connection, mode = open_mode(street)
+    markdown(connection)
+    mark = connection.mark()
+    job = run_queued(
+        street.engine, street.settings, street.survey_id, street.users["rev"][0], "run:phantom", {}
+    )
+    mode = connection.reloaded(mode)
+    assert isinstance(mode, QAMode)
+    connection.wait(
+        lambda m: (
+            m.get("type") == "GuiMarkdownMessage"
+            and f"Maps of **run:phantom** (job {job.id})" in str(m["props"]["_markdown"])
+        ),
+        mark,
+    )
+    connection.wait(lambda m: is_point_cloud(m) and m["name"] == "/qa/cleaned", mark)
+    cleaned, _ = cloud(connection, "/qa/cleaned")
+    distance, _ = cKDTree(file_points(job, "cleaned", mode.origin)).query(cleaned, workers=1)
+    assert distance.max() < 1e-3
+    total = len(read_las_points(Path(job.result["files"]["cleaned"])).xyz)
+    assert f"Cleaned map: {total:,} points" in mode.counts.content

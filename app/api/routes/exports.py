@@ -2,7 +2,8 @@
 rule of `app.api.downloads` that job output files follow too), each download audited as
 `export.<name>`; the files themselves come from the writers in `app.reports`.
 
-- `cleaned.laz` / `removed.laz`: the maps of the newest finished clutter run.
+- `cleaned.laz` / `removed.laz`: the maps of the newest finished run that removes points
+  (`?source=clutter|phantom` picks the pipeline; default whichever finished last).
 - `guardrails.zip?format=glb|obj`: the approved guardrail meshes and a manifest.
 - `pillars.csv` / `pillars.npz`: the labelled pillar set (human labels; model pre-labels too
   with `include_model=true`) on the store's world grid.
@@ -26,10 +27,10 @@ from app.api.errors import errors
 from app.api.types import Id
 from app.core.settings import Settings
 from app.reports.exports import (
-    clutter_map,
     csv_pieces,
     exported,
     pillar_table,
+    removal_map,
     slug,
     write_guardrails_zip,
     write_pillars_npz,
@@ -68,16 +69,23 @@ def _sent_once(path: Path, media_type: str, filename: str) -> FileResponse:
 # --- clutter maps -------------------------------------------------------------------------
 
 
-def _clutter_download(
-    which: str, survey_id: int, user: User, session: SessionDep, settings: SettingsDep
+MapSource = Literal["newest", "clutter", "phantom"]
+SOURCE = Query(
+    "newest", description="the pipeline whose run: clutter, phantom, or the newest of both"
+)
+
+
+def _map_download(
+    which: str, survey_id: int, user: User, session: SessionDep, settings: SettingsDep, source: str
 ) -> FileResponse:
     survey = get_survey(session, survey_id)
-    path, job_id = clutter_map(session, settings, survey, which)
-    exported(session, user.id, survey, f"{which}_laz", job_id=job_id, file=str(path))
+    path, job = removal_map(session, settings, survey, which, source)
+    exported(session, user.id, survey, f"{which}_laz", job_id=job.id, file=str(path))
+    pipeline = "clutter" if job.kind != "run:phantom" else "phantom"
     return FileResponse(
         path,
         media_type=LAS_MEDIA.get(path.suffix.lower(), "application/octet-stream"),
-        filename=f"{slug(survey.name)}-{which}{path.suffix.lower()}",
+        filename=f"{slug(survey.name)}-{pipeline}-{which}{path.suffix.lower()}",
     )
 
 
@@ -87,9 +95,11 @@ def cleaned_laz(
     user: Annotated[User, Depends(downloader("cleaned.laz"))],
     session: SessionDep,
     settings: SettingsDep,
+    source: MapSource = SOURCE,
 ) -> FileResponse:
-    """The cleaned map (clutter removed) of the newest finished clutter run."""
-    return _clutter_download("cleaned", survey_id, user, session, settings)
+    """The cleaned map (what was removed left out) of the newest finished clutter or phantom
+    run."""
+    return _map_download("cleaned", survey_id, user, session, settings, source)
 
 
 @router.get("/removed.laz", response_class=FileResponse)
@@ -98,9 +108,11 @@ def removed_laz(
     user: Annotated[User, Depends(downloader("removed.laz"))],
     session: SessionDep,
     settings: SettingsDep,
+    source: MapSource = SOURCE,
 ) -> FileResponse:
-    """The removed points (the clutter itself) of the newest finished clutter run."""
-    return _clutter_download("removed", survey_id, user, session, settings)
+    """The removed points (clutter or phantoms) of the newest finished clutter or phantom
+    run."""
+    return _map_download("removed", survey_id, user, session, settings, source)
 
 
 # --- guardrail meshes ---------------------------------------------------------------------

@@ -1,9 +1,10 @@
-"""QA: what the clutter cleaning did to the map, and how well the pipelines scored.
+"""QA: what the cleaning did to the map, and how well the pipelines scored.
 
-The newest succeeded `run:clutter` or `clutter:recompute` job left the cleaned map and the removed
-points as LAZ files (world coordinates); both are read once, re-centred on the survey origin and
-thinned to the viewer's point budget. "Original" shows both (the removed points red when
-highlighted), "Cleaned" only what the map keeps. The panel holds the paper metrics those jobs
+The newest succeeded job of a pipeline that removes points (`run:clutter`, `clutter:recompute`,
+`run:phantom`) left the cleaned map and the removed points as LAZ files (world coordinates); both
+are read once, re-centred on the survey origin and thinned to the viewer's point budget.
+"Original" shows both (the removed points red when highlighted), "Cleaned" only what the map
+keeps. The panel holds the paper metrics those jobs
 recorded (clutter: overall accuracy, omission / commission, SA / DA / AA; phantom: per-class
 precision / recall / F) and links to the exports. When such a job succeeds (the label feed's
 `job.succeeded:<kind>`), the mode reloads with its maps and metrics.
@@ -133,15 +134,19 @@ class QAMode(Mode):
         with session.db() as db:
             clutter = latest_succeeded_job(db, self.survey_id, CLUTTER_KINDS)
             phantom = latest_succeeded_job(db, self.survey_id, PHANTOM_KINDS)
+            # the maps shown: the newest run of either pipeline that removes points
+            remover = latest_succeeded_job(db, self.survey_id, (*CLUTTER_KINDS, *PHANTOM_KINDS))
         gui = session.client.gui
         base = f"/surveys/{self.survey_id}/exports"
         with session.mode_folder:
-            if clutter is None:
+            if remover is None:
                 gui.add_markdown(
-                    "**No clutter run on this survey yet.** Start *run:clutter* from the "
-                    "dashboard to compare the original and the cleaned map here."
+                    "**No clutter or phantom run on this survey yet.** Start *run:clutter* or "
+                    "*run:phantom* from the dashboard to compare the original and the cleaned "
+                    "map here."
                 )
             else:
+                gui.add_markdown(f"Maps of **{remover.kind}** (job {remover.id}), the newest run.")
                 self.show = gui.add_dropdown("Show", (ORIGINAL, CLEANED))
                 self.highlight = gui.add_checkbox("Highlight removed (red)", initial_value=True)
                 self.point_size = gui.add_slider(
@@ -156,13 +161,13 @@ class QAMode(Mode):
                 f"**Exports**: [QA report]({base}/qa-report.html)"
                 + (
                     ""
-                    if clutter is None
+                    if remover is None
                     else f", [cleaned.laz]({base}/cleaned.laz), [removed.laz]({base}/removed.laz)"
                 )
             )
-        if clutter is None:
+        if remover is None:
             return
-        self._load(clutter, settings.jobs_dir, settings)
+        self._load(remover, settings.jobs_dir, settings)
         submit = session.submit
         self.show.on_update(lambda _: submit(self._apply_view))
         self.highlight.on_update(lambda _: submit(self._recolor))
