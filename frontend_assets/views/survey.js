@@ -17,7 +17,7 @@ import {
   table,
   when,
 } from "../dom.js";
-import { pipelineOf, renderMetrics } from "../metrics.js";
+import { modelHeadline, pipelineOf, renderMetrics } from "../metrics.js";
 import { bars, figure } from "../plots.js";
 import { sensorBlock } from "../sensors.js";
 
@@ -132,11 +132,13 @@ function optionInput(kind, option) {
   let input;
   if (option.type === "model") {
     // a model version of the registry by id (jobs never name a checkpoint file)
-    const promoted = h("option", { value: "" }, "promoted version");
+    const promoted = h("option", { value: "" }, "promoted version for this survey's scanner");
     input = h("select", { id, name: option.key }, promoted);
     api(`/models?${new URLSearchParams({ pipeline: option.pipeline })}`)
       .then((models) => {
-        input.append(...models.map((m) => h("option", { value: String(m.id) }, `${m.id}: ${m.name}`)));
+        // each version with the scanner kind it was trained for and its held-out F, so a
+        // rotating survey is not run with a profile-scanner model by mistake
+        input.append(...models.map((m) => h("option", { value: String(m.id), "data-sensor": m.sensor_kind }, modelChoice(m))));
       })
       .catch(() => {}); // the promoted version stays available
   } else if (option.type === "select") {
@@ -161,6 +163,12 @@ function optionInput(kind, option) {
     });
   }
   return { input, el: h("label", {}, option.label, input) };
+}
+
+function modelChoice(m) {
+  const { f1 } = modelHeadline(m);
+  const score = typeof f1 === "number" ? `, F ${f1.toFixed(1)} %` : "";
+  return `${m.id}: ${m.name} (${m.sensor_kind} scanners${score}${m.is_promoted ? ", promoted" : ""})`;
 }
 
 /** The camera masks need the ESPNetv2 weights on the server (never downloaded at run time):

@@ -246,7 +246,8 @@ def test_run_phantom_from_the_survey_page_and_read_its_metrics(
     # a model is chosen by its registry id, never typed in as a file path
     assert page.locator("form.pipeline [name='model_path']").count() == 0
     model = page.locator("form.pipeline[data-pipeline='run:phantom'] select[name='model_id']")
-    assert model.locator("option").first.inner_text() == "promoted version"
+    promoted = model.locator("option").first.inner_text()
+    assert promoted == "promoted version for this survey's scanner"
 
     page.click("button[data-start='run:phantom']")
     bar = ".latest[data-kind='run:phantom'] .progress"
@@ -271,6 +272,12 @@ def test_run_phantom_from_the_survey_page_and_read_its_metrics(
     cleaned = page.locator("#exports li", has_text="cleaned map")
     cleaned.locator("a[data-export='cleaned.laz']").wait_for()
     assert f"run:phantom job {job['id']}" in cleaned.inner_text()
+    # the model picker names each version's scanner kind and held-out F (issue 20, defect 9)
+    page.reload()
+    versions = page.locator("#opt-run-phantom-model_id option[data-sensor]")
+    versions.first.wait_for(state="attached")
+    for text in versions.all_text_contents():
+        assert re.search(r"\((rotating|profile) scanners", text), text
 
     # the job's metrics: confusion heat map cells hold the job's confusion matrix
     page.locator(".latest[data-kind='run:phantom'] a", has_text="results & metrics").click()
