@@ -54,7 +54,11 @@ def test_meshes_sit_over_their_points_and_the_list_describes_them(street: Street
     cloud = connection.wait(lambda m: is_point_cloud(m) and m["name"] == "/models/points")
     for m in models:  # the meshes follow the points
         connection.wait(lambda x, n=f"/models/mesh/{m.id}": x.get("name") == n)
-    meshes = {m["name"]: m for m in connection.since(0, lambda m: m.get("type") == "MeshMessage")}
+    meshes = {
+        m["name"]: m
+        for m in connection.since(0, lambda m: m.get("type") == "MeshMessage")
+        if m["name"].startswith("/models/mesh/")  # not the selected one's outline
+    }
     assert set(meshes) == {f"/models/mesh/{m.id}" for m in models}
     assert 0 < len(np.asarray(cloud["props"]["points"])) // 3 <= SCENE_POINTS
     for m in models:
@@ -103,8 +107,13 @@ def test_reviewers_accept_and_reject_with_versions(street: Street) -> None:
     connection, mode = open_mode(street, "rev")
     first, second = mode.models[0], mode.models[1]
     connection.call(mode.select, first.id)
-    assert mode.meshes[first.id].color == SELECTED_RGB
+    # selected: outlined in orange over its own review colour (issue 20: the selection colour
+    # hid the decision, a rejected model still looked selected)
+    assert mode.meshes[first.id].color == STATUS_RGB[first.status]
+    assert mode.outline.name == f"/models/selected/{first.id}"
+    assert mode.outline.color == SELECTED_RGB and mode.outline.wireframe
     connection.call(mode.decide, first.id, ModelStatus.approved)
+    assert mode.meshes[first.id].color == STATUS_RGB[ModelStatus.approved]
     connection.call(mode.decide, second.id, ModelStatus.rejected)
     with Session(street.engine) as session:
         a, b = (

@@ -246,7 +246,7 @@ def test_a_phantom_run_is_shown_like_a_clutter_run(street: Street) -> None:
     connection.wait(
         lambda m: (
             m.get("type") == "GuiMarkdownMessage"
-            and f"Maps of **run:phantom** (job {job.id})" in str(m["props"]["_markdown"])
+            and f"Maps from **run:phantom**, job {job.id}" in str(m["props"]["_markdown"])
         ),
         mark,
     )

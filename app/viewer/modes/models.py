@@ -33,7 +33,8 @@ if TYPE_CHECKING:
 
     from app.viewer.session import ViewerSession
 
-# meshes in their review colour (the selected one orange), points grey: both show on white
+# meshes in their review colour, the selected one also outlined in orange (its decision colour
+# stays visible: a rejected model must not look like a selected one), points grey on white
 STATUS_RGB = {
     ModelStatus.pending: (70, 130, 230),
     ModelStatus.approved: (50, 185, 80),
@@ -93,6 +94,8 @@ class ModelMode(Mode):
         self.survey_id = session.view.survey_id
         self.origin = session.view.map.origin
         self.meshes: dict[int, Any] = {}
+        self.geometry: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self.outline: Any = None  # the selected model's orange wireframe
         self.cloud: Any = None
         self.selected: int | None = None
         gui = session.client.gui
@@ -117,6 +120,9 @@ class ModelMode(Mode):
         for mesh in self.meshes.values():
             mesh.remove()
         self.meshes = {}
+        if self.outline is not None:
+            self.outline.remove()
+            self.outline = None
         if self.cloud is not None:
             self.cloud.remove()
             self.cloud = None
@@ -212,6 +218,25 @@ class ModelMode(Mode):
             )
             handle.on_click(lambda _, i=m.id: self.session.submit(self.select, i))
             self.meshes[m.id] = handle
+            self.geometry[m.id] = (vertices.astype(np.float32), faces.astype(np.uint32), position)
+
+    def _outline(self) -> None:
+        """An orange wireframe over the selected model (its mesh keeps its decision colour)."""
+        name = f"/{self.key}/selected/{self.selected}"
+        if self.outline is not None and self.outline.name != name:
+            self.outline.remove()
+            self.outline = None
+        if self.outline is not None or self.selected not in self.geometry:
+            return
+        vertices, faces, position = self.geometry[self.selected]
+        self.outline = self.session.client.scene.add_mesh_simple(
+            name,
+            vertices,
+            faces,
+            color=SELECTED_RGB,
+            wireframe=True,
+            position=tuple(position.tolist()),
+        )
 
     def _point_colors(self) -> np.ndarray:
         rgb = np.tile(POINT_RGB, (len(self.point_model), 1))
@@ -223,7 +248,8 @@ class ModelMode(Mode):
         for m in self.models:
             handle = self.meshes.get(m.id)
             if handle is not None:
-                handle.color = SELECTED_RGB if m.id == self.selected else STATUS_RGB[m.status]
+                handle.color = STATUS_RGB[m.status]
+        self._outline()
         if self.cloud is not None:
             self.cloud.colors = self._point_colors()
         self.table.content = model_table(self.models, self.selected)

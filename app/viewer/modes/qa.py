@@ -146,7 +146,9 @@ class QAMode(Mode):
                     "map here."
                 )
             else:
-                gui.add_markdown(f"Maps of **{remover.kind}** (job {remover.id}), the newest run.")
+                gui.add_markdown(
+                    f"Maps from **{remover.kind}**, job {remover.id} (the newest run)."
+                )
                 self.show = gui.add_dropdown("Show", (ORIGINAL, CLEANED))
                 self.highlight = gui.add_checkbox("Highlight removed (red)", initial_value=True)
                 self.point_size = gui.add_slider(
