@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -176,6 +176,25 @@ def test_original_and_cleaned_maps_with_removed_points_red(street: Street) -> No
     assert (np.abs(colors[:, 0].astype(int) - colors[:, 1]) <= 1).all()  # grey
 
 
+def run_and_reload(
+    street: Street, connection: Connection, mode: QAMode, kind: str, says: Callable[[Job], str]
+) -> tuple[Job, QAMode, int]:
+    """Run `kind` while QA is open: (the job, the reloaded mode once its panel `says` so about
+    the job, the connection's mark from before the run)."""
+    mark = connection.mark()
+    job = run_queued(
+        street.engine, street.settings, street.survey_id, street.users["rev"][0], kind, {}
+    )
+    mode = connection.reloaded(mode)
+    assert isinstance(mode, QAMode)
+    text = says(job)
+    connection.wait(
+        lambda m: m.get("type") == "GuiMarkdownMessage" and text in str(m["props"]["_markdown"]),
+        mark,
+    )
+    return job, mode, mark
+
+
 def test_metrics_panel_and_export_links(street: Street) -> None:
     connection, _ = open_mode(street)
     text = markdown(connection)
@@ -208,23 +227,8 @@ def test_the_newest_clutter_job_is_shown(street: Street) -> None:
             [DecisionWrite(target.id, target.version, Decision.rejected)],
             street.users["rev"][0],
         )
-    mark = connection.mark()
-    job = run_queued(
-        street.engine,
-        street.settings,
-        street.survey_id,
-        street.users["rev"][0],
-        "clutter:recompute",
-        {},
-    )
-    mode = connection.reloaded(mode)
-    assert isinstance(mode, QAMode)
-    connection.wait(
-        lambda m: (
-            m.get("type") == "GuiMarkdownMessage"
-            and f"job {job.id}, clutter:recompute" in str(m["props"]["_markdown"])
-        ),
-        mark,
+    job, mode, mark = run_and_reload(
+        street, connection, mode, "clutter:recompute", lambda j: f"job {j.id}, clutter:recompute"
     )
     connection.wait(lambda m: is_point_cloud(m) and m["name"] == "/qa/removed", mark)
     removed, _ = cloud(connection, "/qa/removed")
@@ -238,18 +242,8 @@ def test_a_phantom_run_is_shown_like_a_clutter_run(street: Street) -> None:
     removed points (it said "No clutter run on this survey yet", issue 20)."""
     connection, mode = open_mode(street)
     markdown(connection)
-    mark = connection.mark()
-    job = run_queued(
-        street.engine, street.settings, street.survey_id, street.users["rev"][0], "run:phantom", {}
-    )
-    mode = connection.reloaded(mode)
-    assert isinstance(mode, QAMode)
-    connection.wait(
-        lambda m: (
-            m.get("type") == "GuiMarkdownMessage"
-            and f"Maps from **run:phantom**, job {job.id}" in str(m["props"]["_markdown"])
-        ),
-        mark,
+    job, mode, _ = run_and_reload(
+        street, connection, mode, "run:phantom", lambda j: f"Maps from **run:phantom**, job {j.id}"
     )
     total = len(read_las_points(Path(job.result["files"]["cleaned"])).xyz)
     deadline = time.monotonic() + 30
