@@ -1,9 +1,10 @@
 """The retraining trigger: every `settings.retrain_every` newly reviewed pillar labels (human
-labels written since the last phantom training job that succeeded: a failed one used none)
-queue one `train:phantom` job, unless one is already waiting or running, or the labels could
-not train it: the task's own prerequisites (`app.jobs.phantom_training_data`) are checked
-first, and what blocks training is reported (`blocked_by`, in GET /models/retraining) instead of
-queueing a job bound to fail.
+labels written since the last phantom training job was queued, whatever became of it) queue one
+`train:phantom` job, unless one is already waiting or running, or the labels could not train
+it: the task's own prerequisites (`app.jobs.phantom_training_data`) are checked first, and what
+blocks training is reported (`blocked_by`, in GET /models/retraining) instead of queueing a job
+bound to fail. The count people see (`new_labels`) runs from the last training that succeeded:
+a failed one used no label.
 
 `readiness`: per trainable pipeline, what keeps an on-demand retraining from training now (the
 tasks' own checks on the labels as they are) and how its last training job ended, so the
