@@ -252,6 +252,19 @@ def guardrail_section(metrics: Mapping[str, Any]) -> str:
 SECTIONS = {"clutter": clutter_section, "phantom": phantom_section, "guardrail": guardrail_section}
 
 
+def count_rows(counts: Mapping[str, Any], prefix: str = "") -> list[list[Any]]:
+    """One row per count; a nested group ("pillars per class") as one row per member, never a
+    Python dict in a cell."""
+    rows: list[list[Any]] = []
+    for key, value in counts.items():
+        name = prefix + key.replace("_", " ")
+        if isinstance(value, Mapping):
+            rows.extend(count_rows(value, f"{name}: "))
+        else:
+            rows.append([name, value])
+    return rows
+
+
 def run_section(session: Session, settings: Settings, survey: Survey, pipeline: str) -> str:
     job = latest_succeeded_job(session, survey.id, PIPELINE_JOBS[pipeline])
     head = f"<h2>{escape(pipeline)}</h2>"
@@ -264,7 +277,7 @@ def run_section(session: Session, settings: Settings, survey: Survey, pipeline: 
         return head + note("The run's report.json is missing or unreadable.")
     counts = report.get("counts")
     if isinstance(counts, Mapping) and counts:
-        head += table(["count", "value"], [[k.replace("_", " "), v] for k, v in counts.items()])
+        head += table(["count", "value"], count_rows(counts))
     metrics = report.get("metrics")
     if not isinstance(metrics, Mapping) or not metrics:
         return head + note("No metrics: the survey has no reference labels for this pipeline.")

@@ -354,7 +354,16 @@ def test_qa_report(server: Server, survey_id: int, engine: Engine, reviewer: htt
         engine,
         succeeded_job(survey_id, "run:clutter", {}, clutter_report),
         succeeded_job(
-            survey_id, "run:phantom", {}, write_report(jobs / "p", {"metrics": phantom_metrics})
+            survey_id,
+            "run:phantom",
+            {},
+            write_report(
+                jobs / "p",
+                {
+                    "counts": {"pillars": 9, "pillars_per_class": {"ground": 5, "phantom": 4}},
+                    "metrics": phantom_metrics,
+                },
+            ),
         ),
         succeeded_job(
             survey_id,
@@ -392,6 +401,8 @@ def test_qa_report(server: Server, survey_id: int, engine: Engine, reviewer: htt
     phantom_p = 100 * 17 / 19
     assert f"<td>phantom</td><td>{phantom_p:.1f}</td><td>85.0</td>" in page
     assert "overall (mean of high object, short object, phantom)" in page
+    # a group of counts is one row per member, not a Python dict (issue 20)
+    assert "<td>pillars per class: phantom</td><td>4</td>" in page and "{&#x27;" not in page
     # guardrail: corrected slices perfect, CNN slices P 18/20
     assert "<td>slices (corrected)</td><td>100.0</td><td>100.0</td><td>100.0</td>" in page
     assert "<td>slices (CNN)</td><td>90.0</td><td>90.0</td>" in page
