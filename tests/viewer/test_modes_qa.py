@@ -174,6 +174,7 @@ def test_original_and_cleaned_maps_with_removed_points_red(street: Street) -> No
     _, colors = cloud(connection, "/qa/removed")
     assert not (colors == REMOVED_RGB).all(axis=1).any()
     assert (np.abs(colors[:, 0].astype(int) - colors[:, 1]) <= 1).all()  # grey
+    assert colors.max() <= 200  # not washed out on the white background (issue 20)
 
 
 def run_and_reload(

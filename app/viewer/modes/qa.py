@@ -116,8 +116,9 @@ def shading_value(xyz: np.ndarray, intensity: np.ndarray | None) -> np.ndarray:
 
 def shading(value: np.ndarray, lo: float, hi: float) -> np.ndarray:
     """(n, 3) uint8 grey of `value` between lo and hi (one range for both maps, so a removed
-    point that is not highlighted looks like the map around it)."""
-    grey = 70 + 170 * np.clip((value - lo) / max(hi - lo, 1e-6), 0.0, 1.0)
+    point that is not highlighted looks like the map around it); dark to mid grey, never near
+    white: the viewer's background is white and light points washed real scans out."""
+    grey = 40 + 150 * np.clip((value - lo) / max(hi - lo, 1e-6), 0.0, 1.0)
     return np.clip(np.stack([grey, grey, grey * 1.05], axis=1), 0, 255).astype(np.uint8)
 
 
