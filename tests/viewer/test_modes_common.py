@@ -281,7 +281,7 @@ def test_modes_without_a_pipeline_run_say_so(tmp_path: Path) -> None:
             "Clutter review": "No clutter run",
             "Guardrail review": "No guardrail run",
             "Model inspection": "No guardrail run",
-            "QA": "No clutter run",
+            "QA": "No clutter or phantom run",
         }
         click = SceneClickEvent(
             client=connection.session.client,
