@@ -76,6 +76,11 @@ def removal_map(
     return path, job
 
 
+def remover_of(job: Job) -> str:
+    """The pipeline (one of `REMOVERS`) whose run `job` is."""
+    return next(p for p in REMOVERS if job.kind in PIPELINE_JOBS[p])
+
+
 # --- guardrail meshes ---------------------------------------------------------------------
 
 

@@ -31,6 +31,7 @@ from app.reports.exports import (
     exported,
     pillar_table,
     removal_map,
+    remover_of,
     slug,
     write_guardrails_zip,
     write_pillars_npz,
@@ -81,11 +82,10 @@ def _map_download(
     survey = get_survey(session, survey_id)
     path, job = removal_map(session, settings, survey, which, source)
     exported(session, user.id, survey, f"{which}_laz", job_id=job.id, file=str(path))
-    pipeline = "clutter" if job.kind != "run:phantom" else "phantom"
     return FileResponse(
         path,
         media_type=LAS_MEDIA.get(path.suffix.lower(), "application/octet-stream"),
-        filename=f"{slug(survey.name)}-{pipeline}-{which}{path.suffix.lower()}",
+        filename=f"{slug(survey.name)}-{remover_of(job)}-{which}{path.suffix.lower()}",
     )
 
 

@@ -77,9 +77,10 @@ SIGHT_FRAMES = 16  # frames sampled to tell whether the camera ever sees the sca
 
 def camera_sees_scans(survey: Survey, camera: Camera) -> bool:
     """Whether the scanner's points fall into the camera's image on any of `SIGHT_FRAMES`
-    frames spread over the survey. A profile scanner sweeps a plane beside and behind a
-    forward-looking camera: no mask can apply to its points, so the run needs neither the
-    segmentation network nor its weights (a tilted profile scanner that scans ahead does)."""
+    frames with an image of it, spread over the survey (none with an image: False). A profile
+    scanner sweeps a plane beside and behind a forward-looking camera: no mask can apply to its
+    points, so the run needs neither the segmentation network nor its weights (a tilted profile
+    scanner that scans ahead does)."""
     framed = [f for f in survey.frames if camera.name in f.image_paths]
     step = max(1, len(framed) // SIGHT_FRAMES)
     for frame in framed[::step][:SIGHT_FRAMES]:
@@ -94,6 +95,9 @@ class ClutterPipeline:
         self.config = config or ClutterConfig()
         self.class_maps = class_maps
         self.shapes: VehicleShapes | None = None
+        # the survey and camera name `camera` last answered for, and its answer (it samples
+        # frames: a tile asks before segmenting and `run` asks again)
+        self._camera_for: tuple[Survey, str, Camera | None] | None = None
 
     def vehicle_shapes(self, survey: Survey) -> VehicleShapes | None:
         """The 3D vehicle classifier where clutter mode asks for it and the survey's scanner is
@@ -116,10 +120,13 @@ class ClutterPipeline:
         if name not in survey.cameras:
             known = ", ".join(survey.cameras)
             raise ConfigError("camera", f"survey {survey.name} has no camera {name!r} ({known})")
-        if not any(name in f.image_paths for f in survey.frames):
-            return None  # calibrated, but no image was recorded: nothing to segment
-        camera = survey.cameras[name]
-        return camera if camera_sees_scans(survey, camera) else None
+        cached = self._camera_for
+        if cached is None or cached[0] is not survey or cached[1] != name:  # identity, not ==
+            camera = survey.cameras[name]
+            # calibrated but no image recorded, or images that never show the scans: no masks
+            seen = camera_sees_scans(survey, camera)
+            self._camera_for = (survey, name, camera if seen else None)
+        return self._camera_for[2]
 
     def run(
         self,
