@@ -5,10 +5,19 @@ arrives as a camera ray and a rectangle as screen corners, and the pillars are f
   height above ground first changes sign along the ray; every pillar whose centre lies within
   the brush radius of that spot is painted.
 - Rectangle: points are projected with the client's camera (OpenCV convention as viser reports
-  it: +Z forward, +Y down, vertical field of view) to normalised screen coordinates.
+  it: +Z forward, +Y down, vertical field of view) to normalised screen coordinates, and only
+  the points the browser shows are taken: a depth buffer of the shown points, each splatted as
+  the disc viser draws for it, hides what lies behind a nearer surface (a facade behind a
+  rectangle across the road is not selected through the road's points).
+- Click on a point (review modes): the shown point nearest the cursor on screen, within a few
+  pixels, on the front-most surface there (not the first point the ray grazes, which may belong
+  to the neighbouring slice in front).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import viser.transforms as vtf
@@ -18,6 +27,128 @@ from app.store.pillar_labels import STORE_GRID
 
 RAY_STEP = 0.1  # metres between samples along the click ray
 RAY_REACH = 1000.0  # metres: farther than anything a map shows
+PICK_PX = 8.0  # a click takes a point within this many screen pixels of the cursor ...
+PICK_MIN_RADIUS = 0.05  # m: ... or within this distance of the ray (close-up views)
+SURFACE_SLACK = (0.5, 0.05)  # m, share of depth: points this far behind the front-most one
+# under the cursor (or in a depth-buffer cell) still belong to the surface seen there
+DEPTH_BIN_PX = 3  # the depth buffer's cell, in screen pixels
+MAX_SPLAT_BINS = 6  # a point hides at most this many cells around it (an 18 px disc)
+FALLBACK_SCREEN = (1280, 720)  # pixels, while the browser has not reported its canvas yet
+
+
+@dataclass(frozen=True)
+class ScreenCamera:
+    """The browser's camera as viser reports it, in pixels: what the user sees."""
+
+    rotation: np.ndarray  # (3, 3) camera -> world (OpenCV axes: +Z forward, +Y down)
+    position: np.ndarray  # (3,) scene coordinates
+    fov: float  # vertical, radians
+    width: int  # canvas pixels
+    height: int
+
+    @classmethod
+    def of(cls, camera: Any) -> ScreenCamera:
+        """From a viser `CameraHandle` (or anything with its attributes)."""
+        width, height = int(camera.image_width), int(camera.image_height)
+        if width <= 0 or height <= 0:
+            width, height = FALLBACK_SCREEN
+        return cls(
+            rotation=vtf.SO3(np.asarray(camera.wxyz, dtype=np.float64)).as_matrix(),
+            position=np.asarray(camera.position, dtype=np.float64),
+            fov=float(camera.fov),
+            width=width,
+            height=height,
+        )
+
+    @property
+    def focal_px(self) -> float:
+        return 0.5 * self.height / float(np.tan(self.fov / 2.0))
+
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """((n, 2) pixel coordinates, (n,) depth along the view axis; <= 0 behind)."""
+        cam = (np.asarray(points, dtype=np.float64) - self.position) @ self.rotation
+        depth = cam[:, 2]
+        safe = np.where(depth > 1e-6, depth, 1.0)
+        f = self.focal_px
+        px = np.stack(
+            [0.5 * self.width + cam[:, 0] / safe * f, 0.5 * self.height + cam[:, 1] / safe * f],
+            axis=1,
+        )
+        return px, depth
+
+
+def surface_slack(depth: np.ndarray | float) -> np.ndarray | float:
+    """How far behind the front-most depth a point still counts as the surface seen there."""
+    absolute, relative = SURFACE_SLACK
+    return np.maximum(absolute, relative * np.asarray(depth))
+
+
+def visible(points: np.ndarray, camera: ScreenCamera, point_size: float) -> np.ndarray:
+    """(n,) bool: the point is in front of the camera, on the canvas and not hidden behind a
+    nearer shown point. Every point is splatted into a depth buffer of DEPTH_BIN_PX cells as
+    the disc viser draws (radius point_size * focal / depth pixels); a point is visible when
+    its depth is within `surface_slack` of the nearest depth drawn over its cell."""
+    px, depth = camera.project(points)
+    cols = -(-camera.width // DEPTH_BIN_PX)
+    rows = -(-camera.height // DEPTH_BIN_PX)
+    cell = np.floor(px / DEPTH_BIN_PX).astype(np.int64)
+    on = (depth > 1e-6) & (cell[:, 0] >= 0) & (cell[:, 0] < cols)
+    on &= (cell[:, 1] >= 0) & (cell[:, 1] < rows)
+    result = np.zeros(len(depth), dtype=bool)
+    idx = np.flatnonzero(on)
+    if not len(idx):
+        return result
+    d, c = depth[idx], cell[idx]
+    radius_px = point_size * camera.focal_px / d
+    reach = np.clip(np.ceil(radius_px / DEPTH_BIN_PX - 0.5), 0, MAX_SPLAT_BINS).astype(np.int64)
+    nearest = np.full(rows * cols, np.inf)
+    for r in np.unique(reach).tolist():
+        group = reach == r
+        gc, gd = c[group], d[group]
+        for dx in range(-r, r + 1):
+            for dy in range(-r, r + 1):
+                if dx * dx + dy * dy > r * r + r:  # a disc of cells, not a square
+                    continue
+                x, y = gc[:, 0] + dx, gc[:, 1] + dy
+                ok = (x >= 0) & (x < cols) & (y >= 0) & (y < rows)
+                np.minimum.at(nearest, y[ok] * cols + x[ok], gd[ok])
+    own = nearest[c[:, 1] * cols + c[:, 0]]
+    result[idx] = d <= own + surface_slack(own)
+    return result
+
+
+def pick_on_ray(
+    points: np.ndarray,
+    origin: np.ndarray,
+    direction: np.ndarray,
+    angle: float,
+    min_radius: float = PICK_MIN_RADIUS,
+) -> int:
+    """Index of the point a click means, -1 for none: among the points within `angle` of the
+    click ray (PICK_PX over the focal length: a few pixels) or `min_radius` of it, those on
+    the front-most surface there (within `surface_slack` of the nearest), the one nearest the
+    cursor on screen. Point clouds have no per-point click events in viser."""
+    if not len(points):
+        return -1
+    d = np.asarray(direction, dtype=np.float64)
+    norm = np.linalg.norm(d)
+    if not norm > 0:
+        return -1
+    d = d / norm
+    rel = np.asarray(points, dtype=np.float64) - np.asarray(origin, dtype=np.float64)
+    t = rel @ d
+    perp = np.sqrt(np.maximum(np.einsum("ij,ij->i", rel, rel) - t * t, 0.0))
+    near = np.flatnonzero((t > 0) & (perp <= np.maximum(min_radius, t * angle)))
+    if not len(near):
+        return -1
+    front = float(t[near].min())
+    surface = near[t[near] <= front + surface_slack(front)]
+    return int(surface[np.argmin(perp[surface] / t[surface])])
+
+
+def click_angle(camera: Any) -> float:
+    """PICK_PX as an angle from the click ray, for a viser camera."""
+    return PICK_PX / ScreenCamera.of(camera).focal_px
 
 
 def ray_ground_hit(
@@ -60,39 +191,3 @@ def pillars_in_disc(centre_world_xy: np.ndarray, radius: float) -> np.ndarray:
     under = STORE_GRID.cell_index(centre[None])[0]
     inside |= (ix == under[0]) & (iy == under[1])
     return np.asarray(STORE_GRID.cell_id(ix[inside], iy[inside]), dtype=np.int64)
-
-
-def project_to_screen(
-    points: np.ndarray,
-    wxyz: np.ndarray,
-    position: np.ndarray,
-    fov: float,
-    aspect: float,
-) -> tuple[np.ndarray, np.ndarray]:
-    """((n, 2) normalised screen coordinates, (n,) in front of the camera) of local points;
-    (0, 0) is the top-left corner, (1, 1) the bottom-right."""
-    rotation = vtf.SO3(np.asarray(wxyz, dtype=np.float64)).as_matrix()  # camera -> world
-    cam = (np.asarray(points, dtype=np.float64) - np.asarray(position)) @ rotation
-    depth = cam[:, 2]
-    front = depth > 1e-6
-    safe = np.where(front, depth, 1.0)
-    focal_y = 0.5 / np.tan(fov / 2.0)  # in screen heights
-    u = 0.5 + cam[:, 0] / safe * focal_y / aspect
-    v = 0.5 + cam[:, 1] / safe * focal_y
-    return np.stack([u, v], axis=1), front
-
-
-def in_screen_rect(
-    points: np.ndarray,
-    wxyz: np.ndarray,
-    position: np.ndarray,
-    fov: float,
-    aspect: float,
-    corner_min: tuple[float, float],
-    corner_max: tuple[float, float],
-) -> np.ndarray:
-    """(n,) bool: the point projects inside the rectangle and lies in front of the camera."""
-    uv, front = project_to_screen(points, wxyz, position, fov, aspect)
-    lo = np.minimum(corner_min, corner_max)
-    hi = np.maximum(corner_min, corner_max)
-    return front & (uv >= lo).all(axis=1) & (uv <= hi).all(axis=1)

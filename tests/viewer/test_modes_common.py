@@ -35,7 +35,7 @@ from app.viewer.modes.clutter_states import (
     REMOVED_PENDING,
     point_states,
 )
-from app.viewer.modes.common import evenly, pick_on_ray
+from app.viewer.modes.common import evenly
 from app.viewer.server import ViewerServer
 from app.viewer.session import ViewerSession
 from tests.viewer.wire import WireClient, decode_frame
@@ -211,20 +211,6 @@ def test_modes_are_registered_once_each() -> None:
     assert names[0] == "Pillar labelling"
     assert {"Clutter review", "Guardrail review", "Model inspection", "QA"} <= set(names)
     assert len(set(names)) == len(names) and len({m.key for m in MODES}) == len(MODES)
-
-
-def test_pick_on_ray_takes_the_nearest_point_near_the_ray() -> None:
-    points = np.array([[0, 0, 5.0], [0.05, 0, 2.0], [3, 0, 1.0], [0, 0, -4.0]])
-    origin, down = np.array([0.0, 0.0, 10.0]), np.array([0.0, 0.0, -2.0])
-    assert pick_on_ray(points, origin, down) == 0  # first along the ray, not the nearest overall
-    assert pick_on_ray(points[1:], origin, down) == 0  # 5 cm off the ray: still picked
-    assert pick_on_ray(points[2:3], origin, down) == -1  # 3 m off the ray
-    assert pick_on_ray(points[3:], np.array([0.0, 0.0, -10.0]), -down) == 0
-    assert pick_on_ray(points[3:], origin, -down) == -1  # behind the camera
-    assert pick_on_ray(np.zeros((0, 3)), origin, down) == -1
-    # far away the tolerance grows with the distance (a click is a few pixels wide)
-    far = np.array([[0.5, 0.0, -90.0]])
-    assert pick_on_ray(far, origin, down) == 0
 
 
 def test_evenly_keeps_a_fixed_spread_subset() -> None:

@@ -44,7 +44,7 @@ from app.viewer.modes.clutter_states import (
     run_folder,
     state_colors,
 )
-from app.viewer.modes.common import checked_user, evenly, legend_html, may, pick_on_ray
+from app.viewer.modes.common import checked_user, evenly, legend_html, may, pick_clicked
 
 if TYPE_CHECKING:
     from viser import SceneClickEvent
@@ -373,7 +373,7 @@ class ClutterMode(Mode):
         """Select the instance of the clicked point (the nearest shown point along the ray)."""
         if self.folder is None or self.cloud is None:
             return
-        hit = pick_on_ray(self.xyz[self.shown], event.ray_origin, event.ray_direction)
+        hit = pick_clicked(self.xyz[self.shown], event)
         if hit < 0:
             self.status.content = "No point under the click."
             return

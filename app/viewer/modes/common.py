@@ -1,6 +1,6 @@
 """What the review modes share: role checks against the store (a user's role may change while
-the viewer is open), picking a point with a click ray (viser point clouds have no per-point click
-events), even subsampling for the browser and colour legends."""
+the viewer is open), picking the point a click means (`picking.pick_on_ray` with the click's
+camera), even subsampling for the browser and colour legends."""
 
 from __future__ import annotations
 
@@ -12,12 +12,12 @@ import numpy as np
 from app.core.errors import PermissionDeniedError
 from app.store.models import Role, User
 from app.store.users import has_role
+from app.viewer.picking import click_angle, pick_on_ray
 
 if TYPE_CHECKING:
-    from app.viewer.session import ViewerSession
+    from viser import SceneClickEvent
 
-PICK_ANGLE = 0.01  # rad: a click selects points within this angle of its ray ...
-PICK_MIN_RADIUS = 0.15  # m: ... or this distance, whichever is larger
+    from app.viewer.session import ViewerSession
 
 
 def checked_user(session: ViewerSession, role: Role, what: str) -> User:
@@ -40,30 +40,12 @@ def may(session: ViewerSession, role: Role) -> bool:
     return user is not None and user.is_active and has_role(user, role)
 
 
-def pick_on_ray(
-    points: np.ndarray,
-    origin: np.ndarray,
-    direction: np.ndarray,
-    angle: float = PICK_ANGLE,
-    min_radius: float = PICK_MIN_RADIUS,
-) -> int:
-    """Index of the nearest point (along the click ray) lying close to the ray, -1 for none:
-    point clouds have no per-point click events in viser, so picking happens here."""
-    if not len(points):
-        return -1
-    d = np.asarray(direction, dtype=np.float64)
-    norm = np.linalg.norm(d)
-    if not norm > 0:
-        return -1
-    d = d / norm
-    rel = np.asarray(points, dtype=np.float64) - np.asarray(origin, dtype=np.float64)
-    t = rel @ d
-    perp2 = np.einsum("ij,ij->i", rel, rel) - t * t
-    radius = np.maximum(min_radius, t * angle)
-    near = np.flatnonzero((t > 0) & (perp2 <= radius * radius))
-    if not len(near):
-        return -1
-    return int(near[np.argmin(t[near])])
+def pick_clicked(points: np.ndarray, event: SceneClickEvent) -> int:
+    """Index of the shown point the click means (nearest the cursor on the front-most
+    surface, within a few pixels), -1 for none."""
+    return pick_on_ray(
+        points, event.ray_origin, event.ray_direction, click_angle(event.client.camera)
+    )
 
 
 def evenly(indices: np.ndarray, cap: int) -> np.ndarray:

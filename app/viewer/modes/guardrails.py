@@ -31,7 +31,7 @@ from app.store.guardrail_runs import latest_run, match_slices
 from app.store.models import GuardrailSlice, Role
 from app.viewer.label_feed import GUARDRAIL_RUN, SLICE_LABEL
 from app.viewer.modes.base import Mode
-from app.viewer.modes.common import checked_user, evenly, legend_html, may, pick_on_ray
+from app.viewer.modes.common import checked_user, evenly, legend_html, may, pick_clicked
 
 if TYPE_CHECKING:
     from viser import SceneClickEvent
@@ -311,7 +311,7 @@ class GuardrailMode(Mode):
         """Toggle the label of the clicked slice (the nearest slice point along the ray)."""
         if "slices" not in self.clouds:
             return
-        hit = pick_on_ray(self.xyz[self.shown], event.ray_origin, event.ray_direction)
+        hit = pick_clicked(self.xyz[self.shown], event)
         if hit < 0:
             self.status.content = "No slice under the click."
             return

@@ -26,7 +26,7 @@ from app.store.guardrail_runs import latest_run, match_slices
 from app.store.models import GuardrailModel, ModelStatus, Role
 from app.viewer.label_feed import GUARDRAIL_RUN, MODEL_DECISIONS
 from app.viewer.modes.base import Mode
-from app.viewer.modes.common import checked_user, evenly, legend_html, may, pick_on_ray
+from app.viewer.modes.common import checked_user, evenly, legend_html, may, pick_clicked
 
 if TYPE_CHECKING:
     from viser import SceneClickEvent
@@ -303,7 +303,7 @@ class ModelMode(Mode):
         """Select the guardrail whose slice point lies nearest along the click ray."""
         if self.cloud is None:
             return
-        hit = pick_on_ray(self.xyz, event.ray_origin, event.ray_direction)
+        hit = pick_clicked(self.xyz, event)
         if hit >= 0:
             self.select(int(self.point_model[hit]))
 

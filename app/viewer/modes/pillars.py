@@ -7,10 +7,12 @@ Points are coloured by their pillar's label: human labels in full colour, model 
 lighter, unlabelled grey. A label change anywhere resends colours only.
 
 Tools: a class palette (hotkeys 1-4, 0 erases); the brush (click: the ray meets the local ground,
-every pillar within the radius is labelled, one undoable batch); the rectangle (shift-drag: the
-pillars of every shown point inside it); undo / redo (Ctrl+Z / Ctrl+Y, the user's own batches
+every pillar within the radius is labelled, one undoable batch; the brush lands on the surface
+under the cursor, the ground where there is none); the rectangle (shift-drag: the pillars of the
+shown points inside it that the user can see, within a depth range, `pillar_selection`; a large
+selection is previewed and written on Enter); undo / redo (Ctrl+Z / Ctrl+Y, the user's own batches
 in the store); hiding classes; point size; "next uncertain area" (N) flies the camera to the
-area whose unreviewed model pre-labels are least confident.
+area whose unreviewed model pre-labels are least confident and outlines it.
 """
 
 from __future__ import annotations
@@ -24,7 +26,13 @@ from app.core.labels import PillarClass
 from app.store.pillar_labels import NO_LABEL
 from app.store.pillar_reads import label_counts, uncertain_areas
 from app.viewer.modes.base import Mode
-from app.viewer.picking import in_screen_rect, pillars_in_disc, ray_ground_hit
+from app.viewer.modes.pillar_selection import (
+    CONFIRM_ABOVE,
+    PendingSelection,
+    RectangleOptions,
+    rectangle_points,
+)
+from app.viewer.picking import click_angle, pick_on_ray, pillars_in_disc, ray_ground_hit
 from app.viewer.pillar_colors import CLASS_NAMES, DISPLAY_CLASSES, DISPLAY_NAMES, swatch_html
 
 if TYPE_CHECKING:
@@ -36,6 +44,10 @@ ERASE = "Erase"
 CHOICES = {**{name: int(c) for c, name in CLASS_NAMES.items()}, ERASE: NO_LABEL}
 HOTKEYS = {"1": "Ground", "2": "High object", "3": "Short object", "4": "Phantom", "0": ERASE}
 UNCERTAIN_VIEW_DISTANCE = 25.0  # metres from the camera to an uncertain area
+UNCERTAIN_AREA = 10.0  # metres: the side of an uncertain area
+AREA_RGB = (255, 120, 0)  # the outline of the uncertain area flown to
+AREA_HEIGHT = 4.0  # metres: the outline's height above the ground
+MAX_DEPTH = 500.0  # metres: the depth range slider's end
 
 
 class PillarMode(Mode):
@@ -55,11 +67,17 @@ class PillarMode(Mode):
         self.clouds: dict[str, Any] = {}
         self.visited: set[tuple[float, float]] = set()
         self.commands: list[Any] = []
+        self.pending: PendingSelection | None = None
+        self.area_outline: Any = None
         self._build_gui()
         self._draw("overview", self.map.overview)
         self._focus(session.client.camera.look_at)
 
     def leave(self) -> None:
+        self._drop_pending()
+        if self.area_outline is not None:
+            self.area_outline.remove()
+            self.area_outline = None
         for command in self.commands:
             command.remove()
         self.commands = []
@@ -88,6 +106,23 @@ class PillarMode(Mode):
             redo = gui.add_button("Redo", hint="Ctrl+Y: re-apply what you undid")
             jump = gui.add_button("Next uncertain area", hint="N: least confident model labels")
             self.status = gui.add_markdown("Click: brush. Shift-drag: rectangle.")
+            with gui.add_folder("Rectangle", expand_by_default=False):
+                self.through = gui.add_checkbox(
+                    "Select hidden points too",
+                    initial_value=False,
+                    hint="off: only what you see; on: also points behind nearer ones",
+                )
+                self.depth_range = gui.add_multi_slider(
+                    "Depth range (m)", min=0.0, max=MAX_DEPTH, step=1.0,
+                    initial_value=(0.0, MAX_DEPTH),
+                    hint="only points this far from the camera",
+                )  # fmt: skip
+            self.apply_selection = gui.add_button(
+                "Apply selection", disabled=True, hint="Enter: label the previewed pillars"
+            )
+            self.cancel_selection = gui.add_button(
+                "Cancel selection", disabled=True, hint="Esc: drop the preview"
+            )
             with gui.add_folder("Display", expand_by_default=False):
                 self.point_size = gui.add_slider(
                     "Point size", min=0.01, max=0.5, step=0.01, initial_value=0.06
@@ -100,6 +135,8 @@ class PillarMode(Mode):
         undo.on_click(lambda _: submit(self.undo))
         redo.on_click(lambda _: submit(self.redo))
         jump.on_click(lambda _: submit(self.next_uncertain_area))
+        self.apply_selection.on_click(lambda _: submit(self.confirm_selection))
+        self.cancel_selection.on_click(lambda _: submit(self.cancel_pending))
         self.point_size.on_update(lambda _: submit(self._resize_points))
         for checkbox in self.hide.values():
             checkbox.on_update(lambda _: submit(self._apply_hidden))
@@ -108,6 +145,8 @@ class PillarMode(Mode):
         self._command("Undo", "Z", "cmd/ctrl", lambda: submit(self.undo))
         self._command("Redo", "Y", "cmd/ctrl", lambda: submit(self.redo))
         self._command("Next uncertain area", "N", None, lambda: submit(self.next_uncertain_area))
+        self._command("Apply selection", "enter", None, lambda: submit(self.confirm_selection))
+        self._command("Cancel selection", "escape", None, lambda: submit(self.cancel_pending))
 
     def _command(self, label: str, hotkey: str, modifier: str | None, action: Any) -> None:
         command = self.session.client.gui.add_command(label, hotkey=hotkey, modifier=modifier)
@@ -163,6 +202,8 @@ class PillarMode(Mode):
     def _resize_points(self) -> None:
         for cloud in self.clouds.values():
             cloud.point_size = self.point_size.value
+        if self.pending is not None:
+            self.pending.resize(self.point_size.value)
 
     def _apply_hidden(self) -> None:
         hidden = {k for k, box in self.hide.items() if box.value}
@@ -171,6 +212,7 @@ class PillarMode(Mode):
         self.hidden = hidden
         self._draw("overview", self.map.overview)
         self._draw("tile", self.tile_points)
+        self._draw_pending()
 
     def on_labels_changed(self, changed: np.ndarray) -> None:
         """Resend the colours of the clouds holding changed pillars (with classes hidden, a
@@ -193,9 +235,19 @@ class PillarMode(Mode):
     def on_camera(self, camera: CameraHandle) -> None:
         self._focus(camera.look_at)
 
+    def _shown(self) -> np.ndarray:
+        return np.concatenate([self.shown_overview, self.shown_tile])
+
     def on_click(self, event: SceneClickEvent) -> None:
-        """Brush: the pillars within the radius of where the click ray meets the ground."""
-        hit = ray_ground_hit(self.map.ground, event.ray_origin, event.ray_direction)
+        """Brush: the pillars within the radius of the surface point under the cursor (the
+        ground where the ray meets no shown point)."""
+        shown = self._shown()
+        angle = click_angle(event.client.camera)
+        hit_point = pick_on_ray(self.map.xyz[shown], event.ray_origin, event.ray_direction, angle)
+        if hit_point >= 0:
+            hit = np.asarray(self.map.xyz[shown[hit_point]], dtype=np.float64)
+        else:
+            hit = ray_ground_hit(self.map.ground, event.ray_origin, event.ray_direction)
         if hit is None:
             self.session.notify("Brush", "The click did not reach the ground.")
             return
@@ -209,23 +261,69 @@ class PillarMode(Mode):
         self._focus(hit)
 
     def on_rect_select(self, event: SceneRectSelectEvent) -> None:
-        """Rectangle: the pillars of every shown point inside it."""
-        camera = event.client.camera
-        shown = np.concatenate([self.shown_overview, self.shown_tile])
-        inside = in_screen_rect(
-            self.map.xyz[shown],
-            camera.wxyz,
-            camera.position,
-            camera.fov,
-            camera.aspect,
-            event.screen_min,
-            event.screen_max,
-        )
+        """Rectangle: the pillars of the shown points inside it that are seen (or all, with
+        "select hidden points too") within the depth range; a large selection waits for
+        Enter."""
+        shown = self._shown()
+        near, far = (float(v) for v in self.depth_range.value)
+        options = RectangleOptions(through=bool(self.through.value), near=near, far=far)
+        inside = rectangle_points(
+            self.map.xyz[shown], event.client.camera, event.screen_min, event.screen_max,
+            float(self.point_size.value), options,
+        )  # fmt: skip
         cells = self.map.cells[np.unique(self.map.cell[shown[inside]])]
         if not len(cells):
-            self.session.notify("Rectangle", "No points inside the rectangle.")
+            self.session.notify("Rectangle", "No visible points inside the rectangle.")
             return
-        self._label(cells, "rectangle")
+        how = "rectangle" + (", hidden points too" if options.through else "")
+        if len(cells) <= CONFIRM_ABOVE:
+            self._drop_pending()
+            self._label(cells, how)
+            return
+        self._drop_pending()
+        self.pending = PendingSelection(
+            self.session.client.scene, f"/{self.key}/selection", cells, how
+        )
+        self._draw_pending()
+        self.apply_selection.disabled = False
+        self.cancel_selection.disabled = False
+        self.status.content = (
+            f"{len(cells):,} pillars selected ({how}, magenta): **Enter** labels them with "
+            "the class chosen then, **Esc** drops the selection."
+        )
+
+    def _draw_pending(self) -> None:
+        if self.pending is None:
+            return
+        shown = self._shown()
+        index = self.map.cell_index(self.pending.cells)[0]
+        picked = shown[np.isin(self.map.cell[shown], index)]
+        self.pending.draw(self.map.xyz[picked], float(self.point_size.value))
+
+    def _drop_pending(self) -> None:
+        if self.pending is not None:
+            self.pending.remove()
+            self.pending = None
+        if hasattr(self, "apply_selection"):
+            self.apply_selection.disabled = True
+            self.cancel_selection.disabled = True
+
+    def confirm_selection(self) -> None:
+        """Enter: label the previewed pillars with the class chosen now."""
+        if self.pending is None:
+            self.status.content = "No selection to apply: shift-drag a rectangle first."
+            return
+        pending = self.pending
+        self._drop_pending()
+        self._label(pending.cells, pending.how)
+
+    def cancel_pending(self) -> None:
+        """Esc: drop the previewed selection, nothing written."""
+        if self.pending is None:
+            return
+        n = len(self.pending.cells)
+        self._drop_pending()
+        self.status.content = f"Selection of {n:,} pillars dropped; nothing written."
 
     def _label(self, cells: np.ndarray, how: str) -> None:
         value = self.label_value
@@ -251,9 +349,11 @@ class PillarMode(Mode):
         self.status.content = f"Redid batch {result.batch_id} ({len(result.cell_ids):,} pillars)"
 
     def next_uncertain_area(self) -> None:
-        """Fly to the most doubtful area not visited yet in this session (then start over)."""
+        """Fly to the most doubtful area not visited yet in this session (then start over)
+        and outline it."""
+        area_size = UNCERTAIN_AREA
         with self.session.db() as db:
-            areas = uncertain_areas(db, self.view.survey_id, limit=100)
+            areas = uncertain_areas(db, self.view.survey_id, area_size=area_size, limit=100)
             prelabelled = not areas and sum(label_counts(db, self.view.survey_id)["model"]) > 0
         if not areas:
             self.status.content = (
@@ -277,7 +377,20 @@ class PillarMode(Mode):
         offset = offset / norm * UNCERTAIN_VIEW_DISTANCE if norm > 0 else np.array([0, -18, 18])
         self.session.move_camera(look_at, offset)
         self._focus(look_at)
+        self._outline_area(look_at, area_size)
         self.status.content = (
-            f"Uncertain area: {area.pillars} pillars, mean confidence "
+            f"Uncertain area (orange box): {area.pillars} pillars, mean confidence "
             f"{area.mean_confidence:.2f} ({len(fresh) - 1} more to visit)"
+        )
+
+    def _outline_area(self, ground_centre: np.ndarray, size: float) -> None:
+        """An orange wireframe box over the area flown to (replacing the previous one)."""
+        if self.area_outline is not None:
+            self.area_outline.remove()
+        self.area_outline = self.session.client.scene.add_box(
+            f"/{self.key}/uncertain_area",
+            color=AREA_RGB,
+            dimensions=(size, size, AREA_HEIGHT),
+            wireframe=True,
+            position=tuple((ground_centre + [0.0, 0.0, AREA_HEIGHT / 2]).tolist()),
         )
