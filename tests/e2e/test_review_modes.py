@@ -1,8 +1,9 @@
 """The review modes in a real browser (Debian's Chromium, software WebGL) against `mmsclean serve`
 with the sample survey and a small simulated street with moving objects (the sample is scanned
 by a profile scanner, whose scan plane the forward camera never sees, so clutter runs on the
-street): approve a clutter instance in the clutter mode, toggle a guardrail slice with a click
-in the canvas, reject then accept a reconstructed guardrail and download the mesh export; each
+street): approve a clutter instance in the clutter mode, fly to the next uncertain slice (outlined)
+and toggle it with one click at the screen centre, fly to the next uncertain pillar area
+(outlined), reject then accept a reconstructed guardrail and download the mesh export; each
 checked through the REST API. One screenshot per mode goes to docs/ (see conftest)."""
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import io
 import os
+import re
 import time
 import zipfile
 from collections.abc import Iterator
@@ -27,6 +29,7 @@ from tests.e2e.conftest import (
     VIEWER_TILE_POINTS,
     save_screenshot,
 )
+from tests.e2e.pixels import count_pixels, is_target_red
 
 PASSWORD = "password-123"
 WAIT_S = 30.0
@@ -190,23 +193,23 @@ def test_toggle_a_guardrail_slice_with_a_click(
     page = open_viewer("railann", PASSWORD, survey_id=SAMPLE)
     switch_mode(page, "Guardrail review")
     page.get_by_text("labelled by people").wait_for(timeout=60_000)
+    page.wait_for_timeout(1500)
+    red_before = count_pixels(page, is_target_red)
     page.get_by_role("button", name="Next uncertain slice").click()
-    page.get_by_text("unlabelled left").wait_for()
-    page.wait_for_timeout(1500)  # the camera has flown there
+    status = page.get_by_text("unlabelled left")
+    status.wait_for()
+    target = int(re.search(r"Slice (\d+) \(component", status.inner_text()).group(1))
+    page.wait_for_timeout(2000)  # the camera has flown there, the box is drawn
+    # issue 20, defect 4: the slice flown to is outlined (a red box) ...
+    assert count_pixels(page, is_target_red) > red_before + 50
+    # ... and one click at the screen centre, where it lies, toggles that slice
     box = canvas_box(page)
-    cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
-    changed: dict = {}
-    for dx, dy in [(0, 0), (0, -6), (0, 6), (-6, 0), (6, 0), (0, -12), (0, 12), (-12, 0)]:
-        page.mouse.click(cx + dx, cy + dy)  # the slice flown to lies under the centre
-        try:
-            changed = wait_until(
-                "a toggled slice",
-                lambda: {k: v for k, v in slices(annotator).items() if v != before[k]},
-                timeout=5.0,
-            )
-            break
-        except AssertionError:
-            continue
+    page.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+    changed = wait_until(
+        "the toggled slice",
+        lambda: {k: v for k, v in slices(annotator).items() if v != before[k]},
+    )
+    assert set(changed) == {target}, changed
     assert len(changed) == 1, changed
     ((slice_id, (label, version, by)),) = changed.items()
     assert label == 1 - before[slice_id][0] and version == before[slice_id][1] + 1
@@ -276,3 +279,22 @@ def test_qa_mode_shows_the_maps_and_metrics(
     close_notifications(page)
     page.wait_for_timeout(2500)
     save_screenshot(page, artefacts, "qa", docs="viewer_qa.png")
+
+
+@pytest.mark.e2e
+def test_the_next_uncertain_pillar_area_is_outlined(
+    open_viewer, viewer_server: Server, street, artefacts
+) -> None:
+    """Issue 20, defect 4: "Next uncertain area" (N) flew there without marking the area."""
+    viewer_server.add_user("areaann", "annotator", PASSWORD)
+    page = open_viewer("areaann", PASSWORD, survey_id=street)
+    page.get_by_text("Click: brush. Shift-drag: rectangle.").wait_for()
+    page.wait_for_timeout(2000)
+    red_before = count_pixels(page, is_target_red)
+    page.mouse.move(10, 10)
+    page.keyboard.press("n")
+    page.get_by_text("Uncertain area (red box)").wait_for()
+    page.wait_for_timeout(2000)
+    assert count_pixels(page, is_target_red) > red_before + 50
+    close_notifications(page)
+    save_screenshot(page, artefacts, "uncertain-area")

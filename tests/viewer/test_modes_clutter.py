@@ -31,7 +31,7 @@ from app.viewer.modes.clutter_states import (
     STATE_RGB,
     point_states,
 )
-from app.viewer.modes.common import pick_on_ray
+from app.viewer.picking import click_angle, pick_on_ray
 from tests.jobs.conftest import job_context
 from tests.pipelines.clutter.conftest import weights_dir  # noqa: F401  (the fixture)
 from tests.viewer.test_modes_common import (
@@ -177,7 +177,12 @@ def test_click_selects_the_instance_under_it(review: Review) -> None:
     candidates = np.flatnonzero(mode.owner[shown] == instance)
     top = candidates[np.argmax(xyz[candidates, 2])]
     origin = xyz[top].astype(np.float64) + np.array([0.0, 0.0, 30.0])
-    assert pick_on_ray(xyz, origin, np.array([0.0, 0.0, -1.0])) == top
+    assert (
+        pick_on_ray(
+            xyz, origin, np.array([0.0, 0.0, -1.0]), click_angle(connection.session.client.camera)
+        )
+        == top
+    )
     connection.send(click_message(tuple(origin.tolist()), (0.0, 0.0, -1.0)))
     deadline = time.monotonic() + 30
     while mode.selected != instance and time.monotonic() < deadline:

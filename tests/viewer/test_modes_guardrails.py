@@ -24,8 +24,14 @@ from app.store.guardrail_review import SliceLabelEdit, get_slice, next_uncertain
 from app.store.guardrail_runs import latest_run
 from app.store.models import AuditEvent, User
 from app.store.surveys import register_opened_survey
-from app.viewer.modes.common import pick_on_ray
-from app.viewer.modes.guardrails import LABEL_RGB, PREVIEW_RGB, GuardrailMode
+from app.viewer.modes.guardrails import (
+    FOCUS_BOX_RGB,
+    FOCUS_SCALE,
+    LABEL_RGB,
+    PREVIEW_RGB,
+    GuardrailMode,
+)
+from app.viewer.picking import click_angle, pick_on_ray
 from tests.jobs.conftest import job_context
 from tests.viewer.test_modes_common import (
     SCENE_POINTS,
@@ -71,6 +77,9 @@ def street(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Street]:
     engine.dispose()
 
 
+SELECTED_POINTS = "/guardrails/selected/points"
+
+
 def open_mode(street: Street, user: str) -> tuple[Connection, GuardrailMode]:
     connection = street.driver.connect(*street.users[user], street.survey_id)
     return connection, connection.switch("Guardrail review")
@@ -108,7 +117,7 @@ def click_slice(connection: Connection, mode: GuardrailMode, k: int) -> None:
     down = np.array([0.0, 0.0, -1.0])
     for top in sorted(np.flatnonzero(slice_of == k), key=lambda i: -xyz[i, 2]):
         origin = xyz[top].astype(np.float64) + np.array([0.0, 0.0, 20.0])
-        hit = pick_on_ray(xyz, origin, down)
+        hit = pick_on_ray(xyz, origin, down, click_angle(connection.session.client.camera))
         if hit >= 0 and slice_of[hit] == k:
             break
     else:
@@ -154,6 +163,7 @@ def test_slices_are_coloured_by_label_and_a_click_toggles_one(street: Street) ->
         stored = get_slice(session, street.survey_id, slice_id)
     assert stored.label == 0 and stored.version == version + 1
     assert stored.labelled_by == street.users["ann"][0]
+    assert mode.focus == k  # the clicked slice is the selected one
     mine = slice_of == k
     shows(connection, mine, LABEL_RGB[0, 1])  # other, by a human: bright
     click_slice(connection, mode, k)  # and back
@@ -208,9 +218,19 @@ def test_next_uncertain_slice_flies_there(street: Street) -> None:
         mark,
     )
     assert f"{remaining:,} unlabelled left" in mode.status.content
-    focus_points = mode.point_slice[mode.shown] == mode.focus
-    if focus_points.any():
-        shows(connection, focus_points, np.array([255, 255, 255]))
+    # the slice is selected: its points drawn large in their own colour inside a red box
+    mine = mode.point_slice[mode.shown] == mode.focus
+    assert mine.any()
+    cloud = connection.wait(lambda m: is_point_cloud(m) and m["name"] == SELECTED_POINTS, mark)
+    assert len(cloud["props"]["points"]) // 3 == int(mine.sum())
+    assert cloud["props"]["point_size"] == pytest.approx(FOCUS_SCALE * mode.point_size.value)
+    own = np.asarray(cloud["props"]["colors"]).reshape(-1, 3)
+    assert np.array_equal(own, slices_colors(connection)[mine])  # its label stays readable
+    box = connection.wait(lambda m: m.get("type") == "BoxMessage", mark)
+    assert box["name"] == "/guardrails/selected/box" and box["props"]["wireframe"]
+    assert tuple(box["props"]["color"]) == FOCUS_BOX_RGB
+    extent = np.ptp(mode.xyz[mode.shown[mine]], axis=0)
+    assert np.all(np.asarray(box["props"]["dimensions"]) > extent)  # around every point
 
 
 def test_preview_shows_the_correction_and_apply_writes_it(street: Street) -> None:

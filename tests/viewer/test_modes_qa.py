@@ -200,12 +200,15 @@ def test_metrics_panel_and_export_links(street: Street) -> None:
     connection, _ = open_mode(street)
     text = markdown(connection)
     clutter, phantom = street.jobs["run:clutter"], street.jobs["run:phantom"]
-    full = clutter.result["metrics"]["full"]["dynamic"]
-    oa = full["error_matrix"]["overall_accuracy"]
-    aa = full["scores"]["AA"]
-    assert f"| 360° | dynamic | {percent(oa)} |" in text
-    sa, da = full["scores"]["SA"], full["scores"]["DA"]
-    assert f"| 360° | dynamic | {percent(sa)} | {percent(da)} | {percent(aa)} |" in text
+    full = clutter.result["metrics"]["full"]
+    kinds = list(full)
+    assert f"| 360° | {' | '.join(kinds)} |" in text  # one narrow table per scope
+    oa = [full[k]["error_matrix"]["overall_accuracy"] for k in kinds]
+    assert f"| OA | {' | '.join(map(percent, oa))} |" in text
+    aa = [full[k]["scores"]["AA"] for k in kinds]
+    assert f"| AA | {' | '.join(map(percent, aa))} |" in text
+    widest = max(len(line.split("|")) - 2 for line in text.splitlines() if line.startswith("|"))
+    assert widest <= 4  # no table wider than four columns: the side panel is narrow
     assert f"job {clutter.id}" in text and f"job {phantom.id}" in text
     point = phantom.result["metrics"]["point"]["classes"]["phantom"]
     p, r, f = point["precision"], point["recall"], point["f1"]

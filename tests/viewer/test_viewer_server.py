@@ -246,16 +246,17 @@ def test_client_gets_the_scene_labels_as_its_user_sees_api_writes_and_undoes(
         shown = np.asarray(points).reshape(-1, 3)[:, :2]
         assert np.hypot(*(shown - np.asarray(look["look_at"][:2])).T).min() < 0.01
 
-        # brush: a click straight down at local (30, 0) paints the pillars within 1 m
+        # brush: a click straight down at local (30, 0) paints the pillars within 1 m of the
+        # surface point under the cursor (a shown point a few centimetres from the ray)
         await client.send(click_message((30.0, 0.0, 40.0), (0.0, 0.0, -1.0)))
         await client.wait_for(colors_with(PALETTE[0]), 30)  # ground, full colour
         world = origin[:2] + np.array([30.0, 0.0])
         box = (world[0] - 2, world[1] - 2, world[0] + 2, world[1] + 2)
         painted = human_labels(admin, box)
-        assert 50 <= len(painted) <= 80  # pi * 1 m^2 / 0.04 m^2 ~ 79 pillars, those with points
+        assert 50 <= len(painted) <= 85  # pi * 1 m^2 / 0.04 m^2 ~ 79 pillars, those with points
         assert {v for v in painted.values()} == {(0, painter_id)}  # ground, by the painter
         centres = STORE_GRID.cell_center(*STORE_GRID.decode(np.array(list(painted))))
-        assert np.hypot(*(centres - world).T).max() <= 1.0
+        assert np.hypot(*(centres - world).T).max() <= 1.2
 
         # a write through the REST API by someone else shows up in this client's colours
         cells = STORE_GRID.point_cell_ids(world + np.array([[5.0, 0.0], [5.2, 0.0]]))

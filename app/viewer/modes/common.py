@@ -14,6 +14,8 @@ from app.store.models import Role, User
 from app.store.users import has_role
 from app.viewer.picking import click_angle, pick_on_ray
 
+TARGET_RGB = (220, 20, 60)  # red outline of what a mode points the user to (no class colour)
+
 if TYPE_CHECKING:
     from viser import SceneClickEvent
 

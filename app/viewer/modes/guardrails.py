@@ -4,9 +4,11 @@ The points of every slice come from the slice stage the last `run:guardrail` sav
 (`ReconstructionInput`, found through the store's ingest event); they are re-centred on the
 survey origin and coloured by the slice's current label in the store: guardrail or other,
 brighter where a person labelled the slice, darker where the label is still the classifier's
-(after adjacency correction). A click toggles the clicked slice (one versioned write through
-`app.store.guardrail_review.put_slice_labels`, as this session's user); "Next uncertain slice"
-flies to the unlabelled slice whose probability is nearest 0.5; "Preview correction" colours the
+(after adjacency correction). A click toggles the slice nearest the cursor (one versioned write
+through `app.store.guardrail_review.put_slice_labels`, as this session's user); "Next uncertain
+slice" flies to the unlabelled slice whose probability is nearest 0.5. The slice last clicked or
+flown to is the selected one: its points drawn large in their label's colour inside a red box,
+so the target is seen and its label stays readable; "Preview correction" colours the
 slices the adjacency correction would change (`preview_correction`, nothing saved) and "Apply"
 writes those as human labels in one batch. Labels written by anyone else recolour the slices
 (and drop a preview computed before them); a new run or rebuild reloads the mode.
@@ -31,7 +33,14 @@ from app.store.guardrail_runs import latest_run, match_slices
 from app.store.models import GuardrailSlice, Role
 from app.viewer.label_feed import GUARDRAIL_RUN, SLICE_LABEL
 from app.viewer.modes.base import Mode
-from app.viewer.modes.common import checked_user, evenly, legend_html, may, pick_clicked
+from app.viewer.modes.common import (
+    TARGET_RGB,
+    checked_user,
+    evenly,
+    legend_html,
+    may,
+    pick_clicked,
+)
 
 if TYPE_CHECKING:
     from viser import SceneClickEvent
@@ -48,7 +57,9 @@ LABEL_RGB = np.array(
 )
 UNKNOWN_RGB = np.array((110, 110, 110), dtype=np.uint8)
 PREVIEW_RGB = {1: np.array((235, 40, 210), np.uint8), 0: np.array((0, 225, 225), np.uint8)}
-FOCUS_RGB = np.array((255, 255, 255), dtype=np.uint8)
+FOCUS_BOX_RGB = TARGET_RGB  # the selected slice's box: red, no label colour
+FOCUS_SCALE = 2.5  # the selected slice's points are drawn this much larger
+FOCUS_PAD = 0.25  # metres around the selected slice's points
 MAP_RGB = np.array((70, 70, 70), dtype=np.uint8)
 MAP_POINTS = 100_000  # most context points of the survey's map under the slices
 VIEW_DISTANCE = 12.0  # metres from the camera to a slice it flies to
@@ -89,10 +100,9 @@ def slice_colors(
     row_of_slice: np.ndarray,
     rows: SliceRows,
     preview: dict[int, int] | None = None,
-    focus: int | None = None,
 ) -> np.ndarray:
     """(K, 3) colour per stage slice: current label (human brighter), preview overlay (the
-    label the correction would give, where it differs), the focused slice white."""
+    label the correction would give, where it differs)."""
     known = row_of_slice >= 0
     rgb = np.tile(UNKNOWN_RGB, (len(row_of_slice), 1))
     r = row_of_slice[known]
@@ -106,8 +116,6 @@ def slice_colors(
         for label, colour in PREVIEW_RGB.items():
             pick = k[(to == label) & (k >= 0)]
             rgb[pick] = colour
-    if focus is not None and focus >= 0:
-        rgb[focus] = FOCUS_RGB
     return rgb
 
 
@@ -121,7 +129,8 @@ class GuardrailMode(Mode):
         self.origin = session.view.map.origin
         self.clouds: dict[str, Any] = {}
         self.preview: dict[int, int] = {}  # slice id -> corrected label, where it differs
-        self.focus: int | None = None  # stage slice flown to
+        self.focus: int | None = None  # the selected stage slice (clicked or flown to)
+        self.focus_nodes: list[Any] = []
         gui = session.client.gui
         with session.db() as db:
             run = latest_run(db, self.survey_id)
@@ -150,6 +159,7 @@ class GuardrailMode(Mode):
         for cloud in self.clouds.values():
             cloud.remove()
         self.clouds = {}
+        self._remove_focus()
         command = getattr(self, "command", None)
         if command is not None:
             command.remove()
@@ -171,6 +181,7 @@ class GuardrailMode(Mode):
                         ("other (classifier)", LABEL_RGB[0, 0]),
                         ("preview: would become guardrail", PREVIEW_RGB[1]),
                         ("preview: would become other", PREVIEW_RGB[0]),
+                        ("selected slice: large points in a red box", FOCUS_BOX_RGB),
                     ]
                 )
             )
@@ -207,7 +218,7 @@ class GuardrailMode(Mode):
     # --- drawing ------------------------------------------------------------------------------
 
     def _colors(self) -> np.ndarray:
-        per_slice = slice_colors(self.row_of_slice, self.rows, self.preview, self.focus)
+        per_slice = slice_colors(self.row_of_slice, self.rows, self.preview)
         return per_slice[self.point_slice[self.shown]]
 
     def _draw(self) -> None:
@@ -229,6 +240,7 @@ class GuardrailMode(Mode):
 
     def _recolor(self) -> None:
         self.clouds["slices"].colors = self._colors()
+        self._draw_focus()
         self._describe()
         self.session.client.flush()
 
@@ -257,6 +269,41 @@ class GuardrailMode(Mode):
     def _resize(self) -> None:
         for name, cloud in self.clouds.items():
             cloud.point_size = self.point_size.value * (0.6 if name == "map" else 1.0)
+        if self.focus_nodes:
+            self.focus_nodes[0].point_size = FOCUS_SCALE * self.point_size.value
+
+    def _remove_focus(self) -> None:
+        for node in self.focus_nodes:
+            node.remove()
+        self.focus_nodes = []
+
+    def _draw_focus(self) -> None:
+        """The selected slice: its points large, in their current colour, in a red box."""
+        self._remove_focus()
+        if self.focus is None:
+            return
+        mine = self.point_slice[self.shown] == self.focus
+        if not mine.any():
+            return
+        xyz = self.xyz[self.shown[mine]]
+        scene = self.session.client.scene
+        cloud = scene.add_point_cloud(
+            f"/{self.key}/selected/points",
+            points=xyz,
+            colors=self._colors()[mine],
+            point_size=FOCUS_SCALE * self.point_size.value,
+            precision="float32",
+            point_shading="flat",
+        )
+        lo, hi = xyz.min(axis=0) - FOCUS_PAD, xyz.max(axis=0) + FOCUS_PAD
+        box = scene.add_box(
+            f"/{self.key}/selected/box",
+            color=FOCUS_BOX_RGB,
+            dimensions=tuple((hi - lo).astype(float).tolist()),
+            wireframe=True,
+            position=tuple(((lo + hi) / 2.0).astype(float).tolist()),
+        )
+        self.focus_nodes = [cloud, box]
 
     # --- actions ------------------------------------------------------------------------------
 
@@ -325,6 +372,7 @@ class GuardrailMode(Mode):
             return
         new = 1 - int(self.rows.label[r])
         edit = SliceLabelEdit(int(self.rows.id[r]), int(self.rows.version[r]), new)
+        self.focus = k
         if self._write([edit]):
             what = "guardrail" if new else "other"
             self.status.content = f"Slice {edit.id} is now **{what}** (version {edit.version + 1})."

@@ -3,7 +3,7 @@
 A rectangle takes the pillars of the shown points inside it that the user can see (not those
 behind a nearer surface, unless "select hidden points too" is ticked) within the chosen depth
 range. A small selection is labelled at once; a large one (more than CONFIRM_ABOVE pillars) is
-drawn as a magenta preview and written only when the user presses Enter (Esc drops it), with
+drawn as a green preview and written only when the user presses Enter (Esc drops it), with
 the class picked at that moment, so a drag across a street never relabels a facade unseen.
 """
 
@@ -22,7 +22,7 @@ from app.viewer.picking import (
 )
 
 CONFIRM_ABOVE = 400  # pillars: larger selections wait for Enter (16 m2 of 0.2 m pillars)
-PREVIEW_RGB = (236, 0, 140)  # magenta: no pillar class uses it
+PREVIEW_RGB = (40, 215, 60)  # green: no pillar class uses it
 PREVIEW_SCALE = 1.6  # preview points are drawn this much larger than the map's
 
 

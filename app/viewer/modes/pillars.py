@@ -26,6 +26,7 @@ from app.core.labels import PillarClass
 from app.store.pillar_labels import NO_LABEL
 from app.store.pillar_reads import label_counts, uncertain_areas
 from app.viewer.modes.base import Mode
+from app.viewer.modes.common import TARGET_RGB
 from app.viewer.modes.pillar_selection import (
     CONFIRM_ABOVE,
     PendingSelection,
@@ -45,7 +46,6 @@ CHOICES = {**{name: int(c) for c, name in CLASS_NAMES.items()}, ERASE: NO_LABEL}
 HOTKEYS = {"1": "Ground", "2": "High object", "3": "Short object", "4": "Phantom", "0": ERASE}
 UNCERTAIN_VIEW_DISTANCE = 25.0  # metres from the camera to an uncertain area
 UNCERTAIN_AREA = 10.0  # metres: the side of an uncertain area
-AREA_RGB = (255, 120, 0)  # the outline of the uncertain area flown to
 AREA_HEIGHT = 4.0  # metres: the outline's height above the ground
 MAX_DEPTH = 500.0  # metres: the depth range slider's end
 
@@ -288,7 +288,7 @@ class PillarMode(Mode):
         self.apply_selection.disabled = False
         self.cancel_selection.disabled = False
         self.status.content = (
-            f"{len(cells):,} pillars selected ({how}, magenta): **Enter** labels them with "
+            f"{len(cells):,} pillars selected ({how}, green): **Enter** labels them with "
             "the class chosen then, **Esc** drops the selection."
         )
 
@@ -379,17 +379,17 @@ class PillarMode(Mode):
         self._focus(look_at)
         self._outline_area(look_at, area_size)
         self.status.content = (
-            f"Uncertain area (orange box): {area.pillars} pillars, mean confidence "
+            f"Uncertain area (red box): {area.pillars} pillars, mean confidence "
             f"{area.mean_confidence:.2f} ({len(fresh) - 1} more to visit)"
         )
 
     def _outline_area(self, ground_centre: np.ndarray, size: float) -> None:
-        """An orange wireframe box over the area flown to (replacing the previous one)."""
+        """A red wireframe box over the area flown to (replacing the previous one)."""
         if self.area_outline is not None:
             self.area_outline.remove()
         self.area_outline = self.session.client.scene.add_box(
             f"/{self.key}/uncertain_area",
-            color=AREA_RGB,
+            color=TARGET_RGB,
             dimensions=(size, size, AREA_HEIGHT),
             wireframe=True,
             position=tuple((ground_centre + [0.0, 0.0, AREA_HEIGHT / 2]).tolist()),

@@ -48,30 +48,37 @@ def percent(value: Any) -> str:
     return f"{value:.1f}" if isinstance(value, float) else str(value)
 
 
+CLUTTER_ROWS = (  # (row name, part of the metrics entry, key)
+    ("OA", "error_matrix", "overall_accuracy"),
+    ("omission", "error_matrix", "clutter_omission"),
+    ("commission", "error_matrix", "clutter_commission"),
+    ("SA", "scores", "SA"),
+    ("DA", "scores", "DA"),
+    ("AA", "scores", "AA"),
+)
+
+
 def clutter_markdown(metrics: Mapping[str, Any] | None) -> str:
-    """Lee et al.'s scores per scope (camera view / full 360) and reference (dynamic / clutter
-    classes), as two narrow tables (the panel is narrow): overall accuracy with clutter
-    omission / commission, and SA / DA / AA."""
+    """Lee et al.'s scores, one narrow table per scope (camera view / full 360; the panel is
+    narrow: a wide table ran off its edge): a row per score (overall accuracy, clutter
+    omission / commission, SA / DA / AA), a column per reference (dynamic / clutter classes)."""
     if not isinstance(metrics, Mapping) or not metrics:
         return "_No clutter metrics: the survey has no reference labels._"
-    removal = ["| scope | reference | OA | omission | commission |", "|---|---|---:|---:|---:|"]
-    dynamic = ["| scope | reference | SA | DA | AA |", "|---|---|---:|---:|---:|"]
+    tables = []
     for scope, by_kind in metrics.items():
         if not isinstance(by_kind, Mapping):
             continue
+        kinds = {k: e for k, e in by_kind.items() if isinstance(e, Mapping)}
+        if not kinds:
+            continue
         where = SCOPES.get(scope, scope.replace("_", " "))
-        for kind, entry in by_kind.items():
-            if not isinstance(entry, Mapping):
-                continue
-            em, sc = entry.get("error_matrix") or {}, entry.get("scores") or {}
-            scores = [
-                em.get(k) for k in ("overall_accuracy", "clutter_omission", "clutter_commission")
-            ]
-            removal.append(f"| {where} | {kind} | {' | '.join(map(percent, scores))} |")
-            scores = [sc.get(k) for k in ("SA", "DA", "AA")]
-            dynamic.append(f"| {where} | {kind} | {' | '.join(map(percent, scores))} |")
+        lines = [f"| {where} | {' | '.join(kinds)} |", "|---" + "|---:" * len(kinds) + "|"]
+        for name, part, key in CLUTTER_ROWS:
+            values = [(entry.get(part) or {}).get(key) for entry in kinds.values()]
+            lines.append(f"| {name} | {' | '.join(map(percent, values))} |")
+        tables.append("\n".join(lines))
     note = "(percent; omission / commission of the clutter points)"
-    return "\n".join(removal) + "\n\n" + "\n".join(dynamic) + "\n\n" + note
+    return "\n\n".join([*tables, note])
 
 
 def phantom_markdown(metrics: Mapping[str, Any] | None) -> str:
