@@ -10,8 +10,8 @@ arrives as a camera ray and a rectangle as screen corners, and the pillars are f
   the disc viser draws for it, hides what lies behind a nearer surface (a facade behind a
   rectangle across the road is not selected through the road's points).
 - Click on a point (review modes): the shown point nearest the cursor on screen, within a few
-  pixels, on the front-most surface there (not the first point the ray grazes, which may belong
-  to the neighbouring slice in front).
+  pixels, on the surface drawn under the cursor (not the first point the ray grazes, which may
+  belong to the neighbouring slice in front).
 """
 
 from __future__ import annotations
@@ -122,12 +122,15 @@ def pick_on_ray(
     origin: np.ndarray,
     direction: np.ndarray,
     angle: float,
+    point_size: float = 0.0,
     min_radius: float = PICK_MIN_RADIUS,
 ) -> int:
-    """Index of the point a click means, -1 for none: among the points within `angle` of the
-    click ray (PICK_PX over the focal length: a few pixels) or `min_radius` of it, those on
-    the front-most surface there (within `surface_slack` of the nearest), the one nearest the
-    cursor on screen. Point clouds have no per-point click events in viser."""
+    """Index of the point a click means, -1 for none. Candidates lie within `angle` of the
+    click ray (PICK_PX over the focal length: a few pixels) or `min_radius` of it. The surface
+    seen under the cursor is the front-most point whose drawn disc (radius `point_size`, as
+    viser draws it) covers the cursor, else the front-most candidate; of the candidates on that
+    surface (within `surface_slack` behind it) the one nearest the cursor on screen wins.
+    Point clouds have no per-point click events in viser."""
     if not len(points):
         return -1
     d = np.asarray(direction, dtype=np.float64)
@@ -141,7 +144,8 @@ def pick_on_ray(
     near = np.flatnonzero((t > 0) & (perp <= np.maximum(min_radius, t * angle)))
     if not len(near):
         return -1
-    front = float(t[near].min())
+    covering = near[perp[near] < point_size]
+    front = float(t[covering if len(covering) else near].min())
     surface = near[t[near] <= front + surface_slack(front)]
     return int(surface[np.argmin(perp[surface] / t[surface])])
 

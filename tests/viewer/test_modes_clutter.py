@@ -177,12 +177,9 @@ def test_click_selects_the_instance_under_it(review: Review) -> None:
     candidates = np.flatnonzero(mode.owner[shown] == instance)
     top = candidates[np.argmax(xyz[candidates, 2])]
     origin = xyz[top].astype(np.float64) + np.array([0.0, 0.0, 30.0])
-    assert (
-        pick_on_ray(
-            xyz, origin, np.array([0.0, 0.0, -1.0]), click_angle(connection.session.client.camera)
-        )
-        == top
-    )
+    angle = click_angle(connection.session.client.camera)
+    down = np.array([0.0, 0.0, -1.0])
+    assert pick_on_ray(xyz, origin, down, angle, mode.point_size.value) == top
     connection.send(click_message(tuple(origin.tolist()), (0.0, 0.0, -1.0)))
     deadline = time.monotonic() + 30
     while mode.selected != instance and time.monotonic() < deadline:

@@ -117,7 +117,8 @@ def click_slice(connection: Connection, mode: GuardrailMode, k: int) -> None:
     down = np.array([0.0, 0.0, -1.0])
     for top in sorted(np.flatnonzero(slice_of == k), key=lambda i: -xyz[i, 2]):
         origin = xyz[top].astype(np.float64) + np.array([0.0, 0.0, 20.0])
-        hit = pick_on_ray(xyz, origin, down, click_angle(connection.session.client.camera))
+        angle = click_angle(connection.session.client.camera)
+        hit = pick_on_ray(xyz, origin, down, angle, mode.point_size.value)
         if hit >= 0 and slice_of[hit] == k:
             break
     else:
@@ -209,8 +210,11 @@ def test_next_uncertain_slice_flies_there(street: Street) -> None:
         row.component_id,
         row.slice_index,
     )
-    target = s.centre[mode.focus] - mode.origin
-    connection.wait(  # the camera is sent to look at the slice's centre
+    mine = mode.point_slice[mode.shown] == mode.focus
+    xyz = mode.xyz[mode.shown[mine]].astype(np.float64)
+    centre = s.centre[mode.focus] - mode.origin
+    target = xyz[np.argmin(((xyz - centre) ** 2).sum(axis=1))]
+    connection.wait(  # the camera looks at the slice's shown point nearest its centre
         lambda m: (
             m.get("type") == "SetCameraLookAtMessage"
             and np.allclose(m["look_at"], target, atol=1e-3)
@@ -219,7 +223,6 @@ def test_next_uncertain_slice_flies_there(street: Street) -> None:
     )
     assert f"{remaining:,} unlabelled left" in mode.status.content
     # the slice is selected: its points drawn large in their own colour inside a red box
-    mine = mode.point_slice[mode.shown] == mode.focus
     assert mine.any()
     cloud = connection.wait(lambda m: is_point_cloud(m) and m["name"] == SELECTED_POINTS, mark)
     assert len(cloud["props"]["points"]) // 3 == int(mine.sum())

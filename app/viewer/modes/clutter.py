@@ -373,7 +373,7 @@ class ClutterMode(Mode):
         """Select the instance of the clicked point (the nearest shown point along the ray)."""
         if self.folder is None or self.cloud is None:
             return
-        hit = pick_clicked(self.xyz[self.shown], event)
+        hit = pick_clicked(self.xyz[self.shown], event, self.point_size.value)
         if hit < 0:
             self.status.content = "No point under the click."
             return

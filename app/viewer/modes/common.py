@@ -42,12 +42,11 @@ def may(session: ViewerSession, role: Role) -> bool:
     return user is not None and user.is_active and has_role(user, role)
 
 
-def pick_clicked(points: np.ndarray, event: SceneClickEvent) -> int:
-    """Index of the shown point the click means (nearest the cursor on the front-most
-    surface, within a few pixels), -1 for none."""
-    return pick_on_ray(
-        points, event.ray_origin, event.ray_direction, click_angle(event.client.camera)
-    )
+def pick_clicked(points: np.ndarray, event: SceneClickEvent, point_size: float) -> int:
+    """Index of the shown point the click means (nearest the cursor on the surface drawn
+    there, within a few pixels; `picking.pick_on_ray`), -1 for none."""
+    angle = click_angle(event.client.camera)
+    return pick_on_ray(points, event.ray_origin, event.ray_direction, angle, point_size)
 
 
 def evenly(indices: np.ndarray, cap: int) -> np.ndarray:

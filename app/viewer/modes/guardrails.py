@@ -358,7 +358,7 @@ class GuardrailMode(Mode):
         """Toggle the label of the clicked slice (the nearest slice point along the ray)."""
         if "slices" not in self.clouds:
             return
-        hit = pick_clicked(self.xyz[self.shown], event)
+        hit = pick_clicked(self.xyz[self.shown], event, self.point_size.value)
         if hit < 0:
             self.status.content = "No slice under the click."
             return
@@ -394,7 +394,7 @@ class GuardrailMode(Mode):
         k = int(at[0])
         self.focus = k if k >= 0 else None
         if k >= 0:
-            look_at = s.centre[k] - self.origin
+            look_at = self._anchor(k)
             camera = self.session.client.camera
             offset = np.asarray(camera.position) - np.asarray(camera.look_at)
             norm = float(np.linalg.norm(offset))
@@ -406,6 +406,17 @@ class GuardrailMode(Mode):
             f"{row.station_m:.1f} m): probability {p}; {remaining:,} unlabelled left."
         )
         self._recolor()
+
+    def _anchor(self, k: int) -> np.ndarray:
+        """Where to look at slice k: its shown point nearest its centre (the centre is a mean
+        and may lie in the air between a rail and a post, where a click meets another slice),
+        the centre when none of its points is shown."""
+        centre = self.stage.slices.centre[k] - self.origin
+        mine = self.shown[self.point_slice[self.shown] == k]
+        if not len(mine):
+            return centre
+        xyz = self.xyz[mine].astype(np.float64)
+        return xyz[int(np.argmin(((xyz - centre) ** 2).sum(axis=1)))]
 
     def preview_correction(self) -> None:
         """Colour the slices whose label the adjacency correction would change."""

@@ -35,6 +35,7 @@ if TYPE_CHECKING:
 
 # meshes in their review colour, the selected one also outlined in orange (its decision colour
 # stays visible: a rejected model must not look like a selected one), points grey on white
+MODEL_POINT_SIZE = 0.04  # metres: the guardrail points under the meshes
 STATUS_RGB = {
     ModelStatus.pending: (70, 130, 230),
     ModelStatus.approved: (50, 185, 80),
@@ -191,7 +192,7 @@ class ModelMode(Mode):
             f"/{self.key}/points",
             points=self.xyz,
             colors=self._point_colors(),
-            point_size=0.04,
+            point_size=MODEL_POINT_SIZE,
             precision="float32",
             point_shading="flat",
         )
@@ -303,7 +304,7 @@ class ModelMode(Mode):
         """Select the guardrail whose slice point lies nearest along the click ray."""
         if self.cloud is None:
             return
-        hit = pick_clicked(self.xyz, event)
+        hit = pick_clicked(self.xyz, event, MODEL_POINT_SIZE)
         if hit >= 0:
             self.select(int(self.point_model[hit]))
 

@@ -243,7 +243,10 @@ class PillarMode(Mode):
         ground where the ray meets no shown point)."""
         shown = self._shown()
         angle = click_angle(event.client.camera)
-        hit_point = pick_on_ray(self.map.xyz[shown], event.ray_origin, event.ray_direction, angle)
+        hit_point = pick_on_ray(
+            self.map.xyz[shown], event.ray_origin, event.ray_direction, angle,
+            float(self.point_size.value),
+        )  # fmt: skip
         if hit_point >= 0:
             hit = np.asarray(self.map.xyz[shown[hit_point]], dtype=np.float64)
         else:
