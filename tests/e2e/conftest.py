@@ -9,6 +9,7 @@ leave the checkout clean.
 
 from __future__ import annotations
 
+import contextlib
 import os
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -71,6 +72,13 @@ def save_screenshot(page, artefacts: Path, name: str, docs: str | None = None) -
             target.parent.mkdir(exist_ok=True)
             page.screenshot(path=str(target))
     return path
+
+
+def close_notifications(page) -> None:
+    """Close the "software WebGL" notice before a screenshot (best effort)."""
+    for close in page.locator(".mantine-Notification-root button").all():
+        with contextlib.suppress(Exception):  # already gone
+            close.click(timeout=2000)
 
 
 def api_login(server: Server, username: str, password: str) -> str:

@@ -13,7 +13,7 @@ import httpx
 import pytest
 
 from tests.api.server import Server
-from tests.e2e.conftest import save_screenshot
+from tests.e2e.conftest import close_notifications, save_screenshot
 from tests.e2e.pixels import count_pixels, is_selection_green
 
 PASSWORD = "password-123"
@@ -150,8 +150,8 @@ def test_a_large_rectangle_is_previewed_takes_what_is_seen_and_waits_for_enter(
     page.get_by_text("Click: brush. Shift-drag: rectangle.").wait_for()
     page.wait_for_timeout(3000)
     box = canvas_box(page)
-    start = (box["x"] + box["width"] * 0.15, box["y"] + box["height"] * 0.25)
-    end = (box["x"] + box["width"] * 0.85, box["y"] + box["height"] * 0.8)
+    start = (box["x"] + box["width"] * 0.3, box["y"] + box["height"] * 0.45)
+    end = (box["x"] + box["width"] * 0.6, box["y"] + box["height"] * 0.75)
     green_before = count_pixels(page, is_selection_green)
 
     shift_drag(page, start, end)
@@ -160,6 +160,7 @@ def test_a_large_rectangle_is_previewed_takes_what_is_seen_and_waits_for_enter(
     assert seen > 400  # a large selection: previewed
     page.wait_for_timeout(2000)  # software WebGL draws the preview
     assert count_pixels(page, is_selection_green) > green_before + 500
+    close_notifications(page)
     save_screenshot(page, artefacts, "1-preview", docs="viewer_selection_preview.png")
     page.wait_for_timeout(1000)
     assert human_labels(api) == before  # nothing written before Enter

@@ -8,7 +8,6 @@ checked through the REST API. One screenshot per mode goes to docs/ (see conftes
 
 from __future__ import annotations
 
-import contextlib
 import io
 import os
 import re
@@ -27,6 +26,7 @@ from tests.api.server import Server
 from tests.e2e.conftest import (
     VIEWER_OVERVIEW_POINTS,
     VIEWER_TILE_POINTS,
+    close_notifications,
     save_screenshot,
 )
 from tests.e2e.pixels import count_pixels, is_target_red
@@ -118,13 +118,6 @@ def row_button(page, label: str, button: str):
         '/ancestor::div[contains(@class,"mantine-Flex-root")][1]'
         f'//button[normalize-space(.)="{button}"]'
     )
-
-
-def close_notifications(page) -> None:
-    """Close the "software WebGL" notice before a screenshot (best effort)."""
-    for close in page.locator(".mantine-Notification-root button").all():
-        with contextlib.suppress(Exception):  # already gone
-            close.click(timeout=2000)
 
 
 def user_id(client: httpx.Client) -> int:
