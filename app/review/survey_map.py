@@ -4,6 +4,8 @@ A survey's frames are accumulated in world coordinates (float64) and re-centred 
 local origin as float32 (viser sends float16 positions unless told otherwise, and float32 of
 world coordinates loses centimetres). Alongside the points the map keeps what serving it needs:
 
+- `intensity`: each point's return intensity as the sensor gave it (NaN where the survey has
+  none), for the viewer's "colour by intensity";
 - `cell`: each point's pillar on the store grid (an index into `cells`, the occupied pillars),
   so a label change becomes a colour change by one fancy index;
 - points ordered by 50 m tile, so the full-resolution points of a tile are one slice;
@@ -41,7 +43,7 @@ from app.io.accumulate import accumulate
 from app.store.models import Survey
 from app.store.pillar_labels import STORE_GRID
 
-CACHE_VERSION = 3  # 3: a folder of arrays, the per-point ones memory-mapped
+CACHE_VERSION = 4  # 3: a folder of arrays, the per-point ones memory-mapped; 4: intensity
 TILE_SIZE = 50.0  # metres: the full-resolution unit
 OVERVIEW_VOXEL = 0.2  # metres: one overview point per voxel
 GROUND_CELL = 1.0  # metres
@@ -87,6 +89,7 @@ class MapSource:
 class SurveyMap:
     origin: np.ndarray  # (3,) float64 world position of local (0, 0, 0)
     xyz: np.ndarray  # (N, 3) float32 local coordinates, ordered by tile
+    intensity: np.ndarray  # (N,) float32 sensor units, NaN where the survey has none
     cell: np.ndarray  # (N,) int32 index into `cells`
     cells: np.ndarray  # (M,) int64 sorted store-grid ids of the occupied pillars
     tile_ids: np.ndarray  # (T,) int64 sorted TILE_GRID ids of the occupied tiles
@@ -140,8 +143,8 @@ def accumulate_local(source: MapSource) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _local_frames(source: MapSource):
-    """Per frame (a map file: per chunk), in order: (local float32 xyz, tile id, store cell id
-    from the exact world xy)."""
+    """Per frame (a map file: per chunk), in order: (local float32 xyz, float32 intensity (NaN:
+    none), tile id, store cell id from the exact world xy)."""
     survey = open_survey(source.source_path, source.format)
     origin = np.asarray(source.origin, dtype=np.float64)
     for frame in survey.frames:
@@ -149,7 +152,11 @@ def _local_frames(source: MapSource):
             world = cloud.xyz
             xyz = (world - origin).astype(np.float32)
             cells = STORE_GRID.point_cell_ids(world[:, :2])
-            yield xyz, TILE_GRID.point_cell_ids(xyz[:, :2]), cells
+            if cloud.intensity is None:
+                intensity = np.full(len(xyz), np.nan, dtype=np.float32)
+            else:
+                intensity = np.asarray(cloud.intensity, dtype=np.float32)
+            yield xyz, intensity, TILE_GRID.point_cell_ids(xyz[:, :2]), cells
 
 
 class _Union:
@@ -179,7 +186,7 @@ def build_map(source: MapSource, overview_points: int, folder: Path) -> None:
     50 m tile), then capped; the ground is estimated from the overview."""
     cells, low, high = _Union(), np.full(3, np.inf), np.full(3, -np.inf)
     tile_counts: dict[int, int] = {}
-    for xyz, tile, cell in _local_frames(source):
+    for xyz, _, tile, cell in _local_frames(source):
         ids, counts = np.unique(tile, return_counts=True)
         for t, c in zip(ids.tolist(), counts.tolist(), strict=True):
             tile_counts[t] = tile_counts.get(t, 0) + c
@@ -193,13 +200,15 @@ def build_map(source: MapSource, overview_points: int, folder: Path) -> None:
     cell_table = cells.result().astype(np.int64)
     xyz_out = _open_array(folder / "xyz.npy", (n, 3), np.float32)
     cell_out = _open_array(folder / "cell.npy", (n,), np.int32)
+    intensity_out = _open_array(folder / "intensity.npy", (n,), np.float32)
     filled = tile_start[:-1].copy()
-    for xyz, tile, cell in _local_frames(source):
+    for xyz, intensity, tile, cell in _local_frames(source):
         order = np.argsort(tile, kind="stable")
         k = np.searchsorted(tile_ids, tile[order])
         ranks = np.arange(len(order)) - np.searchsorted(k, k)  # position within its tile run
         slots = filled[k] + ranks
         xyz_out[slots] = xyz[order]
+        intensity_out[slots] = intensity[order]
         cell_out[slots] = np.searchsorted(cell_table, cell[order]).astype(np.int32)
         filled += np.bincount(k, minlength=len(tile_ids))
     overview = [
@@ -217,9 +226,10 @@ def build_map(source: MapSource, overview_points: int, folder: Path) -> None:
     else:
         ground_origin, heights = np.zeros(2), np.zeros((1, 1), dtype=np.float32)
         low, high = np.zeros(3), np.zeros(3)
-    xyz_out.flush()
-    cell_out.flush()
-    del xyz_out, cell_out
+    for array in (xyz_out, cell_out, intensity_out):
+        if isinstance(array, np.memmap):  # an empty map's arrays are plain
+            array.flush()
+    del xyz_out, cell_out, intensity_out
     np.savez(
         folder / "index.npz",
         origin=np.asarray(source.origin, dtype=np.float64),
@@ -250,6 +260,7 @@ def _read_map(folder: Path) -> SurveyMap:
     mode = "r" if n else None
     return SurveyMap(
         xyz=np.load(folder / "xyz.npy", mmap_mode=mode),
+        intensity=np.load(folder / "intensity.npy", mmap_mode=mode),
         cell=np.load(folder / "cell.npy", mmap_mode=mode),
         **small,
     )

@@ -37,6 +37,7 @@ from app.viewer.drive import DriveControls
 from app.viewer.modes import MODES
 from app.viewer.modes.base import Mode
 from app.viewer.tickets import Ticket
+from app.viewer.view_presets import HOTKEYS, PRESETS, heading_at, preset_offset
 
 if TYPE_CHECKING:
     from app.viewer.server import ViewerServer
@@ -66,6 +67,7 @@ class ViewerSession:
         self._gui: list[Any] = []
         self._survey_ids: dict[str, int] = {}
         self._hold_camera = False
+        self.trajectory = np.zeros((0, 3))  # the open survey's drive, local coordinates
 
     # --- running work ----------------------------------------------------------------------
 
@@ -126,7 +128,13 @@ class ViewerSession:
         )
         first = next((m.name for m in MODES if m.key == self.requested_mode), MODES[0].name)
         mode_menu = gui.add_dropdown("Mode", tuple(m.name for m in MODES), initial_value=first)
-        self._gui += [survey_menu, mode_menu]
+        views = gui.add_button_group("View", PRESETS)
+        self._gui += [survey_menu, mode_menu, views]
+        views.on_click(lambda event: self.submit(self.show_preset, event.target.value))
+        for preset, key in HOTKEYS.items():
+            command = gui.add_command(f"View: {preset.lower()}", hotkey=key)
+            command.on_trigger(lambda _, p=preset: self.submit(self.show_preset, p))
+            self._gui.append(command)
 
         @survey_menu.on_update
         def _(_: Any) -> None:
@@ -172,6 +180,7 @@ class ViewerSession:
         survey_map = self.view.map
         with self.db() as session:
             trajectory = survey_trajectory(session, self.view.survey_id) - survey_map.origin
+        self.trajectory = trajectory
         self.drive = DriveControls.maybe(
             self.client.gui, trajectory,
             lambda xy: float(survey_map.ground.height(xy[None])[0]) if len(survey_map) else 0.0,
@@ -207,6 +216,14 @@ class ViewerSession:
         camera.position = look_at + offset  # moves look_at along ...
         camera.look_at = look_at  # ... so set it after the position
 
+    def show_preset(self, preset: str) -> None:
+        """Swing the camera to a standard view (`view_presets`) of the point it looks at."""
+        camera = self.client.camera
+        look_at = np.asarray(camera.look_at, dtype=np.float64)
+        distance = float(np.linalg.norm(np.asarray(camera.position) - look_at))
+        heading = heading_at(self.trajectory, look_at[:2])
+        self.move_camera(look_at, preset_offset(preset, heading, distance))
+
     def switch_mode(self, name: str) -> None:
         if self.mode is not None and self.mode.name == name:
             return
@@ -233,6 +250,7 @@ class ViewerSession:
             self.mode.enter(self)
         finally:
             self._hold_camera = False
+        self.trajectory = np.zeros((0, 3))  # the open survey's drive, local coordinates
         self.client.flush()
         return self.mode
 

@@ -147,6 +147,13 @@ class SurveyView:
         with self.lock:
             return self.rgb[cells]
 
+    def point_confidence(self, points: np.ndarray) -> np.ndarray:
+        """(n,) float32 model confidence of the pillars of map points `points` (NaN: no model
+        pre-label)."""
+        cells = self.map.cell[points]
+        with self.lock:
+            return np.where(self.model[cells] >= 0, self.confidence[cells], np.nan)
+
     def point_classes(self, points: np.ndarray) -> np.ndarray:
         cells = self.map.cell[points]
         with self.lock:

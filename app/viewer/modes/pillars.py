@@ -13,6 +13,11 @@ shown points inside it that the user can see, within a depth range, `pillar_sele
 selection is previewed and written on Enter); undo / redo (Ctrl+Z / Ctrl+Y, the user's own batches
 in the store); hiding classes; point size; "next uncertain area" (N) flies the camera to the
 area whose unreviewed model pre-labels are least confident and outlines it.
+
+Display: colour by label, height above ground, intensity or model confidence (`colour_modes`);
+a height slice (only points between two heights above the ground are shown, and so selectable:
+label under trees and canopies); rounded points (a depth cue on dense scans); top and side
+views of the focus beside the 3D view (`mini_views`), in the same colours.
 """
 
 from __future__ import annotations
@@ -25,6 +30,17 @@ from app.core.errors import StaleWriteError
 from app.core.labels import PillarClass
 from app.store.pillar_labels import NO_LABEL
 from app.store.pillar_reads import label_counts, uncertain_areas
+from app.viewer.colour_modes import (
+    COLOUR_MODES,
+    CONFIDENCE,
+    HEIGHT,
+    INTENSITY,
+    LABEL,
+    confidence_colors,
+    height_colors,
+    intensity_colors,
+)
+from app.viewer.mini_views import HALF_WIDTH, side_view, top_view
 from app.viewer.modes.base import Mode
 from app.viewer.modes.common import TARGET_RGB
 from app.viewer.modes.pillar_selection import (
@@ -35,6 +51,7 @@ from app.viewer.modes.pillar_selection import (
 )
 from app.viewer.picking import click_angle, pick_on_ray, pillars_in_disc, ray_ground_hit
 from app.viewer.pillar_colors import CLASS_NAMES, DISPLAY_CLASSES, DISPLAY_NAMES, swatch_html
+from app.viewer.view_presets import heading_at
 
 if TYPE_CHECKING:
     from viser import CameraHandle, SceneClickEvent, SceneRectSelectEvent
@@ -48,6 +65,8 @@ UNCERTAIN_VIEW_DISTANCE = 25.0  # metres from the camera to an uncertain area
 UNCERTAIN_AREA = 10.0  # metres: the side of an uncertain area
 AREA_HEIGHT = 4.0  # metres: the outline's height above the ground
 MAX_DEPTH = 500.0  # metres: the depth range slider's end
+VIEWS_MOVE = 0.5  # metres the focus moves before the top / side views are redrawn
+HEIGHT_SLICE = (-2.0, 40.0)  # metres above the ground: the height slice slider's ends
 
 
 class PillarMode(Mode):
@@ -69,9 +88,13 @@ class PillarMode(Mode):
         self.commands: list[Any] = []
         self.pending: PendingSelection | None = None
         self.area_outline: Any = None
+        self.height_slice = HEIGHT_SLICE
+        self.colour_by = LABEL
+        self.views_at: np.ndarray | None = None  # the focus the top / side views show
         self._build_gui()
         self._draw("overview", self.map.overview)
         self._focus(session.client.camera.look_at)
+        self._draw_views()
 
     def leave(self) -> None:
         self._drop_pending()
@@ -123,7 +146,22 @@ class PillarMode(Mode):
             self.cancel_selection = gui.add_button(
                 "Cancel selection", disabled=True, hint="Esc: drop the preview"
             )
+            with gui.add_folder("Top and side views", expand_by_default=True):
+                self.show_views = gui.add_checkbox("Show", initial_value=True)
+                blank = np.full((10, 10, 3), 255, dtype=np.uint8)
+                self.top_image = gui.add_image(blank, label="Top (drive up)", format="png")
+                self.side_image = gui.add_image(
+                    blank, label="Side (from the right, 4 m slab)", format="png"
+                )
             with gui.add_folder("Display", expand_by_default=False):
+                self.colour_menu = gui.add_dropdown("Colour by", COLOUR_MODES, initial_value=LABEL)
+                self.height_slider = gui.add_multi_slider(
+                    "Height slice (m)", min=HEIGHT_SLICE[0], max=HEIGHT_SLICE[1], step=0.1,
+                    initial_value=HEIGHT_SLICE, hint="show only points this high above the ground",
+                )  # fmt: skip
+                self.rounded = gui.add_checkbox(
+                    "Rounded points", initial_value=False, hint="shaded discs: a depth cue"
+                )
                 self.point_size = gui.add_slider(
                     "Point size", min=0.01, max=0.5, step=0.01, initial_value=0.06
                 )
@@ -140,6 +178,10 @@ class PillarMode(Mode):
         self.point_size.on_update(lambda _: submit(self._resize_points))
         for checkbox in self.hide.values():
             checkbox.on_update(lambda _: submit(self._apply_hidden))
+        self.height_slider.on_update(lambda _: submit(self._apply_hidden))
+        self.colour_menu.on_update(lambda _: submit(self._apply_colour_mode))
+        self.rounded.on_update(lambda _: submit(self._apply_shading))
+        self.show_views.on_update(lambda _: submit(self._draw_views))
         for key, choice in HOTKEYS.items():
             self._command(f"Class: {choice}", key, None, lambda c=choice: self._pick(c))
         self._command("Undo", "Z", "cmd/ctrl", lambda: submit(self.undo))
@@ -163,9 +205,30 @@ class PillarMode(Mode):
     # --- drawing ------------------------------------------------------------------------------
 
     def _visible(self, points: np.ndarray) -> np.ndarray:
-        if not self.hidden or not len(points):
+        """The points not hidden by class or outside the height slice."""
+        if not len(points):
             return points
-        return points[~np.isin(self.view.point_classes(points), list(self.hidden))]
+        if self.hidden:
+            points = points[~np.isin(self.view.point_classes(points), list(self.hidden))]
+        if self.height_slice != HEIGHT_SLICE:
+            height = self._height_above_ground(points)
+            lo, hi = self.height_slice
+            points = points[(height >= lo) & (height <= hi)]
+        return points
+
+    def _height_above_ground(self, points: np.ndarray) -> np.ndarray:
+        xyz = np.asarray(self.map.xyz[points], dtype=np.float64)
+        return xyz[:, 2] - self.map.ground.height(xyz[:, :2])
+
+    def _colors(self, points: np.ndarray) -> np.ndarray:
+        """(n, 3) uint8 colours of map points in the chosen colour mode."""
+        if self.colour_by == HEIGHT:
+            return height_colors(self._height_above_ground(points))
+        if self.colour_by == INTENSITY:
+            return intensity_colors(np.asarray(self.map.intensity[points]))
+        if self.colour_by == CONFIDENCE:
+            return confidence_colors(self.view.point_confidence(points))
+        return self.view.point_colors(points)
 
     def _draw(self, name: str, points: np.ndarray) -> None:
         """(Re)send one cloud (positions and colours) with the points of `points` not hidden."""
@@ -178,10 +241,10 @@ class PillarMode(Mode):
             self.clouds[name] = self.session.client.scene.add_point_cloud(
                 f"/{self.key}/{name}",
                 points=self.map.xyz[shown],
-                colors=self.view.point_colors(shown),
+                colors=self._colors(shown),
                 point_size=self.point_size.value,
                 precision="float32",
-                point_shading="flat",
+                point_shading="gradient" if self.rounded.value else "flat",
             )
 
     def _focus(self, xy_local: np.ndarray) -> None:
@@ -207,33 +270,79 @@ class PillarMode(Mode):
 
     def _apply_hidden(self) -> None:
         hidden = {k for k, box in self.hide.items() if box.value}
-        if hidden == self.hidden:
+        height_slice = tuple(float(v) for v in self.height_slider.value)
+        if hidden == self.hidden and height_slice == self.height_slice:
             return
-        self.hidden = hidden
+        self.hidden, self.height_slice = hidden, height_slice
+        self._redraw()
+
+    def _redraw(self) -> None:
         self._draw("overview", self.map.overview)
         self._draw("tile", self.tile_points)
         self._draw_pending()
+        self._draw_views()
+
+    def _apply_colour_mode(self) -> None:
+        self.colour_by = self.colour_menu.value
+        if self.colour_by == INTENSITY and not np.isfinite(self.map.intensity[:1_000]).any():
+            self.status.content = "This survey recorded no intensity: its points are grey."
+        for name in ("overview", "tile"):
+            cloud = self.clouds.get(name)
+            if cloud is not None:
+                cloud.colors = self._colors(getattr(self, f"shown_{name}"))
+        self._draw_views()
+
+    def _apply_shading(self) -> None:
+        for cloud in self.clouds.values():
+            cloud.point_shading = "gradient" if self.rounded.value else "flat"
+
+    def _draw_views(self) -> None:
+        """The top and side images of the points around the camera's focus (`mini_views`)."""
+        self.top_image.visible = self.side_image.visible = bool(self.show_views.value)
+        if not self.show_views.value or not len(self.map):
+            return
+        camera = self.session.client.camera
+        focus = np.asarray(camera.look_at, dtype=np.float64)
+        shown = self._shown()
+        xyz = np.asarray(self.map.xyz[shown], dtype=np.float64)
+        near = np.abs(xyz[:, :2] - focus[:2]).max(axis=1) <= HALF_WIDTH * 1.5
+        points, xyz = shown[near], xyz[near]
+        rgb = self._colors(points)
+        heading = heading_at(self.session.trajectory, focus[:2])
+        self.top_image.image = top_view(xyz, rgb, focus, heading)
+        self.side_image.image = side_view(xyz, rgb, focus, heading)
 
     def on_labels_changed(self, changed: np.ndarray) -> None:
         """Resend the colours of the clouds holding changed pillars (with classes hidden, a
-        relabelled pillar may appear or vanish: that cloud is resent whole)."""
+        relabelled pillar may appear or vanish: that cloud is resent whole); colours by height
+        or intensity do not change with labels."""
         mark = np.zeros(len(self.map.cells), dtype=bool)
         mark[changed] = True
+        by_label = self.colour_by in (LABEL, CONFIDENCE)
+        touched = False
         for name, source in (("overview", self.map.overview), ("tile", self.tile_points)):
             shown = getattr(self, f"shown_{name}")
             if self.hidden:
                 visible = self._visible(source)
                 if not np.array_equal(visible, shown):
                     self._draw(name, source)
+                    touched = True
                     continue
             cloud = self.clouds.get(name)
-            if cloud is not None and mark[self.map.cell[shown]].any():
-                cloud.colors = self.view.point_colors(shown)
+            if by_label and cloud is not None and mark[self.map.cell[shown]].any():
+                cloud.colors = self._colors(shown)
+                touched = True
+        if touched:
+            self._draw_views()
 
     # --- tools --------------------------------------------------------------------------------
 
     def on_camera(self, camera: CameraHandle) -> None:
         self._focus(camera.look_at)
+        focus = np.asarray(camera.look_at, dtype=np.float64)
+        if self.views_at is None or np.abs(focus - self.views_at).max() > VIEWS_MOVE:
+            self.views_at = focus
+            self._draw_views()
 
     def _shown(self) -> np.ndarray:
         return np.concatenate([self.shown_overview, self.shown_tile])

@@ -1,0 +1,169 @@
+"""The labelling view's display and selection tools on a real viser server and a wire client:
+colour by height / intensity, a height slice that hides a canopy (and keeps it out of
+selections), top and side views of the focus, standard views, and a large rectangle that is
+previewed and written only on Enter."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+from sqlmodel import Session
+from viser import SceneRectSelectEvent
+
+from app.io import open_survey
+from app.io.ply import write_ply
+from app.store.pillar_reads import label_counts
+from app.store.surveys import register_opened_survey
+from app.viewer.colour_modes import HEIGHT, INTENSITY, height_colors, intensity_colors
+from app.viewer.modes.pillar_selection import CONFIRM_ABOVE, PREVIEW_RGB
+from app.viewer.modes.pillars import PillarMode
+from tests.viewer.test_modes_common import (
+    Connection,
+    Driver,
+    add_users,
+    new_engine,
+    viewer_settings,
+)
+from tests.viewer.wire import gui_set, is_color_update, is_point_cloud
+
+CANOPY_Z = 6.0  # metres above the ground
+
+
+@pytest.fixture(scope="module")
+def opened(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Connection, Any, int]]:
+    """A 40 x 20 m flat street (0.25 m grid, intensity growing eastwards) under a 10 x 10 m
+    canopy at 6 m, opened by an annotator in the pillar mode."""
+    root = tmp_path_factory.mktemp("pillar-display")
+    settings = viewer_settings(root)
+    engine = new_engine(settings)
+    users = add_users(engine)
+    gx, gy = np.meshgrid(np.arange(0, 40, 0.25), np.arange(0, 20, 0.25), indexing="ij")
+    ground = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], axis=1)
+    cx, cy = np.meshgrid(np.arange(15, 25, 0.25), np.arange(5, 15, 0.25), indexing="ij")
+    canopy = np.stack([cx.ravel(), cy.ravel(), np.full(cx.size, CANOPY_Z)], axis=1)
+    xyz = np.concatenate([ground, canopy]) + [600_000.0, 5_000_000.0, 80.0]
+    intensity = (xyz[:, 0] - 600_000.0).astype(np.float32) / 40.0
+    path = write_ply(root / "street.ply", xyz, fields={"intensity": intensity})
+    with Session(engine) as session:
+        survey = register_opened_survey(
+            session, open_survey(path, "ply"), format="ply", source_path=path
+        )
+    driver = Driver(settings, engine)
+    try:
+        yield driver.connect(*users["ann"], survey.id), engine, survey.id
+    finally:
+        driver.close()
+        engine.dispose()
+
+
+def uuid_of(connection: Connection, label: str, kind: str) -> str:
+    found = connection.since(
+        0, lambda m: m.get("type") == kind and m["props"].get("label") == label
+    )
+    assert found, f"no {kind} {label!r} sent"
+    return found[-1]["uuid"]
+
+
+def newest_colors(connection: Connection, name: str, since: int) -> np.ndarray:
+    message = connection.wait(
+        lambda m: m.get("name") == name and (is_color_update(m) or is_point_cloud(m)), since
+    )
+    colors = (
+        message["updates"]["colors"] if is_color_update(message) else message["props"]["colors"]
+    )
+    return np.asarray(colors).reshape(-1, 3)
+
+
+def test_colour_by_height_then_intensity(opened) -> None:
+    connection, _, _ = opened
+    mode: PillarMode = connection.mode
+    menu = uuid_of(connection, "Colour by", "GuiDropdownMessage")
+    mark = connection.mark()
+    connection.send(gui_set(menu, HEIGHT))
+    colors = newest_colors(connection, "/pillars/overview", mark)
+    shown = mode.shown_overview
+    xyz = np.asarray(mode.map.xyz[shown], dtype=np.float64)
+    expected = height_colors(xyz[:, 2] - mode.map.ground.height(xyz[:, :2]))
+    assert np.array_equal(colors, expected)
+    mark = connection.mark()
+    connection.send(gui_set(menu, INTENSITY))
+    colors = newest_colors(connection, "/pillars/overview", mark)
+    assert np.array_equal(colors, intensity_colors(np.asarray(mode.map.intensity[shown])))
+    assert colors[:, 0].min() < colors[:, 0].max()  # the intensity of the file, not grey
+    connection.send(gui_set(menu, "Label"))
+    connection.call(lambda: None)
+
+
+def test_height_slice_hides_the_canopy_and_top_side_views_follow(opened) -> None:
+    connection, _, _ = opened
+    mode: PillarMode = connection.mode
+    menu = uuid_of(connection, "Colour by", "GuiDropdownMessage")
+    connection.send(gui_set(menu, HEIGHT))  # the canopy and the road in different colours
+    connection.call(lambda: None)
+    top_before = np.array(mode.top_image.image, copy=True)
+    assert (top_before != 255).any()  # the views show the street around the focus
+    slider = uuid_of(connection, "Height slice (m)", "GuiMultiSliderMessage")
+    mark = connection.mark()
+    connection.send(gui_set(slider, (-2.0, 3.0)))
+    cloud = connection.wait(lambda m: is_point_cloud(m) and m["name"] == "/pillars/overview", mark)
+    z = np.asarray(cloud["props"]["points"]).reshape(-1, 3)[:, 2]
+    assert len(z) and z.max() < 3.0  # the canopy is not shown ...
+    connection.call(lambda: None)
+    assert not np.array_equal(mode.top_image.image, top_before)  # ... nor in the top view
+    connection.send(gui_set(slider, (-2.0, 40.0)))
+    connection.send(gui_set(menu, "Label"))
+    connection.call(lambda: None)
+    assert mode.height_slice == (-2.0, 40.0)
+
+
+def test_standard_views_swing_the_camera_around_its_focus(opened) -> None:
+    connection, _, _ = opened
+    group = uuid_of(connection, "View", "GuiButtonGroupMessage")
+    for preset, axis, sign in (("Top", 2, 1), ("Side", 1, -1), ("Front", 0, -1)):
+        mark = connection.mark()
+        connection.send(gui_set(group, preset))
+        message = connection.wait(lambda m: m.get("type") == "SetCameraPositionMessage", mark)
+        camera = connection.session.client.camera
+        offset = np.asarray(message["position"]) - np.asarray(camera.look_at)
+        # the drive runs along +x (the PLY has no trajectory): +x is the default heading
+        assert sign * offset[axis] > 0.95 * np.linalg.norm(offset), preset
+
+
+def test_a_large_rectangle_waits_for_enter_and_a_small_one_does_not(opened) -> None:
+    connection, engine, survey_id = opened
+    mode: PillarMode = connection.mode
+    session = connection.session
+    connection.call(session.show_preset, "Top")
+
+    def rect(lo: tuple[float, float], hi: tuple[float, float]) -> SceneRectSelectEvent:
+        return SceneRectSelectEvent(
+            client=session.client, client_id=session.client.client_id,
+            screen_min=lo, screen_max=hi, modifier="shift",
+        )  # fmt: skip
+
+    def human_count() -> int:
+        with Session(engine) as db:
+            return sum(label_counts(db, survey_id)["human"])
+
+    mark = connection.mark()
+    connection.call(mode.on_rect_select, rect((0.1, 0.1), (0.9, 0.9)))
+    assert mode.pending is not None and len(mode.pending.cells) > CONFIRM_ABOVE
+    preview = connection.wait(
+        lambda m: is_point_cloud(m) and m["name"] == "/pillars/selection", mark
+    )
+    assert tuple(np.asarray(preview["props"]["colors"]).reshape(-1)[:3]) == PREVIEW_RGB
+    assert human_count() == 0  # nothing written before Enter
+    connection.call(mode.cancel_pending)
+    assert mode.pending is None and human_count() == 0
+    connection.call(mode.on_rect_select, rect((0.1, 0.1), (0.9, 0.9)))
+    selected = len(mode.pending.cells)
+    connection.call(mode.confirm_selection)
+    assert human_count() == selected and mode.pending is None
+    connection.call(mode.undo)
+    # a small rectangle is written at once
+    connection.call(mode.on_rect_select, rect((0.49, 0.49), (0.51, 0.51)))
+    assert mode.pending is None and 0 < human_count() <= CONFIRM_ABOVE
+    connection.call(mode.undo)

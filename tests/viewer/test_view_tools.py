@@ -1,0 +1,94 @@
+"""The labelling view's display tools as functions: colour ramps, the top and side views
+rasterised on the server, and the standard views relative to the drive."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.viewer.colour_modes import (
+    NO_VALUE_RGB,
+    RAMP,
+    confidence_colors,
+    height_colors,
+    intensity_colors,
+)
+from app.viewer.mini_views import BACKGROUND, HALF_WIDTH, PIXEL, SIDE_ABOVE, side_view, top_view
+from app.viewer.view_presets import heading_at, preset_offset
+
+
+def test_height_ramp_runs_from_blue_on_the_ground_to_red_overhead() -> None:
+    rgb = height_colors(np.array([-5.0, 0.0, 4.0, 50.0, np.nan]))
+    assert tuple(rgb[0]) == tuple(RAMP[0]) and tuple(rgb[3]) == tuple(RAMP[-1])  # clamped
+    assert rgb[1, 2] > rgb[1, 0] and rgb[2, 1] > rgb[2, 2]  # bluish low, greener higher
+    assert tuple(rgb[4]) == tuple(NO_VALUE_RGB)
+    assert rgb.max(axis=1).min() < 250  # no near-white on the white background
+
+
+def test_intensity_is_a_grey_ramp_between_percentiles_and_grey_without() -> None:
+    value = np.r_[np.linspace(0.0, 1.0, 101), np.nan]
+    rgb = intensity_colors(value)
+    assert (rgb[:-1, 0] == rgb[:-1, 1]).all() and (np.diff(rgb[:-1, 0].astype(int)) >= 0).all()
+    assert rgb[0, 0] < 60 and 180 < rgb[-2, 0] < 250
+    assert tuple(rgb[-1]) == tuple(NO_VALUE_RGB)
+    assert (intensity_colors(np.full(3, np.nan)) == NO_VALUE_RGB).all()  # none recorded
+
+
+def test_confidence_is_red_when_unsure_green_when_sure() -> None:
+    rgb = confidence_colors(np.array([0.2, 1.0, np.nan]))
+    assert rgb[0, 0] > 2 * rgb[0, 1] and rgb[1, 1] > 2 * rgb[1, 0]
+    assert tuple(rgb[2]) == tuple(NO_VALUE_RGB)
+
+
+def test_top_view_puts_ahead_up_and_keeps_the_highest_point() -> None:
+    heading = np.array([0.0, 1.0])  # driving north: north is up, east is right
+    xyz = np.array([[0.0, 5.0, 0.0], [3.0, 0.0, 0.0], [3.0, 0.0, 2.0]])
+    rgb = np.array([(10, 10, 10), (20, 20, 20), (30, 30, 30)], dtype=np.uint8)
+    image = top_view(xyz, rgb, np.zeros(3), heading)
+    size = int(round(2 * HALF_WIDTH / PIXEL))
+    assert image.shape == (size, size, 3)
+    centre = size // 2
+    assert tuple(image[centre - 50, centre]) == (10, 10, 10)  # 5 m ahead: 50 px up
+    assert tuple(image[centre, centre + 30]) == (30, 30, 30)  # 3 m east: right, the top one
+    assert (image == BACKGROUND).all(axis=2).mean() > 0.99
+
+
+def test_side_view_shows_the_slab_nearest_the_viewer_on_the_right() -> None:
+    heading = np.array([1.0, 0.0])  # driving east: the right of the drive is south
+    xyz = np.array(
+        [
+            [2.0, -1.0, 1.0],  # in the slab, nearer the viewer (south)
+            [2.0, 1.0, 1.0],  # in the slab, behind it: hidden
+            [6.0, 8.0, 1.0],  # outside the slab: not drawn
+        ]
+    )
+    rgb = np.array([(10, 10, 10), (20, 20, 20), (30, 30, 30)], dtype=np.uint8)
+    image = side_view(xyz, rgb, np.zeros(3), heading)
+    row = int(round(SIDE_ABOVE / PIXEL)) - 10  # 1 m above the focus
+    col = int(round(HALF_WIDTH / PIXEL)) + 20  # 2 m ahead: right of the centre
+    assert tuple(image[row, col]) == (10, 10, 10)
+    assert not (image == 30).all(axis=2).any()
+
+
+def test_heading_follows_the_nearest_trajectory_segment() -> None:
+    trajectory = np.array([[0, 0, 0], [10, 0, 0], [10, 10, 0]], dtype=float)
+    np.testing.assert_allclose(heading_at(trajectory, np.array([5.0, 1.0])), [1.0, 0.0])
+    np.testing.assert_allclose(heading_at(trajectory, np.array([11.0, 6.0])), [0.0, 1.0])
+    np.testing.assert_allclose(heading_at(np.zeros((1, 3)), np.zeros(2)), [1.0, 0.0])
+
+
+def test_presets_look_down_along_and_across_the_drive() -> None:
+    heading = np.array([0.0, 1.0])
+    top = preset_offset("Top", heading, 40.0)
+    front = preset_offset("Front", heading, 40.0)
+    side = preset_offset("Side", heading, 40.0)
+    for offset in (top, front, side):
+        assert np.linalg.norm(offset) == pytest.approx(40.0)
+    assert top[2] > 39.0  # from above
+    assert front[1] < -39.0  # from behind, looking ahead
+    assert side[0] > 39.0  # from the right (east of a northbound drive)
+    oblique = preset_offset("Oblique", heading, 40.0)
+    assert oblique[2] > 0 and oblique[1] < 0
+    assert np.linalg.norm(preset_offset("Top", heading, 1e6)) == pytest.approx(300.0)
+    with pytest.raises(ValueError, match="unknown view"):
+        preset_offset("Bottom", heading, 10.0)
