@@ -41,7 +41,10 @@ def user_add(
     console.print(f"created user {user.username} ({user.role.value}), id {user.id}")
 
 
-EXPORTS = ("cleaned-laz", "removed-laz", "guardrails", "pillars-csv", "pillars-npz", "qa-report")
+EXPORTS = (
+    "cleaned-laz", "removed-laz", "classified-laz", "cleaned-pcd", "map-pcd",
+    "semantickitti-labels", "guardrails", "pillars-csv", "pillars-npz", "qa-report",
+)  # fmt: skip
 
 
 def export(
@@ -59,9 +62,10 @@ def export(
     ] = "newest",
     overwrite: Annotated[bool, typer.Option(help="replace OUT if it exists")] = False,
 ) -> None:
-    """Export from the web app's store (as the dashboard's downloads do): the cleaned or removed
-    map of the newest clutter or phantom run, approved guardrail meshes, pillar labels, the QA
-    report."""
+    """Export from the web app's store (as the dashboard's downloads do): the cleaned, removed or
+    classified map of the newest clutter or phantom run (LAZ with the survey's CRS when it has
+    one, or PCD), SemanticKITTI labels of the newest clutter run, approved guardrail meshes,
+    pillar labels, the QA report."""
     import os
     import shutil
 
@@ -74,11 +78,12 @@ def export(
         csv_pieces,
         exported,
         pillar_table,
-        removal_map,
         write_guardrails_zip,
         write_pillars_npz,
     )
+    from app.reports.map_exports import map_with_crs, write_classified_laz, write_map_pcd
     from app.reports.qa_report import build_qa_report
+    from app.reports.semantickitti_labels import write_semantickitti_zip
     from app.store.db import get_engine
     from app.store.surveys import find_survey
 
@@ -94,14 +99,27 @@ def export(
         raise ConfigError("--out", f"{out.parent} is not a folder")
     settings = get_settings()
     partial = out.with_name(f".{out.name}.partial")
+    staged = out.with_name(f".{out.name}.partial.laz")  # LasAppender compresses by the suffix
     name, details = what.replace("-", "_"), {}
     try:
         with Session(get_engine()) as session:
             record = find_survey(session, survey)
             if what in ("cleaned-laz", "removed-laz"):
-                path, job = removal_map(session, settings, record, what.split("-")[0], source)
+                which = what.split("-")[0]
+                path, job, crs = map_with_crs(session, settings, record, which, source, staged)
                 shutil.copyfile(path, partial)
-                details = {"job_id": job.id, "file": str(path)}
+                details = {"job_id": job.id, "file": str(path), "crs": crs}
+            elif what == "classified-laz":
+                job, points, crs = write_classified_laz(session, settings, record, source, staged)
+                shutil.move(staged, partial)
+                details = {"job_id": job.id, "points": points, "crs": crs}
+            elif what in ("cleaned-pcd", "map-pcd"):
+                which = ("cleaned",) if what == "cleaned-pcd" else ("cleaned", "removed")
+                job, points = write_map_pcd(session, settings, record, source, which, partial)
+                details = {"job_id": job.id, "points": points}
+            elif what == "semantickitti-labels":
+                manifest = write_semantickitti_zip(session, settings, record, partial)
+                details = {"job_id": manifest["job_id"], "frames": len(manifest["frames"])}
             elif what == "guardrails":
                 count = write_guardrails_zip(session, record, mesh_format, partial)
                 name, details = "guardrails_zip", {"format": mesh_format, "models": count}
@@ -122,6 +140,7 @@ def export(
             os.replace(partial, out)
     finally:
         partial.unlink(missing_ok=True)
+        staged.unlink(missing_ok=True)
     console.print(f"{out}: {what} of {label}")
 
 

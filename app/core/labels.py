@@ -30,11 +30,13 @@ class Semantic(IntEnum):
     CAR = 10
     BICYCLE = 11
     BUS = 13
+    MOTORCYCLE = 15
     ON_RAILS = 16  # tram
     TRUCK = 18
     OTHER_VEHICLE = 20  # van
     PERSON = 30
     BICYCLIST = 31
+    MOTORCYCLIST = 32
     ROAD = 40
     PARKING = 44
     SIDEWALK = 48  # sidewalks and curbs
@@ -48,12 +50,16 @@ class Semantic(IntEnum):
     TERRAIN = 72
     POLE = 80
     TRAFFIC_SIGN = 81
+    OTHER_OBJECT = 99
 
 
 FENCE = int(Semantic.FENCE)  # SemanticKITTI labels highway guardrails "fence"
 
-# SemanticKITTI adds 242 to the id of a moving object: car 10 -> moving-car 252, etc.
-MOVING_OFFSET = {10: 252, 31: 253, 30: 254, 16: 256, 13: 257, 18: 258, 20: 259, 11: 253}
+# SemanticKITTI adds 242 to the id of a moving object: car 10 -> moving-car 252, etc.; a moving
+# bicycle is its bicyclist (253), a moving motorcycle its motorcyclist (255)
+MOVING_OFFSET = {
+    10: 252, 31: 253, 30: 254, 16: 256, 13: 257, 18: 258, 20: 259, 11: 253, 15: 255, 32: 255
+}  # fmt: skip
 # SemanticKITTI moving class -> its static class
 MOVING_TO_STATIC = {252: 10, 253: 31, 254: 30, 255: 32, 256: 16, 257: 13, 258: 18, 259: 20}
 MOVING_IDS = np.arange(252, 260)
@@ -76,6 +82,31 @@ CLUTTER_SEMANTIC = frozenset(
     {Semantic.CAR, Semantic.BICYCLE, Semantic.BUS, Semantic.ON_RAILS, Semantic.TRUCK,
      Semantic.OTHER_VEHICLE, Semantic.PERSON, Semantic.BICYCLIST}
 )  # fmt: skip
+
+# the clutter pipeline's object classes (its camera classes, `segmenter.CLUTTER_CLASSES`, and
+# `moved-track`: an object nobody classed that moves at a vehicle's speed) as SemanticKITTI's
+# static classes; a Cityscapes "rider" is taken for a bicyclist
+CLUTTER_CLASS_SEMANTIC: dict[str, Semantic] = {
+    "person": Semantic.PERSON,
+    "rider": Semantic.BICYCLIST,
+    "car": Semantic.CAR,
+    "truck": Semantic.TRUCK,
+    "bus": Semantic.BUS,
+    "train": Semantic.ON_RAILS,
+    "motorcycle": Semantic.MOTORCYCLE,
+    "bicycle": Semantic.BICYCLE,
+    "moved-track": Semantic.OTHER_VEHICLE,
+}
+
+
+def semantic_name(label: int) -> str:
+    """SemanticKITTI's name of a class id known here ("moving-car" for 252); "" otherwise."""
+    if label in MOVING_TO_STATIC:
+        return "moving-" + semantic_name(MOVING_TO_STATIC[label])
+    try:
+        return Semantic(label).name.lower().replace("_", "-")
+    except ValueError:
+        return ""
 
 
 class Part(IntEnum):

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import laspy
 import numpy as np
+from laspy.vlrs.known import WktCoordinateSystemVlr
 
 from app.core.errors import InputError
 from app.io.las_layout import check_las_layout
@@ -133,6 +134,34 @@ def _has_nonzero_classification(path: Path) -> bool:
         return False
 
     return bool(guarded(path, "point data", scan))
+
+
+def read_las_chunks(path: str | Path) -> Iterator[tuple[int, PointCloud]]:
+    """A LAS / LAZ file's points a million at a time (index of the first, points with their
+    intensity, classification and mmsclean's extra dimensions): a map of any size in bounded
+    memory."""
+    path = Path(path)
+    return _chunks(path, las_point_count(path))
+
+
+def _has_wkt(header: laspy.LasHeader) -> bool:
+    return any(isinstance(v, WktCoordinateSystemVlr) for v in header.vlrs)
+
+
+def las_crs(path: str | Path) -> tuple[str | None, str]:
+    """The coordinate system a LAS / LAZ header records, as (WKT or None, what was found): a
+    WKT VLR is taken as it is; GeoTIFF keys alone are not converted (that needs PROJ, which
+    mmsclean does not use), so they give None and say so."""
+    header = _read_header(Path(path))
+    wkt = next((v.string for v in header.vlrs if isinstance(v, WktCoordinateSystemVlr)), "")
+    if wkt.strip():
+        return wkt, f"WKT from the header of {Path(path).name}"
+    if any(getattr(v, "record_id", None) == 34735 for v in header.vlrs):
+        return None, (
+            f"{Path(path).name} records its CRS as GeoTIFF keys only; mmsclean does not convert "
+            "them to WKT, so none is written"
+        )
+    return None, f"the header of {Path(path).name} records no CRS"
 
 
 def las_point_count(path: Path) -> int:
@@ -334,13 +363,15 @@ MERGE_CHUNK = 1_000_000  # points per chunk when files are concatenated
 
 class LasAppender:
     """One LAS / LAZ file written from part files as they come (a tiled run appends each tile's
-    part once the tiles before it are in). The parts share one scale and offset. LAZ parts into a
+    part once the tiles before it are in), with the coordinate system `wkt` in its header when
+    given. The parts share one scale and offset. LAZ parts into a
     LAZ file are joined chunk by chunk, their compressed bytes copied (`laz_chunks`); other parts
     are copied a million points at a time through laspy. Written through `<path>.partial`,
     renamed by `close`; `abort` leaves nothing."""
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, wkt: str | None = None):
         self.path = Path(path)
+        self.wkt = wkt  # a coordinate system for the header (a WKT VLR)
         self.partial = self.path.with_suffix(self.path.suffix + ".partial")
         self.count = 0
         self._file = None
@@ -357,7 +388,7 @@ class LasAppender:
             self._file = open(self.partial, "wb")  # noqa: SIM115 (closed by close / abort)
             joined = _joinable(part) if self.path.suffix.lower() == ".laz" else None
             if joined is not None:
-                self._join = LazJoin(self._file)
+                self._join = LazJoin(self._file, self.wkt)
         if self._join is not None:
             self._join.add(joined or LazPart.read(part))
             self.count = self._join.count
@@ -368,8 +399,12 @@ class LasAppender:
         with laspy.open(part) as reader:
             header = reader.header
             if self._writer is None:
+                header = copy.deepcopy(header)  # recounted on close
+                if self.wkt and not _has_wkt(header):
+                    header.vlrs.append(WktCoordinateSystemVlr(self.wkt))
+                    header.global_encoding.wkt = True
                 self._writer = laspy.open(
-                    self._file, mode="w", header=copy.deepcopy(header),  # recounted on close
+                    self._file, mode="w", header=header,
                     do_compress=self.path.suffix.lower() == ".laz", closefd=False,
                 )  # fmt: skip
                 self._first, self._scales, self._offsets = part, header.scales, header.offsets

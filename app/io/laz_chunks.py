@@ -93,12 +93,41 @@ def _point_counts(
     return table
 
 
+WKT_USER, WKT_RECORD = b"LASF_Projection", 2112  # the OGC WKT coordinate system record
+HEADER_SIZE_AT, POINT_DATA_AT, VLR_COUNT_AT, ENCODING_AT = 94, 96, 100, 6  # u16, u32, u32, u16
+WKT_BIT = 1 << 4  # global encoding: the CRS is WKT (required for point formats 6-10)
+
+
+def wkt_vlr(wkt: str) -> bytes:
+    """The OGC WKT coordinate system VLR (LAS 1.4 R15, 2.5.1): header and null-ended text."""
+    data = wkt.encode("utf-8") + b"\0"
+    if len(data) > 0xFFFF:
+        raise ValueError(f"a WKT of {len(data)} bytes does not fit one VLR")
+    description = b"OGC Transformation Record".ljust(32, b"\0")
+    return struct.pack("<H16sHH32s", 0, WKT_USER, WKT_RECORD, len(data), description) + data
+
+
+def vlrs_end(head: bytes | bytearray) -> tuple[int, bool]:
+    """Where a LAS header's VLRs end, and whether one of them is a WKT record."""
+    (at,) = struct.unpack_from("<H", head, HEADER_SIZE_AT)
+    (count,) = struct.unpack_from("<I", head, VLR_COUNT_AT)
+    has_wkt = False
+    for _ in range(count):
+        user, record, length = struct.unpack_from("<16sHH", head, at + 2)
+        has_wkt |= user.rstrip(b"\0") == WKT_USER and record == WKT_RECORD
+        at += VLR_HEADER + length
+    return at, has_wkt
+
+
 class LazJoin:
     """One LAZ file written from parts as they come (`add`), chunk bytes copied; `finish` writes
-    the chunk table and the header's counts and bounds."""
+    the chunk table and the header's counts and bounds. With `wkt`, the first part's header gets
+    that coordinate system (a WKT VLR, unless it has one)."""
 
-    def __init__(self, file: BinaryIO):
+    def __init__(self, file: BinaryIO, wkt: str | None = None):
         self.file = file
+        self.wkt = wkt
+        self._head = b""  # the header and VLRs written, as written
         self.first: LazPart | None = None
         self.record = b""  # the first part's LASzip record, chunks made variable
         self.table: list[tuple[int, int]] = []
@@ -130,9 +159,12 @@ class LazJoin:
         """The first part's header and VLRs, its LASzip record saying variable-size chunks."""
         with part.path.open("rb") as f:
             head = bytearray(f.read(part.header.offset_to_point_data))
+        if self.wkt:
+            head = with_wkt(head, self.wkt)
         at = _laszip_record_at(head, part.path)
         head[at + CHUNK_SIZE_AT : at + CHUNK_SIZE_AT + 4] = struct.pack("<I", VARIABLE_CHUNKS)
         self.file.write(bytes(head))
+        self._head = bytes(head)
         self.file.write(struct.pack("<q", -1))  # the chunk table's place, known at the end
         self.first = part
         self.record = bytes(head[at : at + len(part.record)])
@@ -144,7 +176,7 @@ class LazJoin:
         table_at = self.file.tell()
         lazrs.write_chunk_table(self.file, self.table, lazrs.LazVlr(self.record))
         end = self.file.tell()
-        start = self.first.header.offset_to_point_data
+        (start,) = struct.unpack_from("<I", self._head, POINT_DATA_AT)
         self.file.seek(start)
         self.file.write(struct.pack("<q", table_at))
         self._write_header()
@@ -168,6 +200,24 @@ class LazJoin:
             self.file.write(struct.pack("<Q", self.count))
             self.file.seek(BY_RETURN_14)
             self.file.write(struct.pack("<15Q", *[int(n) for n in self.by_return]))
+
+
+def with_wkt(head: bytearray, wkt: str) -> bytearray:
+    """A LAS header and its VLRs (up to the point data) with a WKT VLR added after the others,
+    the offset to the points, the VLR count and the WKT bit set to match; unchanged where it
+    has a WKT record already."""
+    end, has_wkt = vlrs_end(head)
+    if has_wkt:
+        return head
+    record = wkt_vlr(wkt)
+    out = bytearray(head[:end]) + record + head[end:]
+    (offset,) = struct.unpack_from("<I", out, POINT_DATA_AT)
+    (count,) = struct.unpack_from("<I", out, VLR_COUNT_AT)
+    (encoding,) = struct.unpack_from("<H", out, ENCODING_AT)
+    struct.pack_into("<I", out, POINT_DATA_AT, offset + len(record))
+    struct.pack_into("<I", out, VLR_COUNT_AT, count + 1)
+    struct.pack_into("<H", out, ENCODING_AT, encoding | WKT_BIT)
+    return out
 
 
 def same_layout(a: laspy.LasHeader, b: laspy.LasHeader) -> bool:

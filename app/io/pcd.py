@@ -1,4 +1,5 @@
-"""PCD (Point Cloud Library, v0.7): read an accumulated map.
+"""PCD (Point Cloud Library, v0.7): read an accumulated map; write one with labels
+(`write_labelled_pcd`).
 
 A small reader of its own for `DATA ascii` and `DATA binary` (header parsed eagerly, data read on
 `Frame.points()` with one `np.loadtxt` / `np.fromfile`, or a million points at a time by
@@ -27,7 +28,7 @@ from __future__ import annotations
 import shutil
 import struct
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -47,6 +48,7 @@ from app.io.point_files import (
     normalized,
     read_header_bytes,
     text_table_chunks,
+    write_atomically,
 )
 from app.io.survey import PointCloud, Survey
 
@@ -366,3 +368,59 @@ def _load_reference(path: Path, header: _PcdHeader, labels: tuple[str, ...]) -> 
     if header.organized:
         data = data[_organized_finite(data)]
     return {name: np.ascontiguousarray(data[name]) for name in labels}
+
+
+# what `write_labelled_pcd` writes: PCL's float x y z intensity and its uint32 `label`
+LABELLED_PCD = np.dtype(
+    [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4"), ("label", "<u4")]
+)
+
+
+def write_labelled_pcd(
+    path: str | Path,
+    points: int,
+    pieces: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    comments: Iterable[str] = (),
+) -> Path:
+    """A `DATA binary` PCD v0.7 of `points` points with fields x y z intensity label, written
+    a piece at a time from `pieces` ((N, 3) xyz, (N,) intensity, (N,) label each), so a map of
+    any size passes in bounded memory. The count goes in the header before any point, so the
+    pieces must add up to it; `comments` become `#` lines of the header. Through
+    `<path>.partial`: a failed write leaves nothing."""
+    path = Path(path)
+    lines = ["# .PCD v0.7 - Point Cloud Data file format"]
+    lines += [f"# {c}" for c in comments if "\n" not in c and "\r" not in c]
+    lines += [
+        "VERSION 0.7",
+        "FIELDS " + " ".join(LABELLED_PCD.names or ()),
+        "SIZE 4 4 4 4 4",
+        "TYPE F F F F U",
+        "COUNT 1 1 1 1 1",
+        f"WIDTH {points}",
+        "HEIGHT 1",
+        "VIEWPOINT 0 0 0 1 0 0 0",
+        f"POINTS {points}",
+        "DATA binary",
+    ]
+
+    def write(f) -> None:
+        f.write(("\n".join(lines) + "\n").encode("ascii", "replace"))
+        written = 0
+        for xyz, intensity, label in pieces:
+            xyz = np.asarray(xyz)
+            if not np.isfinite(xyz).all():
+                raise InputError(path, "NaN or infinite coordinates")
+            record = np.empty(len(xyz), dtype=LABELLED_PCD)
+            for i, axis in enumerate("xyz"):
+                record[axis] = xyz[:, i]
+            record["intensity"] = intensity
+            record["label"] = label
+            written += len(record)
+            if written > points:
+                break
+            f.write(record.tobytes())
+        if written != points:
+            raise InputError(path, f"the header says {points} points, the pieces held {written}")
+
+    write_atomically(path, write)
+    return path

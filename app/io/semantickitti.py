@@ -57,11 +57,24 @@ def read_times(path: Path, frame_numbers: list[int]) -> np.ndarray | None:
     return times[frame_numbers]
 
 
+def label_bytes(semantic: np.ndarray, instance: np.ndarray) -> bytes:
+    """A `.label` file's bytes: per point a little-endian uint32, the semantic id in the lower
+    16 bits and the instance id in the upper 16 (what `read_label_file` reads back)."""
+    semantic, instance = np.asarray(semantic), np.asarray(instance)
+    if semantic.shape != instance.shape or semantic.ndim != 1:
+        raise ValueError(f"semantic {semantic.shape} and instance {instance.shape}: one per point")
+    for name, values in (("semantic", semantic), ("instance", instance)):
+        if values.size and (values.min() < 0 or values.max() > 0xFFFF):
+            raise ValueError(f"{name} ids must lie in 0..65535")
+    words = semantic.astype(np.uint32) | (instance.astype(np.uint32) << 16)
+    return words.astype("<u4", copy=False).tobytes()
+
+
 def read_label_file(path: Path, point_count: int) -> dict[str, np.ndarray]:
     size = path.stat().st_size
     if size != 4 * point_count:
         raise InputError(path, f"has {size // 4} labels for {point_count} points")
-    raw = np.fromfile(path, dtype=np.uint32)
+    raw = np.fromfile(path, dtype="<u4")
     return {"semantic": (raw & 0xFFFF).astype(np.uint16), "instance": (raw >> 16).astype(np.uint16)}
 
 

@@ -20,6 +20,7 @@ from sqlmodel import Session
 from app.core.errors import NotFoundError
 from app.core.labels import PillarClass
 from app.core.settings import Settings
+from app.pipelines.tiling import MAPS
 from app.reports.qa_report import PIPELINE_JOBS, job_file
 from app.store.audit import audit
 from app.store.db import commit
@@ -54,11 +55,9 @@ def exported(
 REMOVERS = ("clutter", "phantom")  # the pipelines whose runs write cleaned / removed maps
 
 
-def removal_map(
-    session: Session, settings: Settings, survey: Survey, which: str, source: str = "newest"
-) -> tuple[Path, Job]:
-    """The `which` ("cleaned" / "removed") map file of the newest finished run of `source`
-    ("clutter", "phantom", or "newest": whichever of them finished last)."""
+def removal_run(session: Session, survey: Survey, source: str = "newest") -> Job:
+    """The newest finished run of `source` ("clutter", "phantom", or "newest": whichever of
+    them finished last)."""
     pipelines = REMOVERS if source == "newest" else (source,)
     kinds = [kind for p in pipelines for kind in PIPELINE_JOBS[p]]
     job = latest_succeeded_job(session, survey.id, kinds)
@@ -67,13 +66,40 @@ def removal_map(
         raise NotFoundError(
             f"survey {survey.id} has no finished {named} run; run the {named} pipeline first"
         )
+    return job
+
+
+def map_file(settings: Settings, job: Job, which: str) -> Path:
+    """The `which` ("cleaned" / "removed") map file `job` wrote."""
     where = (job.result.get("files") or {}).get(which)
     if not where:
         raise NotFoundError(f"{job.kind} job {job.id} wrote no {which} map (nothing {which})")
     path = job_file(settings, job, str(where))
     if not path.is_file():
         raise NotFoundError(f"{path}: the {which} map of {job.kind} job {job.id} is gone from disk")
-    return path, job
+    return path
+
+
+def removal_map(
+    session: Session, settings: Settings, survey: Survey, which: str, source: str = "newest"
+) -> tuple[Path, Job]:
+    """The `which` ("cleaned" / "removed") map file of the newest finished run of `source`
+    (`removal_run`)."""
+    job = removal_run(session, survey, source)
+    return map_file(settings, job, which), job
+
+
+def removal_maps(
+    session: Session, settings: Settings, survey: Survey, source: str = "newest"
+) -> tuple[dict[str, Path], Job]:
+    """Every map ({"cleaned": path, "removed": path}, those written) of the newest finished
+    run of `source`; a map the run wrote but that is gone from disk is an error."""
+    job = removal_run(session, survey, source)
+    written = job.result.get("files") or {}
+    maps = {which: map_file(settings, job, which) for which in MAPS if written.get(which)}
+    if not maps:
+        raise NotFoundError(f"{job.kind} job {job.id} wrote no map (nothing cleaned or removed)")
+    return maps, job
 
 
 def remover_of(job: Job) -> str:

@@ -416,6 +416,40 @@ def review_decisions(session: Session, survey_id: int) -> list[tuple[str, int, D
     return [(r[0], int(r[1]), Decision(r[2]), r[3]) for r in rows]
 
 
+@dataclass(frozen=True)
+class InstanceClass:
+    """What an export needs of one instance: where it is, what the run called it, the verdict."""
+
+    frame_id: str
+    instance_index: int
+    class_name: str
+    moving: bool | None
+    track_id: int | None
+    decision: Decision
+    mask_path: str | None
+
+
+def instance_classes(session: Session, survey_id: int) -> list[InstanceClass]:
+    """Every instance of the survey with its class, motion, track and decision, in the order the
+    run stored them."""
+    rows = session.connection().execute(
+        sa.select(
+            _INSTANCE.c.frame_id,
+            _INSTANCE.c.instance_index,
+            _INSTANCE.c.class_name,
+            _INSTANCE.c.moving,
+            _INSTANCE.c.track_id,
+            _DECISION.c.decision,
+            _INSTANCE.c.mask_path,
+        )
+        .select_from(_INSTANCE)
+        .join(_DECISION, _DECISION.c.instance_id == _INSTANCE.c.id)
+        .where(_INSTANCE.c.survey_id == survey_id)
+        .order_by(_INSTANCE.c.id)  # the run's order: frame by frame
+    )
+    return [InstanceClass(r[0], int(r[1]), r[2], r[3], r[4], Decision(r[5]), r[6]) for r in rows]
+
+
 def latest_run(session: Session, survey_id: int) -> Job | None:
     """The survey's newest succeeded clutter run (its folder holds the review membership)."""
     return session.exec(

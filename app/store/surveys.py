@@ -260,6 +260,16 @@ class SurveyFootprint:
     trajectory_max: tuple[float, float, float]
 
 
+def frame_point_counts(session: Session, survey_id: int) -> list[tuple[str, int]]:
+    """(frame id, points) of the survey's frames in frame order."""
+    rows = session.exec(
+        select(Frame.frame_id, Frame.point_count)
+        .where(Frame.survey_id == survey_id)
+        .order_by(col(Frame.frame_index))
+    ).all()
+    return [(frame_id, int(count)) for frame_id, count in rows]
+
+
 def survey_footprint(session: Session, survey_id: int) -> SurveyFootprint:
     """The survey's footprint from its frame rows (NotFoundError for an unknown survey)."""
     survey = get_survey(session, survey_id)

@@ -70,9 +70,19 @@ const VIEWER_MODES = [
   { mode: "qa", title: "QA", text: "original vs cleaned map, removed points" },
 ];
 
+// `maps`: the run's maps an export is made of (any of them will do)
 const EXPORTS = [
-  { file: "cleaned.laz", text: "cleaned map (LAZ)", needs: "removal" },
-  { file: "removed.laz", text: "removed points (LAZ)", needs: "removal" },
+  { file: "cleaned.laz", text: "cleaned map (LAZ)", needs: "removal", maps: ["cleaned"] },
+  { file: "removed.laz", text: "removed points (LAZ)", needs: "removal", maps: ["removed"] },
+  {
+    file: "classified.laz",
+    text: "classified map, ASPRS classes (LAZ)",
+    needs: "removal",
+    maps: ["cleaned", "removed"],
+  },
+  { file: "cleaned.pcd", text: "cleaned map (PCD)", needs: "removal", maps: ["cleaned"] },
+  { file: "map.pcd", text: "map with labels (PCD)", needs: "removal", maps: ["cleaned", "removed"] },
+  { file: "semantickitti-labels.zip", text: "SemanticKITTI labels per frame (zip)", needs: "clutter" },
   { file: "guardrails.zip?format=glb", text: "approved guardrails (glTF)", needs: "guardrails" },
   { file: "guardrails.zip?format=obj", text: "approved guardrails (OBJ)", needs: "guardrails" },
   { file: "pillars.csv", text: "pillar labels (CSV)", needs: "pillars" },
@@ -361,18 +371,22 @@ async function latestSucceeded(surveyId, kinds) {
   return jobs[0] || null;
 }
 
-function exportsSection(survey, removalRun, guardrailModels, humanLabels) {
+function exportsSection(survey, removalRun, clutterRun, guardrailModels, humanLabels) {
   const approved = guardrailModels.some((m) => m.status === "approved");
   const reasons = {
     removal: removalRun ? null : "needs a finished clutter or phantom run",
+    clutter: clutterRun ? null : "needs a finished clutter run",
     guardrails: approved ? null : "needs an approved guardrail model",
     pillars: humanLabels > 0 ? null : "needs human pillar labels (label pillars in the viewer)",
   };
   const items = EXPORTS.map((e) => {
     let reason = e.needs ? reasons[e.needs] : null;
     const written = removalRun?.result?.files || {};
-    if (!reason && e.needs === "removal" && !written[e.file.replace(".laz", "")]) {
+    if (!reason && e.needs === "removal" && !e.maps.some((m) => written[m])) {
       reason = `${removalRun.kind} job ${removalRun.id}, the newest, wrote none (nothing to put in it)`;
+    }
+    if (!reason && e.needs === "clutter" && !clutterRun.result?.files?.instances) {
+      reason = `${clutterRun.kind} job ${clutterRun.id}, the newest, wrote no review units`;
     }
     const href = `/surveys/${survey.id}/exports/${e.file}`;
     // plain links: the login cookie authorises GET requests, so the browser downloads directly
@@ -390,7 +404,9 @@ function exportsSection(survey, removalRun, guardrailModels, humanLabels) {
           },
           e.text,
         );
-    const from = e.needs === "removal" && removalRun ? ` of ${removalRun.kind} job ${removalRun.id}, the newest` : "";
+    let from = "";
+    if (e.needs === "removal" && removalRun) from = ` of ${removalRun.kind} job ${removalRun.id}, the newest`;
+    if (e.needs === "clutter" && clutterRun) from = ` of ${clutterRun.kind} job ${clutterRun.id}, as reviewed`;
     return h("li", {}, link, h("span", { class: "muted" }, reason ? ` ${reason}` : from));
   });
   return h("ul", { class: "exports", id: "exports" }, items);
@@ -438,15 +454,16 @@ export async function surveyView(ctx, root, id) {
   if (hasRole(user, "reviewer")) root.append(section("Exports", exportsBox));
 
   async function loadReview() {
-    const [stats, frames, models, removalRun] = await Promise.all([
+    const [stats, frames, models, removalRun, clutterRun] = await Promise.all([
       api(`/surveys/${survey.id}/pillars/stats`),
       api(`/surveys/${survey.id}/clutter/frames`),
       api(`/surveys/${survey.id}/guardrails/models`),
       latestSucceeded(survey.id, REMOVAL_KINDS),
+      latestSucceeded(survey.id, ["run:clutter"]), // the run whose review units are labelled
     ]);
     review.replaceChildren(pillarSection(stats), clutterSection(frames), guardrailSection(models));
     const humanLabels = stats.human.reduce((a, b) => a + b, 0);
-    exportsBox.replaceChildren(exportsSection(survey, removalRun, models, humanLabels));
+    exportsBox.replaceChildren(exportsSection(survey, removalRun, clutterRun, models, humanLabels));
   }
 
   async function refresh() {

@@ -18,21 +18,32 @@ from pathlib import Path
 
 import cv2
 import httpx
+import laspy
 import numpy as np
 import pytest
+from laspy.vlrs.known import WktCoordinateSystemVlr
 from sqlalchemy.engine import Engine
 from sqlmodel import Session, select
 
+from app.io.asprs import CLUTTER_LABEL_TO_ASPRS, REMOVED_CLUTTER_ASPRS, to_asprs
 from app.io.las import write_laz
+from app.io.pcd import read_pcd
+from app.io.semantickitti import read_label_file
+from app.io.survey import Frame as SimFrame
+from app.io.survey import PointCloud
+from app.io.survey import Survey as SimSurvey
 from app.metrics.classification import binary_scores, scores_from_confusion
 from app.metrics.removal import dynamic_scores, error_matrix
+from app.pipelines.clutter.maps import maps_offset, write_frame_maps
 from app.pipelines.guardrail.meshes import export_mesh
+from app.store.clutter_review import DecisionWrite, decide, list_instances, replace_instances
 from app.store.db import make_engine
 from app.store.models import (
     AuditEvent,
     ClutterDecision,
     ClutterInstance,
     Decision,
+    Frame,
     GuardrailKind,
     GuardrailModel,
     Job,
@@ -40,12 +51,22 @@ from app.store.models import (
     LabelSource,
     ModelStatus,
     PillarLabel,
+    Survey,
 )
 from app.store.pillar_labels import STORE_GRID
 from tests.api.server import Server
 from tests.cli import mmsclean
 
 EXPORTS = ("cleaned.laz", "removed.laz", "guardrails.zip", "pillars.csv", "qa-report.html")
+MAP_FORMATS = ("classified.laz", "cleaned.pcd", "map.pcd")  # issue 20: what mapping teams read
+NEW_EXPORTS = (*MAP_FORMATS, "semantickitti-labels.zip")
+WKT = (
+    'PROJCS["ETRS89 / UTM zone 32N",GEOGCS["ETRS89",DATUM["European_Terrestrial_Reference_System_'
+    '1989",SPHEROID["GRS 1980",6378137,298.257222101]],PRIMEM["Greenwich",0],UNIT["degree",'
+    '0.0174532925199433]],PROJECTION["Transverse_Mercator"],PARAMETER["central_meridian",9],'
+    'PARAMETER["scale_factor",0.9996],PARAMETER["false_easting",500000],UNIT["metre",1],'
+    'AUTHORITY["EPSG","25832"]]'
+)
 
 
 @pytest.fixture(scope="module")
@@ -125,14 +146,14 @@ def test_nothing_to_export_is_404(survey_id: int, reviewer: httpx.Client) -> Non
     assert response.status_code == 404 and "no approved guardrail model" in response.text
     response = reviewer.get(f"/surveys/{survey_id}/exports/pillars.csv")
     assert response.status_code == 404 and "no human pillar labels" in response.text
-    for name in EXPORTS:
+    for name in (*EXPORTS, *NEW_EXPORTS):
         response = reviewer.get(f"/surveys/9999/exports/{name}")
         assert response.status_code == 404
         assert response.json()["detail"] == "survey 9999 not found"
 
 
 def test_annotators_cannot_export(survey_id: int, annotator: httpx.Client) -> None:
-    for name in (*EXPORTS, "pillars.npz"):
+    for name in (*EXPORTS, *NEW_EXPORTS, "pillars.npz"):
         response = annotator.get(f"/surveys/{survey_id}/exports/{name}")
         assert response.status_code == 403, name
         assert "needs the reviewer role" in response.json()["detail"]
@@ -530,3 +551,244 @@ def test_job_files_follow_the_export_rule(
     }
     assert listed["annotator"] == {"job.log", "report.json"}
     assert listed["reviewer"] == {"job.log", "report.json", *protected}
+
+
+# --- what mapping teams expect: SemanticKITTI labels, PCD, classified LAZ with the CRS (issue 20)
+
+
+def add_frames_survey(engine: Engine, name: str, fmt: str, source: str, counts: list[int]) -> int:
+    with Session(engine) as session:
+        survey = Survey(name=name, format=fmt, source_path=source, frame_count=len(counts))
+        session.add(survey)
+        session.flush()
+        for i, count in enumerate(counts):
+            session.add(
+                Frame(
+                    survey_id=survey.id, frame_index=i, frame_id=f"{i:06d}", point_count=count,
+                    pose=[0.0] * 16,
+                )
+            )  # fmt: skip
+        session.commit()
+        return survey.id
+
+
+def test_missing_runs_are_4xx_naming_what_is_missing(
+    server: Server, engine: Engine, reviewer: httpx.Client
+) -> None:
+    bare = add_frames_survey(engine, "bare drive", "semantickitti", "/nowhere/07", [5])
+    for name in MAP_FORMATS:
+        response = reviewer.get(f"/surveys/{bare}/exports/{name}")
+        assert response.status_code == 404, name
+        assert response.json()["detail"] == (
+            f"survey {bare} has no finished clutter or phantom run; run the clutter or phantom "
+            "pipeline first"
+        )
+    response = reviewer.get(f"/surveys/{bare}/exports/semantickitti-labels.zip")
+    assert response.status_code == 404
+    assert response.json()["detail"] == (
+        f"survey {bare} has no finished clutter run; run the clutter pipeline first"
+    )
+    # a phantom run gives maps but no SemanticKITTI labels; a clutter run without review units
+    # (as an old one) is named
+    folder = server.data_dir / "jobs" / "bare-phantom"
+    cleaned = write_laz(folder / "cleaned.laz", np.random.default_rng(4).uniform(0, 5, (9, 3)))
+    add(engine, succeeded_job(bare, "run:phantom", {"cleaned": cleaned}, None))
+    assert reviewer.get(f"/surveys/{bare}/exports/cleaned.pcd").status_code == 200
+    assert reviewer.get(f"/surveys/{bare}/exports/semantickitti-labels.zip").status_code == 404
+    add(engine, succeeded_job(bare, "run:clutter", {"cleaned": cleaned}, None))
+    response = reviewer.get(f"/surveys/{bare}/exports/semantickitti-labels.zip")
+    assert response.status_code == 404 and "wrote no review units" in response.json()["detail"]
+    assert list((server.data_dir / "cache" / "exports").glob("*.zip")) == []
+
+
+def review_units(folder: Path, frame_id: str, owner: list[int], removed: list[bool]) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(
+        folder / f"{frame_id}.npz",
+        instance=np.array(owner, np.int32),
+        removed=np.array(removed, bool),
+        in_view=np.ones(len(owner), bool),
+    )
+
+
+def test_semantickitti_labels_per_frame(
+    server: Server, engine: Engine, reviewer: httpx.Client, tmp_path: Path
+) -> None:
+    """One .label per frame, one word per point: moving objects get SemanticKITTI's moving ids,
+    parked clutter the static ones, reviewers' verdicts applied (rejected: kept, unlabelled;
+    approved: removed), tracked objects one instance id along the drive."""
+    sid = add_frames_survey(engine, "seq four", "semantickitti", "/nowhere/04", [12, 7, 5])
+    run = server.data_dir / "jobs" / "skitti-run"
+    units = run / "instances"
+    T, F = True, False
+    review_units(units, "000000", [-1, -1, 0, 0, 0, 1, 1, 2, 2, 3, 3, 4],
+                 [F, F, T, T, F, T, T, T, T, T, F, F])  # fmt: skip
+    review_units(units, "000001", [0, 0, 0, -1, -1, 1, 1], [F, F, F, F, F, T, T])
+    review_units(units, "000002", [-1] * 5, [F] * 5)
+    rows = []
+    for frame_id, k, name, moving, track in [
+        ("000000", 0, "car", True, 5),
+        ("000000", 1, "person", False, None),
+        ("000000", 2, "free-space", True, None),
+        ("000000", 3, "truck", False, None),  # rejected below: its points stay, unlabelled
+        ("000000", 4, "bicycle", False, None),  # kept by the run: a parked bicycle
+        ("000001", 0, "motorcycle", True, None),  # approved below: all its points go
+        ("000001", 1, "moved-track", True, 9),
+    ]:
+        mask = units / frame_id / f"{k}.png"
+        mask.parent.mkdir(exist_ok=True)
+        mask.write_bytes(b"png")
+        rows.append({"frame_id": frame_id, "instance_index": k, "class_name": name,
+                     "point_count": 1, "mask_path": str(mask), "moving": moving,
+                     "track_id": track})  # fmt: skip
+    with Session(engine) as session:
+        replace_instances(session, sid, rows, None)
+        ids = {(i.frame_id, i.instance_index): i.id for i in list_instances(session, sid)[1]}
+        decide(session, sid, [
+            DecisionWrite(ids[("000000", 3)], 1, Decision.rejected),
+            DecisionWrite(ids[("000001", 0)], 1, Decision.approved),
+        ], None)  # fmt: skip
+    add(engine, succeeded_job(sid, "run:clutter", {"instances": units}, None))
+
+    response = reviewer.get(f"/surveys/{sid}/exports/semantickitti-labels.zip")
+    assert response.status_code == 200, response.text
+    assert 'filename="seq-four-semantickitti-labels.zip"' in response.headers["content-disposition"]
+    with zipfile.ZipFile(io.BytesIO(response.content)) as zf:
+        zf.extractall(tmp_path)
+        manifest = json.loads(zf.read("manifest.json"))
+        readme = zf.read("README.txt").decode()
+    labels = tmp_path / "sequences" / "04" / "labels"
+    assert sorted(p.name for p in labels.iterdir()) == [f"00000{i}.label" for i in range(3)]
+    read = {
+        i: read_label_file(labels / f"00000{i}.label", n) for i, n in enumerate([12, 7, 5])
+    }  # the file's length is checked against the frame's points by the reader
+    assert (labels / "000000.label").stat().st_size == 4 * 12
+    # tracks 5 and 9 are ids 6 and 10; untracked instances take 11, 12, ... in order
+    assert read[0]["semantic"].tolist() == [0, 0, 252, 252, 0, 30, 30, 259, 259, 0, 0, 11]
+    assert read[0]["instance"].tolist() == [0, 0, 6, 6, 0, 11, 11, 12, 12, 0, 0, 14]
+    assert read[1]["semantic"].tolist() == [255, 255, 255, 0, 0, 259, 259]
+    assert read[1]["instance"].tolist() == [15, 15, 15, 0, 0, 10, 10]
+    assert read[2]["semantic"].tolist() == [0] * 5
+    raw = np.fromfile(labels / "000001.label", dtype="<u4")
+    assert raw[0] == (15 << 16) | 255  # little-endian, semantic low, instance high
+    assert manifest["job_kind"] == "run:clutter" and manifest["decisions"]["approved"] == 1
+    assert manifest["ids"]["252"] == "moving-car" and manifest["ids"]["30"] == "person"
+    assert manifest["points_per_id"]["259 moving-other-vehicle"] == 4
+    assert f"job {manifest['job_id']}" in readme and "255  moving-motorcyclist" in readme
+    assert exports_audited(engine, sid) == ["export.semantickitti_labels"]
+
+    # the command line writes the same files
+    out = tmp_path / "cli.zip"
+    done = mmsclean_export(server, str(sid), "semantickitti-labels", "--out", str(out))
+    assert done.returncode == 0, done.stderr
+    with zipfile.ZipFile(out) as zf, zipfile.ZipFile(io.BytesIO(response.content)) as api:
+        for name in api.namelist():
+            if name.endswith(".label"):
+                assert zf.read(name) == api.read(name)
+
+    # a membership file whose points disagree with the frame is refused, not exported half
+    review_units(units, "000002", [-1] * 4, [F] * 4)
+    response = reviewer.get(f"/surveys/{sid}/exports/semantickitti-labels.zip")
+    assert response.status_code == 422
+    assert "4 points, frame 000002 has 5" in response.json()["detail"]
+
+
+def drive(origin: np.ndarray) -> SimSurvey:
+    """Two frames of 10 and 6 points with reflectance, posed near `origin`."""
+    rng = np.random.default_rng(8)
+    frames = []
+    for k, n in enumerate((10, 6)):
+        pose = np.eye(4)
+        pose[:3, 3] = origin + [2.0 * k, 0.0, 0.0]
+        cloud = PointCloud(rng.uniform(-5, 5, (n, 3)), intensity=rng.uniform(0, 1, n))
+        frames.append(SimFrame(k, f"{k:06d}", pose, None, n, _load_points=lambda c=cloud: c))
+    return SimSurvey("drive", Path("drive"), "sim", frames)
+
+
+def test_maps_for_other_tools_with_the_survey_crs(
+    server: Server, engine: Engine, reviewer: httpx.Client, tmp_path: Path
+) -> None:
+    """A survey imported from a LAZ with a WKT CRS: its maps carry that CRS, the classified map
+    joins both with ASPRS classes as `app.io.asprs` maps the labels, the PCD reads back through
+    `app.io.pcd` with the same points and labels."""
+    origin = np.array([512_000.0, 5_400_000.0, 300.0])
+    source = write_laz(
+        tmp_path / "geo.laz", np.random.default_rng(5).uniform(0, 9, (20, 3)) + origin
+    )
+    las = laspy.read(source)
+    las.header.vlrs.append(WktCoordinateSystemVlr(WKT))
+    las.header.global_encoding.wkt = True
+    las.write(source)
+    response = reviewer.post(
+        "/surveys/upload", params={"filename": "geo street.laz"}, content=source.read_bytes()
+    )
+    assert response.status_code == 201, response.text
+    sid = response.json()["id"]
+
+    survey = drive(origin)
+    removed = [np.arange(10) % 3 == 0, np.zeros(6, bool)]
+    job_dir = server.data_dir / "jobs" / "geo-clutter"
+    maps = write_frame_maps(job_dir, "", survey, np.arange(2), removed, None, maps_offset(survey))
+    files = {kind: job_dir / maps[kind] for kind in ("cleaned", "removed")}
+    add(engine, succeeded_job(sid, "run:clutter", files, None))
+    base = f"/surveys/{sid}/exports"
+
+    cleaned = reviewer.get(f"{base}/cleaned.laz")
+    assert cleaned.status_code == 200, cleaned.text
+    assert "WKT from the header" in cleaned.headers["x-mmsclean-crs"]
+    got = laspy.read(io.BytesIO(cleaned.content))
+    assert got.header.global_encoding.wkt
+    assert [v.string for v in got.header.vlrs if isinstance(v, WktCoordinateSystemVlr)] == [WKT]
+    original = laspy.read(files["cleaned"])
+    assert np.array_equal(got.X, original.X) and len(got.points) == 12
+
+    classified = reviewer.get(f"{base}/classified.laz")
+    assert classified.status_code == 200, classified.text
+    assert (
+        'filename="geo-street-clutter-classified.laz"' in classified.headers["content-disposition"]
+    )
+    joined = laspy.read(io.BytesIO(classified.content))
+    assert len(joined.points) == 16 and joined.header.global_encoding.wkt
+    labels = np.asarray(joined.mmsclean_label)
+    assert labels.tolist() == [0] * 12 + [1] * 4  # the cleaned map, then the removed one
+    assert np.array_equal(joined.classification, to_asprs(labels, CLUTTER_LABEL_TO_ASPRS))
+    assert set(np.asarray(joined.classification).tolist()) == {1, REMOVED_CLUTTER_ASPRS}
+    world = np.column_stack([joined.x, joined.y, joined.z])
+
+    whole = reviewer.get(f"{base}/map.pcd")
+    assert whole.status_code == 200, whole.text
+    (tmp_path / "map.pcd").write_bytes(whole.content)
+    read = read_pcd(tmp_path / "map.pcd")
+    assert read.reference_label_kinds == ("label",)
+    points = read.frames[0].points()
+    survey_origin = np.asarray(reviewer.get(f"/surveys/{sid}").json()["origin"])
+    np.testing.assert_allclose(points.xyz + survey_origin, world, atol=1e-3)
+    assert points.extra["label"].tolist() == labels.tolist()
+    assert np.array_equal(points.intensity, np.asarray(joined.intensity, np.float32))
+    assert b"origin 512000.000 5400000.000 300.000" in whole.content[:2000]
+    only_kept = reviewer.get(f"{base}/cleaned.pcd")
+    (tmp_path / "cleaned.pcd").write_bytes(only_kept.content)
+    kept = read_pcd(tmp_path / "cleaned.pcd").frames[0].points()
+    assert len(kept.xyz) == 12 and not kept.extra["label"].any()
+    assert exports_audited(engine, sid) == [
+        "export.cleaned_laz", "export.classified_laz", "export.map_pcd", "export.cleaned_pcd"
+    ]  # fmt: skip
+    for what in ("classified-laz", "map-pcd"):
+        out = tmp_path / f"cli-{what}"
+        done = mmsclean_export(server, str(sid), what, "--out", str(out))
+        assert done.returncode == 0, done.stderr
+        url = {"classified-laz": "classified.laz", "map-pcd": "map.pcd"}[what]
+        assert out.read_bytes() == reviewer.get(f"{base}/{url}").content, what
+    assert not list(tmp_path.glob(".*partial*"))
+
+    # a survey that records no CRS gets none, and the answer says so
+    sk = add_frames_survey(engine, "no crs", "semantickitti", "/nowhere/05", [16])
+    add(engine, succeeded_job(sk, "run:clutter", files, None))
+    plain = reviewer.get(f"/surveys/{sk}/exports/classified.laz")
+    assert (
+        plain.headers["x-mmsclean-crs"]
+        == "a semantickitti survey records no CRS (only LAS / LAZ headers do)"
+    )
+    assert not laspy.read(io.BytesIO(plain.content)).header.global_encoding.wkt
+    as_is = reviewer.get(f"/surveys/{sk}/exports/removed.laz")
+    assert as_is.content == files["removed"].read_bytes()

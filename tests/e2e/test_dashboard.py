@@ -494,6 +494,14 @@ def test_pillar_label_exports_wait_for_human_labels(page, dashboard_server: Serv
         item = exports.locator("li", has_text=text)
         assert item.locator("a").count() == 0
         assert "needs human pillar labels" in item.inner_text()
+    # the exports for mapping tools wait for the run they are made from (issue 20)
+    for text, reason in (
+        ("classified map, ASPRS classes (LAZ)", "needs a finished clutter or phantom run"),
+        ("map with labels (PCD)", "needs a finished clutter or phantom run"),
+        ("SemanticKITTI labels per frame (zip)", "needs a finished clutter run"),
+    ):
+        item = exports.locator("li", has_text=text)
+        assert item.locator("a").count() == 0 and reason in item.inner_text(), text
     assert page.locator("#pillar-stats svg").count() == 0
     assert "No pillar labels yet" in page.locator("#pillar-stats-none").inner_text()
     with dashboard_server.client() as admin:

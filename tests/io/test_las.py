@@ -18,7 +18,14 @@ from app.io.asprs import (
     AsprsClass,
     to_asprs,
 )
-from app.io.las import LasAppender, las_point_count, read_las, read_las_points, write_laz
+from app.io.las import (
+    LasAppender,
+    las_crs,
+    las_point_count,
+    read_las,
+    read_las_points,
+    write_laz,
+)
 from app.io.las_layout import check_las_layout
 from app.io.point_files import guarded
 from app.io.registry import open_survey
@@ -524,3 +531,24 @@ def test_laz_parts_are_joined_chunk_by_chunk_without_recompressing(tmp_path: Pat
         walked = np.concatenate([np.column_stack([c.x, c.y, c.z]) for c in chunks])
         np.testing.assert_allclose(walked, whole, atol=6e-4)
     check_las_layout(tmp_path / "all.laz")  # what an import of the joined file checks
+
+
+def test_appender_writes_a_wkt_crs_and_las_crs_reads_it(tmp_path: Path) -> None:
+    """A joined LAZ (chunks copied) and a joined LAS (points copied) both get the WKT VLR and
+    the WKT bit; a header without one says so."""
+    wkt = 'GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563]]]'
+    rng = np.random.default_rng(1)
+    parts = [
+        write_laz(tmp_path / f"p{i}.laz", rng.uniform(0, 9, (n, 3)), offset=np.zeros(3))
+        for i, n in enumerate((2_000, 30))
+    ]
+    assert las_crs(parts[0]) == (None, "the header of p0.laz records no CRS")
+    for name in ("joined.laz", "joined.las"):
+        appender = LasAppender(tmp_path / name, wkt)
+        for part in parts:
+            appender.append(part)
+        assert appender.close() == 2_030
+        las = laspy.read(tmp_path / name)
+        assert las.header.global_encoding.wkt and len(las.points) == 2_030
+        assert np.array_equal(las.X, np.r_[laspy.read(parts[0]).X, laspy.read(parts[1]).X])
+        assert las_crs(tmp_path / name) == (wkt, f"WKT from the header of {name}")

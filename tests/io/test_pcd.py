@@ -358,3 +358,26 @@ def test_an_organized_cloud_is_read_whole(tmp_path: Path, monkeypatch: pytest.Mo
     monkeypatch.setattr(point_files, "TABLE_CHUNK", 150)
     chunks = list(read_pcd(path).frames[0].world_chunks())
     assert len(chunks) == 1 and len(chunks[0][1].xyz) == 400 - 58
+
+
+def test_labelled_pcd_written_in_pieces_reads_back(tmp_path: Path) -> None:
+    """`write_labelled_pcd`: binary PCD with x y z intensity label that PCL's layout and this
+    reader agree on; pieces that do not add up to the header's count leave no file."""
+    xyz = _points(1_000)
+    labels = np.arange(1_000, dtype=np.uint32) % 4
+    intensity = np.linspace(0, 65535, 1_000)
+    pieces = [
+        (xyz[i : i + 300], intensity[i : i + 300], labels[i : i + 300])
+        for i in range(0, 1_000, 300)
+    ]
+    path = pcd_module.write_labelled_pcd(tmp_path / "m.pcd", 1_000, iter(pieces), ["a note"])
+    survey = read_pcd(path)
+    assert survey.reference_label_kinds == ("label",)
+    cloud = survey.frames[0].points()
+    np.testing.assert_allclose(cloud.xyz, xyz.astype(np.float32))
+    assert cloud.extra["label"].tolist() == labels.tolist()
+    np.testing.assert_allclose(cloud.intensity, intensity.astype(np.float32))
+    assert b"# a note\n" in path.read_bytes()[:300]
+    with pytest.raises(InputError, match="the header says 1001 points, the pieces held 1000"):
+        pcd_module.write_labelled_pcd(tmp_path / "short.pcd", 1_001, iter(pieces))
+    assert list(tmp_path.glob("short.pcd*")) == []

@@ -3,7 +3,13 @@ rule of `app.api.downloads` that job output files follow too), each download aud
 `export.<name>`; the files themselves come from the writers in `app.reports`.
 
 - `cleaned.laz` / `removed.laz`: the maps of the newest finished run that removes points
-  (`?source=clutter|phantom` picks the pipeline; default whichever finished last).
+  (`?source=clutter|phantom` picks the pipeline; default whichever finished last), with the
+  survey's CRS as a WKT VLR when its LAS header records one (`X-Mmsclean-CRS` says which).
+- `classified.laz`: both maps joined, ASPRS classes and mmsclean labels per point.
+- `cleaned.pcd` / `map.pcd`: the cleaned map, or both maps, as binary PCD with x y z intensity
+  label (label = mmsclean's per-point label).
+- `semantickitti-labels.zip`: SemanticKITTI `.label` files per frame of the newest clutter run
+  as reviewed, with a README and manifest.
 - `guardrails.zip?format=glb|obj`: the approved guardrail meshes and a manifest.
 - `pillars.csv` / `pillars.npz`: the labelled pillar set (human labels; model pre-labels too
   with `include_model=true`) on the store's world grid.
@@ -30,13 +36,14 @@ from app.reports.exports import (
     csv_pieces,
     exported,
     pillar_table,
-    removal_map,
     remover_of,
     slug,
     write_guardrails_zip,
     write_pillars_npz,
 )
+from app.reports.map_exports import map_with_crs, write_classified_laz, write_map_pcd
 from app.reports.qa_report import build_qa_report
+from app.reports.semantickitti_labels import write_semantickitti_zip
 from app.store.models import User
 from app.store.surveys import get_survey
 
@@ -76,17 +83,31 @@ SOURCE = Query(
 )
 
 
+def header_text(text: str) -> str:
+    """`text` as an HTTP header value (latin-1, one line)."""
+    return " ".join(text.split()).encode("latin-1", "replace").decode("latin-1")
+
+
 def _map_download(
     which: str, survey_id: int, user: User, session: SessionDep, settings: SettingsDep, source: str
 ) -> FileResponse:
     survey = get_survey(session, survey_id)
-    path, job = removal_map(session, settings, survey, which, source)
-    exported(session, user.id, survey, f"{which}_laz", job_id=job.id, file=str(path))
-    return FileResponse(
-        path,
-        media_type=LAS_MEDIA.get(path.suffix.lower(), "application/octet-stream"),
-        filename=f"{slug(survey.name)}-{remover_of(job)}-{which}{path.suffix.lower()}",
-    )
+    dest = temp_file(settings, ".laz")
+    try:
+        path, job, crs = map_with_crs(session, settings, survey, which, source, dest)
+        exported(session, user.id, survey, f"{which}_laz", job_id=job.id, file=str(path), crs=crs)
+    except BaseException:
+        dest.unlink(missing_ok=True)
+        raise
+    name = f"{slug(survey.name)}-{remover_of(job)}-{which}{path.suffix.lower()}"
+    media = LAS_MEDIA.get(path.suffix.lower(), "application/octet-stream")
+    headers = {"X-Mmsclean-CRS": header_text(crs)}
+    if path == dest:  # a copy with the CRS
+        response = _sent_once(dest, media, name)
+        response.headers.update(headers)
+        return response
+    dest.unlink(missing_ok=True)
+    return FileResponse(path, media_type=media, filename=name, headers=headers)
 
 
 @router.get("/cleaned.laz", response_class=FileResponse)
@@ -113,6 +134,99 @@ def removed_laz(
     """The removed points (clutter or phantoms) of the newest finished clutter or phantom
     run."""
     return _map_download("removed", survey_id, user, session, settings, source)
+
+
+@router.get("/classified.laz", response_class=FileResponse)
+def classified_laz(
+    survey_id: Id,
+    user: Annotated[User, Depends(downloader("classified.laz"))],
+    session: SessionDep,
+    settings: SettingsDep,
+    source: MapSource = SOURCE,
+) -> FileResponse:
+    """The cleaned and removed maps of the newest clutter or phantom run as one LAZ: ASPRS
+    classes (`app.io.asprs`), mmsclean labels, the survey's CRS when it has one."""
+    survey = get_survey(session, survey_id)
+    dest = temp_file(settings, ".laz")
+    try:
+        job, points, crs = write_classified_laz(session, settings, survey, source, dest)
+        exported(session, user.id, survey, "classified_laz", job_id=job.id, points=points, crs=crs)
+    except BaseException:
+        dest.unlink(missing_ok=True)
+        raise
+    response = _sent_once(
+        dest, LAS_MEDIA[".laz"], f"{slug(survey.name)}-{remover_of(job)}-classified.laz"
+    )
+    response.headers["X-Mmsclean-CRS"] = header_text(crs)
+    return response
+
+
+PCD_MAPS = {"cleaned": ("cleaned",), "map": ("cleaned", "removed")}
+
+
+def _pcd_download(
+    name: str, survey_id: int, user: User, session: SessionDep, settings: SettingsDep, source: str
+) -> FileResponse:
+    survey = get_survey(session, survey_id)
+    dest = temp_file(settings, ".pcd")
+    try:
+        job, points = write_map_pcd(session, settings, survey, source, PCD_MAPS[name], dest)
+        exported(session, user.id, survey, f"{name}_pcd", job_id=job.id, points=points)
+    except BaseException:
+        dest.unlink(missing_ok=True)
+        raise
+    filename = f"{slug(survey.name)}-{remover_of(job)}-{name}.pcd"
+    return _sent_once(dest, "application/octet-stream", filename)
+
+
+@router.get("/cleaned.pcd", response_class=FileResponse)
+def cleaned_pcd(
+    survey_id: Id,
+    user: Annotated[User, Depends(downloader("cleaned.pcd"))],
+    session: SessionDep,
+    settings: SettingsDep,
+    source: MapSource = SOURCE,
+) -> FileResponse:
+    """The cleaned map as binary PCD (x y z from the survey's origin, intensity, label)."""
+    return _pcd_download("cleaned", survey_id, user, session, settings, source)
+
+
+@router.get("/map.pcd", response_class=FileResponse)
+def map_pcd(
+    survey_id: Id,
+    user: Annotated[User, Depends(downloader("map.pcd"))],
+    session: SessionDep,
+    settings: SettingsDep,
+    source: MapSource = SOURCE,
+) -> FileResponse:
+    """The cleaned and removed maps as one binary PCD whose label field tells them apart."""
+    return _pcd_download("map", survey_id, user, session, settings, source)
+
+
+# --- SemanticKITTI labels -----------------------------------------------------------------
+
+
+@router.get("/semantickitti-labels.zip", response_class=FileResponse)
+def semantickitti_labels(
+    survey_id: Id,
+    user: Annotated[User, Depends(downloader("semantickitti-labels.zip"))],
+    session: SessionDep,
+    settings: SettingsDep,
+) -> FileResponse:
+    """SemanticKITTI `.label` files per frame of the newest clutter run, as reviewed."""
+    survey = get_survey(session, survey_id)
+    archive = temp_file(settings, ".zip")
+    try:
+        manifest = write_semantickitti_zip(session, settings, survey, archive)
+        exported(
+            session, user.id, survey, "semantickitti_labels", job_id=manifest["job_id"],
+            frames=len(manifest["frames"]),
+        )  # fmt: skip
+    except BaseException:
+        archive.unlink(missing_ok=True)
+        raise
+    name = f"{slug(survey.name)}-semantickitti-labels.zip"
+    return _sent_once(archive, "application/zip", name)
 
 
 # --- guardrail meshes ---------------------------------------------------------------------

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from app.geometry.voxels import voxel_indices
-from app.io.asprs import REMOVED_CLUTTER_ASPRS
+from app.io.asprs import CLUTTER_LABEL_TO_ASPRS, to_asprs
 from app.io.las import LasAppender, write_laz
 from app.io.survey import PointCloud, Survey
 from app.pipelines.tiling import MAPS
@@ -77,13 +77,13 @@ def write_frame_maps(
 def _write_points(
     path: Path, cloud: PointCloud, index: np.ndarray, frame: int, label: int, offset: np.ndarray
 ) -> None:
-    n = len(index)
+    labels = np.full(len(index), label, dtype=np.uint8)
     write_laz(
         path,
         cloud.xyz[index],
-        mmsclean_label=np.full(n, label, dtype=np.uint8),
-        classification=np.full(n, REMOVED_CLUTTER_ASPRS if label else 1, dtype=np.uint8),
-        source_frame=np.full(n, frame, dtype=np.uint32),
+        mmsclean_label=labels,
+        classification=to_asprs(labels, CLUTTER_LABEL_TO_ASPRS),
+        source_frame=np.full(len(index), frame, dtype=np.uint32),
         source_index=index.astype(np.uint32),
         intensity=None if cloud.intensity is None else reflectance(cloud.intensity[index]),
         offset=offset,

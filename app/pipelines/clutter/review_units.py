@@ -275,35 +275,61 @@ def apply_decisions(
     """Per frame the removed flags after review and the camera-view flags, and how many points
     the pipeline itself removed. `verdicts`: (frame id, instance index, verdict) with verdict 1
     (approved: its points go), 0 (rejected: they stay) or -1 (pending: the pipeline's flag)."""
-    by_frame: dict[str, list[tuple[int, int]]] = {}
-    for frame_id, index, verdict in verdicts:
-        by_frame.setdefault(frame_id, []).append((index, verdict))
+    by_frame = verdicts_by_frame(verdicts)
     removed, in_view = [], []
     pipeline_removed = 0
     for frame in survey.frames:
-        path = folder / f"{frame.frame_id}.npz"
-        try:
-            with np.load(path) as data:
-                owner, flags, view = data["instance"], data["removed"], data["in_view"]
-        except (OSError, KeyError, ValueError) as exc:
-            raise InputError(path, f"unreadable review membership ({exc})") from None
-        if frame.point_count is not None and len(owner) != frame.point_count:
-            raise InputError(
-                path, f"{len(owner)} points, frame {frame.frame_id} has {frame.point_count}"
-            )
-        state = np.full(int(owner.max(initial=-1)) + 1, -1, dtype=np.int8)
-        if frame.frame_id in by_frame:
-            index, value = np.array(by_frame.pop(frame.frame_id)).T
-            if index.max() >= len(state):
-                raise InputError(path, f"has no instance {int(index.max())} of the store")
-            state[index] = value
-        gone = flags.astype(bool, copy=True)
-        owned = owner >= 0
-        choice = state[owner[owned]]
-        gone[owned] = np.where(choice < 0, gone[owned], choice == 1)
-        pipeline_removed += int(flags.sum())
-        removed.append(gone)
-        in_view.append(view.astype(bool))
+        reviewed = reviewed_frame(
+            folder, frame.frame_id, frame.point_count, by_frame.pop(frame.frame_id, [])
+        )
+        pipeline_removed += int(reviewed.pipeline_removed.sum())
+        removed.append(reviewed.removed)
+        in_view.append(reviewed.in_view)
     if by_frame:
         raise InputError(folder, f"no frame {next(iter(by_frame))} in the survey")
     return removed, in_view, pipeline_removed
+
+
+def verdicts_by_frame(verdicts: list[tuple[str, int, int]]) -> dict[str, list[tuple[int, int]]]:
+    """(frame id, instance index, verdict) grouped by frame id."""
+    by_frame: dict[str, list[tuple[int, int]]] = {}
+    for frame_id, index, verdict in verdicts:
+        by_frame.setdefault(frame_id, []).append((index, verdict))
+    return by_frame
+
+
+@dataclass
+class ReviewedFrame:
+    """One frame's review membership with the verdicts applied."""
+
+    owner: np.ndarray  # (N,) int32 instance index, -1 = none
+    removed: np.ndarray  # (N,) bool after review
+    pipeline_removed: np.ndarray  # (N,) bool, the pipeline's own flag
+    in_view: np.ndarray  # (N,) bool
+
+
+def reviewed_frame(
+    folder: Path, frame_id: str, point_count: int | None, verdicts: list[tuple[int, int]]
+) -> ReviewedFrame:
+    """The frame's membership (`folder/<frame>.npz`) with its (instance index, verdict) pairs
+    applied: a frame at a time, so a caller holds one frame's arrays."""
+    path = folder / f"{frame_id}.npz"
+    try:
+        with np.load(path) as data:
+            owner, flags, view = data["instance"], data["removed"], data["in_view"]
+    except (OSError, KeyError, ValueError) as exc:
+        raise InputError(path, f"unreadable review membership ({exc})") from None
+    if point_count is not None and len(owner) != point_count:
+        raise InputError(path, f"{len(owner)} points, frame {frame_id} has {point_count}")
+    state = np.full(int(owner.max(initial=-1)) + 1, -1, dtype=np.int8)
+    if verdicts:
+        index, value = np.array(verdicts).T
+        if index.max() >= len(state):
+            raise InputError(path, f"has no instance {int(index.max())} of the store")
+        state[index] = value
+    flags = flags.astype(bool)
+    gone = flags.copy()
+    owned = owner >= 0
+    choice = state[owner[owned]]
+    gone[owned] = np.where(choice < 0, gone[owned], choice == 1)
+    return ReviewedFrame(owner, gone, flags, view.astype(bool))

@@ -14,6 +14,7 @@ import pytest
 
 from app.core.labels import MOVABLE_IDS
 from app.io import open_survey
+from app.io.asprs import CLUTTER_LABEL_TO_ASPRS, to_asprs
 from app.io.survey import Frame, Survey
 from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.evaluation.removal_metrics import removal_metrics
@@ -48,6 +49,9 @@ def check_contract(out: Path, survey: Survey, report: dict) -> None:
     cleaned = laspy.read(out / "cleaned.laz")
     gone = laspy.read(out / "removed.laz")
     assert len(cleaned.points) == total - removed and len(gone.points) == removed
+    for las in (cleaned, gone):  # ASPRS classes as app.io.asprs maps the labels
+        labels = np.asarray(las.mmsclean_label)
+        assert np.array_equal(las.classification, to_asprs(labels, CLUTTER_LABEL_TO_ASPRS))
     assert report["counts"]["points"] == total
     assert json.loads((out / "report.json").read_text())["counts"] == report["counts"]
 

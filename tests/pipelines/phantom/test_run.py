@@ -9,6 +9,7 @@ import laspy
 import numpy as np
 
 from app.io import open_survey
+from app.io.asprs import PHANTOM_LABEL_TO_ASPRS, to_asprs
 from tests.cli import mmsclean
 
 
@@ -47,6 +48,8 @@ def test_run_phantom_contract(
         int((np.load(out / "labels" / f"{f.frame_id}.npy") != 3).sum()) for f in survey.frames
     )
     assert len(cleaned.points) == kept
+    labels = np.asarray(cleaned.mmsclean_label)  # ASPRS classes as app.io.asprs maps the labels
+    assert np.array_equal(cleaned.classification, to_asprs(labels, PHANTOM_LABEL_TO_ASPRS))
     assert (out / "confusion_pillar.png").is_file() and (out / "pillars.npz").is_file()
 
 
