@@ -154,6 +154,16 @@ class SurveyView:
         with self.lock:
             return np.where(self.model[cells] >= 0, self.confidence[cells], np.nan)
 
+    def pillar_state(self, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(human label (-1: none), display class) of pillars `cells[k]`."""
+        with self.lock:
+            return self.human[k].astype(np.int64), self.klass[k].astype(np.int64)
+
+    def pillar_labels(self, k: int) -> tuple[int, int, float]:
+        """(human label, model label (-1: none), model confidence) of pillar `cells[k]`."""
+        with self.lock:
+            return int(self.human[k]), int(self.model[k]), float(self.confidence[k])
+
     def point_classes(self, points: np.ndarray) -> np.ndarray:
         cells = self.map.cell[points]
         with self.lock:

@@ -11,15 +11,17 @@ from typing import Any
 import numpy as np
 import pytest
 from sqlmodel import Session
-from viser import SceneRectSelectEvent
+from viser import SceneClickEvent, SceneRectSelectEvent
 
 from app.io import open_survey
 from app.io.ply import write_ply
-from app.store.pillar_reads import label_counts
+from app.store.models import LabelSource
+from app.store.pillar_labels import STORE_GRID
+from app.store.pillar_reads import label_counts, labels_in_box
 from app.store.surveys import register_opened_survey
 from app.viewer.colour_modes import HEIGHT, INTENSITY, height_colors, intensity_colors
 from app.viewer.modes.pillar_selection import CONFIRM_ABOVE, PREVIEW_RGB
-from app.viewer.modes.pillars import PillarMode
+from app.viewer.modes.pillars import BRUSH, FILL, INSPECT, MEASURE, POLYGON, PillarMode
 from tests.viewer.test_modes_common import (
     Connection,
     Driver,
@@ -60,11 +62,8 @@ def opened(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Connectio
 
 
 def uuid_of(connection: Connection, label: str, kind: str) -> str:
-    found = connection.since(
-        0, lambda m: m.get("type") == kind and m["props"].get("label") == label
-    )
-    assert found, f"no {kind} {label!r} sent"
-    return found[-1]["uuid"]
+    message = connection.wait(lambda m: m.get("type") == kind and m["props"].get("label") == label)
+    return message["uuid"]
 
 
 def newest_colors(connection: Connection, name: str, since: int) -> np.ndarray:
@@ -167,3 +166,85 @@ def test_a_large_rectangle_waits_for_enter_and_a_small_one_does_not(opened) -> N
     connection.call(mode.on_rect_select, rect((0.49, 0.49), (0.51, 0.51)))
     assert mode.pending is None and 0 < human_count() <= CONFIRM_ABOVE
     connection.call(mode.undo)
+
+
+def click_at(connection: Connection, local: np.ndarray) -> SceneClickEvent:
+    """A click whose ray runs from the camera through a local point."""
+    client = connection.session.client
+    origin = np.asarray(client.camera.position, dtype=np.float64)
+    return SceneClickEvent(
+        client=client, client_id=client.client_id,
+        ray_origin=tuple(origin.tolist()),
+        ray_direction=tuple((np.asarray(local, dtype=np.float64) - origin).tolist()),
+        screen_pos=((0.5, 0.5),), modifier=None,
+    )  # fmt: skip
+
+
+def stored(engine, survey_id: int) -> dict[int, int]:
+    """cell id -> human label of the survey."""
+    box = (599_900.0, 4_999_900.0, 600_100.0, 5_000_100.0)
+    with Session(engine) as db:
+        tile = labels_in_box(db, survey_id, box, LabelSource.human)
+    return dict(zip(tile.cell_id.tolist(), tile.label.tolist(), strict=True))
+
+
+def test_fill_polygon_measure_inspect_and_class_locks(opened) -> None:
+    connection, engine, survey_id = opened
+    mode: PillarMode = connection.mode
+    session = connection.session
+    connection.call(session.show_preset, "Top")
+    assert stored(engine, survey_id) == {}
+
+    # fill from the road: the flat street under the canopy fills, the canopy (6 m up) not
+    connection.call(mode._pick_tool, FILL)
+    connection.call(mode.on_click, click_at(connection, np.array([2.0, 2.0, 0.0])))
+    assert mode.pending is not None and "fill" in mode.pending.how
+    filled = mode.pending.cells
+    connection.call(mode.confirm_selection)
+    labels = stored(engine, survey_id)
+    assert len(labels) == len(filled) and set(labels.values()) == {0}  # ground
+    connection.call(mode.undo)
+
+    # polygon: three vertices on the road, Enter closes it; small ones are written at once
+    connection.call(mode._pick_tool, POLYGON)
+    for corner in ([1.0, 1.0, 0.0], [3.0, 1.0, 0.0], [2.0, 3.0, 0.0]):
+        connection.call(mode.on_click, click_at(connection, np.array(corner)))
+    assert len(mode.polygon) == 3 and "polygon" in mode.marks
+    connection.call(mode.confirm_selection)
+    labels = stored(engine, survey_id)
+    centres = STORE_GRID.cell_center(*STORE_GRID.decode(np.array(list(labels))))
+    local = centres - mode.map.origin[:2]
+    assert 20 < len(labels) < 80  # a 2 m^2 triangle of 0.04 m^2 pillars, those with points
+    assert (local.min(axis=0) > 0.5).all() and (local.max(axis=0) < 3.5).all()
+    assert not mode.polygon and "polygon" not in mode.marks
+
+    # "Apply to: only ground": a brush of phantom over the labelled triangle and the
+    # unlabelled road around it relabels only the triangle
+    connection.call(mode._pick_tool, BRUSH)
+    connection.call(mode._pick, "Phantom")
+    mode.apply_to.value = "Only ground"
+    mode.radius.value = 2.5  # over the whole triangle
+    connection.call(mode.on_click, click_at(connection, np.array([2.0, 2.0, 0.0])))
+    after = stored(engine, survey_id)
+    assert set(after) == set(labels) and set(after.values()) == {3}
+    mode.apply_to.value = "Unlabelled only"  # now the triangle is locked, the road is not
+    connection.call(mode._pick, "Ground")
+    connection.call(mode.on_click, click_at(connection, np.array([2.0, 2.0, 0.0])))
+    final = stored(engine, survey_id)
+    assert all(final[c] == 3 for c in labels) and len(final) > len(labels)
+    mode.apply_to.value = "All pillars"
+    mode.radius.value = 1.0
+    assert "brush_ring" in mode.marks
+
+    # measure and inspect
+    connection.call(mode._pick_tool, MEASURE)
+    connection.call(mode.on_click, click_at(connection, np.array([2.0, 2.0, 0.0])))
+    connection.call(mode.on_click, click_at(connection, np.array([20.0, 10.0, CANOPY_Z])))
+    assert "Distance **" in mode.status.content and "vertical +6.00 m" in mode.status.content
+    connection.call(mode._pick_tool, INSPECT)
+    connection.call(mode.on_click, click_at(connection, np.array([20.0, 10.0, CANOPY_Z])))
+    text = mode.status.content
+    assert "+6.00 m above the ground" in text and "intensity 0.5" in text
+    connection.call(mode.show_shortcuts)
+    modal = connection.wait(lambda m: m.get("type") == "GuiModalMessage")
+    assert modal["title"] == "Keyboard shortcuts"

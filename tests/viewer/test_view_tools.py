@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from app.store.pillar_labels import STORE_GRID
 from app.viewer.colour_modes import (
     NO_VALUE_RGB,
     RAMP,
@@ -14,6 +15,7 @@ from app.viewer.colour_modes import (
     intensity_colors,
 )
 from app.viewer.mini_views import BACKGROUND, HALF_WIDTH, PIXEL, SIDE_ABOVE, side_view, top_view
+from app.viewer.modes.pillar_tools import fill_region, measure_text, points_in_polygon
 from app.viewer.view_presets import heading_at, preset_offset
 
 
@@ -92,3 +94,38 @@ def test_presets_look_down_along_and_across_the_drive() -> None:
     assert np.linalg.norm(preset_offset("Top", heading, 1e6)) == pytest.approx(300.0)
     with pytest.raises(ValueError, match="unknown view"):
         preset_offset("Bottom", heading, 10.0)
+
+
+def test_fill_takes_the_sloping_road_and_stops_at_the_kerb_and_the_car() -> None:
+    ix, iy = np.meshgrid(np.arange(1000, 1050), np.arange(2000, 2030), indexing="ij")
+    ix, iy = ix.ravel(), iy.ravel()
+    top = 0.01 * (ix - 1000)  # a 5 % slope along x (1 cm per 0.2 m pillar)
+    sidewalk = iy >= 2020
+    top = top + np.where(sidewalk, 0.15, 0.0)  # a 15 cm kerb
+    car = (ix >= 1020) & (ix < 1030) & (iy >= 2005) & (iy < 2012)
+    top[car] += 1.5
+    cells = np.asarray(STORE_GRID.cell_id(ix, iy), dtype=np.int64)
+    order = np.argsort(cells)
+    cells, top, sidewalk, car = cells[order], top[order], sidewalk[order], car[order]
+    seed = int(cells[np.flatnonzero(~sidewalk & ~car)[0]])
+    filled = fill_region(cells, top, seed)
+    expected = cells[~sidewalk & ~car]
+    assert np.array_equal(np.sort(filled), np.sort(expected))
+    assert len(fill_region(cells, top, int(cells[np.flatnonzero(car)[0]]))) == car.sum()
+    assert len(fill_region(cells, top, -1)) == 0  # a seed without a pillar
+
+
+def test_polygon_contains_by_the_even_odd_rule() -> None:
+    square = np.array([[0.2, 0.2], [0.8, 0.2], [0.8, 0.8], [0.2, 0.8]])
+    uv = np.array([[0.5, 0.5], [0.1, 0.5], [0.79, 0.21], [0.9, 0.9]])
+    assert points_in_polygon(uv, square).tolist() == [True, False, True, False]
+    bowtie_notch = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.5, 0.2], [0.0, 1.0]])
+    assert points_in_polygon(np.array([[0.5, 0.6], [0.5, 0.1]]), bowtie_notch).tolist() == [
+        False,
+        True,
+    ]
+
+
+def test_measure_reports_3d_horizontal_and_vertical() -> None:
+    text = measure_text(np.array([0.0, 0.0, 0.0]), np.array([3.0, 4.0, -12.0]))
+    assert "**13.00 m**" in text and "horizontal 5.00 m" in text and "vertical -12.00 m" in text

@@ -270,7 +270,7 @@ def test_client_gets_the_scene_labels_as_its_user_sees_api_writes_and_undoes(
         assert arrived - started < 5.0
 
         # undo (the GUI button) takes the painter's brush stroke back, not the admin's labels
-        await client.send(button_press(client.gui_uuid("Undo")))
+        await client.send(button_press(client.gui_uuid("Undo (Ctrl+Z)")))
         await client.wait_for(colors_with(PALETTE[0], present=False), 30)
         assert human_labels(admin, box) == {}
         beside = (world[0] + 4, world[1] - 1, world[0] + 6, world[1] + 1)
@@ -298,7 +298,7 @@ def test_model_prelabels_from_another_process_show_lighter_hide_and_lead_the_cam
         spot = np.array([12.0, 4.0])  # local xy: a 3 m patch of unsure phantom pre-labels
         near = np.hypot(*(local[:, :2] - spot).T) < 3.0
         cells = np.unique(STORE_GRID.point_cell_ids(local[near, :2] + origin[:2]))
-        await client.send(button_press(client.gui_uuid("Next uncertain area")))
+        await client.send(button_press(client.gui_uuid("Next uncertain area (N)")))
         await client.wait_for(lambda m: "No model pre-labels yet" in str(m), 10)
         with Session(engine) as db:
             version = register_version(
@@ -323,7 +323,7 @@ def test_model_prelabels_from_another_process_show_lighter_hide_and_lead_the_cam
         # (a point within float32 rounding of a pillar border may be counted in the other one)
         assert abs(len(redrawn["props"]["points"]) // 3 - (shown - int(in_patch.sum()))) <= 2
 
-        await client.send(button_press(client.gui_uuid("Next uncertain area")))
+        await client.send(button_press(client.gui_uuid("Next uncertain area (N)")))
         _, look = await client.wait_for(lambda m: m.get("type") == "SetCameraLookAtMessage", 10)
         target = np.array(look["look_at"][:2])
         grid = (target + origin[:2]) / 10.0 - 0.5  # the centre of a 10 m area ...

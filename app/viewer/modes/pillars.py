@@ -28,7 +28,7 @@ import numpy as np
 
 from app.core.errors import StaleWriteError
 from app.core.labels import PillarClass
-from app.store.pillar_labels import NO_LABEL
+from app.store.pillar_labels import NO_LABEL, STORE_GRID
 from app.store.pillar_reads import label_counts, uncertain_areas
 from app.viewer.colour_modes import (
     COLOUR_MODES,
@@ -49,7 +49,21 @@ from app.viewer.modes.pillar_selection import (
     RectangleOptions,
     rectangle_points,
 )
-from app.viewer.picking import click_angle, pick_on_ray, pillars_in_disc, ray_ground_hit
+from app.viewer.modes.pillar_tools import (
+    FILL_RADIUS,
+    FILL_STEP,
+    fill_region,
+    measure_text,
+    pillar_tops,
+    points_in_polygon,
+)
+from app.viewer.picking import (
+    ScreenCamera,
+    click_angle,
+    pick_on_ray,
+    pillars_in_disc,
+    ray_ground_hit,
+)
 from app.viewer.pillar_colors import CLASS_NAMES, DISPLAY_CLASSES, DISPLAY_NAMES, swatch_html
 from app.viewer.view_presets import heading_at
 
@@ -65,6 +79,21 @@ UNCERTAIN_VIEW_DISTANCE = 25.0  # metres from the camera to an uncertain area
 UNCERTAIN_AREA = 10.0  # metres: the side of an uncertain area
 AREA_HEIGHT = 4.0  # metres: the outline's height above the ground
 MAX_DEPTH = 500.0  # metres: the depth range slider's end
+BRUSH, FILL, POLYGON, MEASURE, INSPECT = "Brush", "Fill", "Polygon", "Measure", "Inspect"
+TOOLS = (BRUSH, FILL, POLYGON, MEASURE, INSPECT)
+TOOL_KEYS = {"B": BRUSH, "G": FILL, "P": POLYGON, "M": MEASURE, "I": INSPECT}
+APPLY_TO = ("All pillars", "Unlabelled only", *(f"Only {n.lower()}" for n in CLASS_NAMES.values()))
+MARK_RGB = (20, 20, 20)  # polygon vertices, measured points, the brush ring
+SHORTCUTS = """| key | action |
+|---|---|
+| 1 2 3 4 / 0 | class: ground, high object, short object, phantom / erase |
+| B G P M I | click tool: brush, fill, polygon, measure, inspect |
+| shift-drag | rectangle (what you see; a large one waits for Enter) |
+| Enter / Esc | apply / drop a previewed selection; Enter closes a polygon |
+| Ctrl+Z / Ctrl+Y | undo / redo your last labelling action |
+| N | next uncertain area |
+| T F S O | top, front, side, oblique view |
+| H | this sheet |"""
 VIEWS_MOVE = 0.5  # metres the focus moves before the top / side views are redrawn
 HEIGHT_SLICE = (-2.0, 40.0)  # metres above the ground: the height slice slider's ends
 
@@ -91,6 +120,10 @@ class PillarMode(Mode):
         self.height_slice = HEIGHT_SLICE
         self.colour_by = LABEL
         self.views_at: np.ndarray | None = None  # the focus the top / side views show
+        self.marks: dict[str, Any] = {}  # line segments: brush ring, polygon, measurement
+        self.brush_at: np.ndarray | None = None
+        self.polygon: list[np.ndarray] = []  # local vertices of the polygon being drawn
+        self.measured: list[np.ndarray] = []
         self._build_gui()
         self._draw("overview", self.map.overview)
         self._focus(session.client.camera.look_at)
@@ -98,6 +131,9 @@ class PillarMode(Mode):
 
     def leave(self) -> None:
         self._drop_pending()
+        for mark in self.marks.values():
+            mark.remove()
+        self.marks = {}
         if self.area_outline is not None:
             self.area_outline.remove()
             self.area_outline = None
@@ -121,13 +157,26 @@ class PillarMode(Mode):
                 f'<div style="font-size:0.8em;padding:0 0.5em">{legend}'
                 "<div>lighter: model pre-label (paler = less sure)</div></div>"
             )
-            self.klass = gui.add_dropdown("Class", tuple(CHOICES), initial_value="Ground")
+            self.klass = gui.add_dropdown("Class (1-4, 0)", tuple(CHOICES), initial_value="Ground")
+            self.tool = gui.add_dropdown(
+                "Click tool (B G P M I)", TOOLS, initial_value=BRUSH,
+                hint="what a click does; shift-drag is always the rectangle",
+            )  # fmt: skip
+            self.apply_to = gui.add_dropdown(
+                "Apply to", APPLY_TO, initial_value=APPLY_TO[0],
+                hint="lock the other pillars: label only unlabelled ones, or only one class",
+            )  # fmt: skip
             self.radius = gui.add_slider(
                 "Brush radius (m)", min=0.2, max=10.0, step=0.2, initial_value=1.0
             )
-            undo = gui.add_button("Undo", hint="Ctrl+Z: revert your last labelling action")
-            redo = gui.add_button("Redo", hint="Ctrl+Y: re-apply what you undid")
-            jump = gui.add_button("Next uncertain area", hint="N: least confident model labels")
+            self.fill_step = gui.add_slider(
+                "Fill step (m)", min=0.02, max=1.0, step=0.01, initial_value=FILL_STEP,
+                hint="the largest height step between neighbouring pillars a fill crosses",
+            )  # fmt: skip
+            undo = gui.add_button("Undo (Ctrl+Z)", hint="revert your last labelling action")
+            redo = gui.add_button("Redo (Ctrl+Y)", hint="re-apply what you undid")
+            jump = gui.add_button("Next uncertain area (N)", hint="least confident model labels")
+            shortcuts = gui.add_button("Keyboard shortcuts (H)")
             self.status = gui.add_markdown("Click: brush. Shift-drag: rectangle.")
             with gui.add_folder("Rectangle", expand_by_default=False):
                 self.through = gui.add_checkbox(
@@ -141,10 +190,10 @@ class PillarMode(Mode):
                     hint="only points this far from the camera",
                 )  # fmt: skip
             self.apply_selection = gui.add_button(
-                "Apply selection", disabled=True, hint="Enter: label the previewed pillars"
+                "Apply selection (Enter)", disabled=True, hint="label the previewed pillars"
             )
             self.cancel_selection = gui.add_button(
-                "Cancel selection", disabled=True, hint="Esc: drop the preview"
+                "Cancel selection (Esc)", disabled=True, hint="drop the preview or the polygon"
             )
             with gui.add_folder("Top and side views", expand_by_default=True):
                 self.show_views = gui.add_checkbox("Show", initial_value=True)
@@ -173,6 +222,8 @@ class PillarMode(Mode):
         undo.on_click(lambda _: submit(self.undo))
         redo.on_click(lambda _: submit(self.redo))
         jump.on_click(lambda _: submit(self.next_uncertain_area))
+        shortcuts.on_click(lambda _: submit(self.show_shortcuts))
+        self.radius.on_update(lambda _: submit(self._draw_brush_ring))
         self.apply_selection.on_click(lambda _: submit(self.confirm_selection))
         self.cancel_selection.on_click(lambda _: submit(self.cancel_pending))
         self.point_size.on_update(lambda _: submit(self._resize_points))
@@ -189,6 +240,9 @@ class PillarMode(Mode):
         self._command("Next uncertain area", "N", None, lambda: submit(self.next_uncertain_area))
         self._command("Apply selection", "enter", None, lambda: submit(self.confirm_selection))
         self._command("Cancel selection", "escape", None, lambda: submit(self.cancel_pending))
+        for key, tool in TOOL_KEYS.items():
+            self._command(f"Tool: {tool}", key, None, lambda t=tool: self._pick_tool(t))
+        self._command("Keyboard shortcuts", "H", None, lambda: submit(self.show_shortcuts))
 
     def _command(self, label: str, hotkey: str, modifier: str | None, action: Any) -> None:
         command = self.session.client.gui.add_command(label, hotkey=hotkey, modifier=modifier)
@@ -197,6 +251,15 @@ class PillarMode(Mode):
 
     def _pick(self, choice: str) -> None:
         self.klass.value = choice
+
+    def _pick_tool(self, tool: str) -> None:
+        self.tool.value = tool
+
+    def show_shortcuts(self) -> None:
+        """The keyboard shortcut sheet, in a modal."""
+        with self.session.client.gui.add_modal("Keyboard shortcuts") as modal:
+            self.session.client.gui.add_markdown(SHORTCUTS)
+            self.session.client.gui.add_button("Close").on_click(lambda _: modal.close())
 
     @property
     def label_value(self) -> int:
@@ -347,9 +410,9 @@ class PillarMode(Mode):
     def _shown(self) -> np.ndarray:
         return np.concatenate([self.shown_overview, self.shown_tile])
 
-    def on_click(self, event: SceneClickEvent) -> None:
-        """Brush: the pillars within the radius of the surface point under the cursor (the
-        ground where the ray meets no shown point)."""
+    def _surface_hit(self, event: SceneClickEvent) -> np.ndarray | None:
+        """(3,) local point a click means: the shown point under the cursor (on the surface
+        drawn there), else where the ray meets the ground; None when it meets neither."""
         shown = self._shown()
         angle = click_angle(event.client.camera)
         hit_point = pick_on_ray(
@@ -357,12 +420,25 @@ class PillarMode(Mode):
             float(self.point_size.value),
         )  # fmt: skip
         if hit_point >= 0:
-            hit = np.asarray(self.map.xyz[shown[hit_point]], dtype=np.float64)
-        else:
-            hit = ray_ground_hit(self.map.ground, event.ray_origin, event.ray_direction)
+            return np.asarray(self.map.xyz[shown[hit_point]], dtype=np.float64)
+        return ray_ground_hit(self.map.ground, event.ray_origin, event.ray_direction)
+
+    def on_click(self, event: SceneClickEvent) -> None:
+        """The click tool's action at the point under the cursor."""
+        hit = self._surface_hit(event)
+        tool = self.tool.value
         if hit is None:
-            self.session.notify("Brush", "The click did not reach the ground.")
+            self.session.notify(tool, "The click met no point and not the ground.")
             return
+        {
+            BRUSH: self._brush, FILL: self._fill, POLYGON: self._add_vertex,
+            MEASURE: self._measure, INSPECT: self._inspect,
+        }[tool](hit)  # fmt: skip
+
+    def _brush(self, hit: np.ndarray) -> None:
+        """Brush: the pillars within the radius of the point hit."""
+        self.brush_at = hit
+        self._draw_brush_ring()
         world = hit[:2] + self.map.origin[:2]
         cells = pillars_in_disc(world, float(self.radius.value))
         cells = cells[self.map.cell_index(cells)[1]]  # pillars that hold points
@@ -372,13 +448,125 @@ class PillarMode(Mode):
         self._label(cells, f"brush r = {self.radius.value:.1f} m")
         self._focus(hit)
 
+    def _draw_brush_ring(self) -> None:
+        """The brush's reach, a ring on the ground where it last painted."""
+        if self.brush_at is None:
+            return
+        angle = np.linspace(0.0, 2.0 * np.pi, 49)
+        r = float(self.radius.value)
+        ring = np.stack([r * np.cos(angle), r * np.sin(angle), np.zeros_like(angle)], axis=1)
+        ring += self.brush_at
+        ring[:, 2] = self.map.ground.height(ring[:, :2]) + 0.05
+        self._mark("brush_ring", np.stack([ring[:-1], ring[1:]], axis=1))
+
+    def _mark(self, name: str, segments: np.ndarray) -> None:
+        """(Re)draw line segments (k, 2, 3) as the scene node `name` (empty: remove it)."""
+        old = self.marks.pop(name, None)
+        if old is not None:
+            old.remove()
+        if len(segments):
+            self.marks[name] = self.session.client.scene.add_line_segments(
+                f"/{self.key}/marks/{name}",
+                points=np.asarray(segments, dtype=np.float32),
+                colors=MARK_RGB,
+                thickness=2.0,
+                thickness_units="screen",
+            )
+
+    def _fill(self, hit: np.ndarray) -> None:
+        """Fill: the pillars connected to the one hit through small height steps (shown
+        points within FILL_RADIUS), previewed like a large rectangle."""
+        shown = self._shown()
+        xyz = np.asarray(self.map.xyz[shown], dtype=np.float64)
+        near = np.hypot(*(xyz[:, :2] - hit[:2]).T) <= FILL_RADIUS
+        cells, top = pillar_tops(self.map.cells[self.map.cell[shown[near]]], xyz[near, 2])
+        seed = int(STORE_GRID.point_cell_ids((hit[:2] + self.map.origin[:2])[None])[0])
+        region = fill_region(cells, top, seed, float(self.fill_step.value))
+        if not len(region):
+            self.status.content = "Fill: no shown pillar under the click."
+            return
+        self._select(region, f"fill, step {self.fill_step.value:.2f} m")
+
+    def _add_vertex(self, hit: np.ndarray) -> None:
+        """Polygon: one more vertex; Enter closes it."""
+        self.polygon.append(hit)
+        vertices = np.asarray(self.polygon)
+        closed = np.vstack([vertices, vertices[:1]])
+        self._mark("polygon", np.stack([closed[:-1], closed[1:]], axis=1))
+        self.status.content = (
+            f"Polygon: {len(self.polygon)} vertices. Click to add, **Enter** to close "
+            "(3 or more), **Esc** to drop."
+        )
+
+    def _close_polygon(self) -> None:
+        """The pillars of the visible shown points inside the polygon, projected with the
+        camera now."""
+        camera = self.session.client.camera
+        screen = ScreenCamera.of(camera)
+        corners_px, depth = screen.project(np.asarray(self.polygon))
+        self.polygon = []
+        self._mark("polygon", np.zeros((0, 2, 3)))
+        if (depth <= 0).any():
+            self.status.content = "Polygon dropped: a vertex is behind the camera."
+            return
+        size = np.array([screen.width, screen.height])
+        shown = self._shown()
+        xyz = self.map.xyz[shown]
+        lo, hi = corners_px.min(axis=0) / size, corners_px.max(axis=0) / size
+        in_box = rectangle_points(
+            xyz, camera, tuple(lo), tuple(hi), float(self.point_size.value),
+            self._rectangle_options(),
+        )  # fmt: skip
+        idx = np.flatnonzero(in_box)
+        px, _ = screen.project(xyz[idx])
+        inside = idx[points_in_polygon(px, corners_px)]
+        cells = self.map.cells[np.unique(self.map.cell[shown[inside]])]
+        if not len(cells):
+            self.status.content = "No visible points inside the polygon."
+            return
+        self._select(cells, "polygon")
+
+    def _measure(self, hit: np.ndarray) -> None:
+        """Measure: the distance from the previous point clicked to this one."""
+        self.measured.append(hit)
+        if len(self.measured) == 1:
+            self._mark("measure", np.zeros((0, 2, 3)))
+            self.status.content = "Measure: click the second point."
+            return
+        a, b = self.measured[-2], self.measured[-1]
+        self.measured = []
+        self._mark("measure", np.stack([a, b])[None])
+        self.status.content = measure_text(a, b)
+
+    def _inspect(self, hit: np.ndarray) -> None:
+        """Inspect: the point's world coordinates, height above ground, intensity, pillar and
+        labels."""
+        shown = self._shown()
+        xyz = np.asarray(self.map.xyz[shown], dtype=np.float64)
+        i = int(shown[np.argmin(((xyz - hit) ** 2).sum(axis=1))])
+        world = np.asarray(self.map.xyz[i], dtype=np.float64) + self.map.origin
+        intensity = float(self.map.intensity[i])
+        k = int(self.map.cell[i])
+        human, model, confidence = self.view.pillar_labels(k)
+        names = {-1: "none", **{int(c): n for c, n in CLASS_NAMES.items()}}
+        height = float(self._height_above_ground(np.array([i]))[0])
+        self.status.content = (
+            f"Point x {world[0]:.2f}, y {world[1]:.2f}, z {world[2]:.2f} "
+            f"({height:+.2f} m above the ground); intensity "
+            f"{'n/a' if not np.isfinite(intensity) else f'{intensity:g}'}; pillar "
+            f"{int(self.map.cells[k])}: human {names[human]}, model {names[model]}"
+            + ("" if not np.isfinite(confidence) else f" ({confidence:.2f})")
+        )
+
+    def _rectangle_options(self) -> RectangleOptions:
+        near, far = (float(v) for v in self.depth_range.value)
+        return RectangleOptions(through=bool(self.through.value), near=near, far=far)
+
     def on_rect_select(self, event: SceneRectSelectEvent) -> None:
         """Rectangle: the pillars of the shown points inside it that are seen (or all, with
-        "select hidden points too") within the depth range; a large selection waits for
-        Enter."""
+        "select hidden points too") within the depth range."""
         shown = self._shown()
-        near, far = (float(v) for v in self.depth_range.value)
-        options = RectangleOptions(through=bool(self.through.value), near=near, far=far)
+        options = self._rectangle_options()
         inside = rectangle_points(
             self.map.xyz[shown], event.client.camera, event.screen_min, event.screen_max,
             float(self.point_size.value), options,
@@ -387,12 +575,14 @@ class PillarMode(Mode):
         if not len(cells):
             self.session.notify("Rectangle", "No visible points inside the rectangle.")
             return
-        how = "rectangle" + (", hidden points too" if options.through else "")
+        self._select(cells, "rectangle" + (", hidden points too" if options.through else ""))
+
+    def _select(self, cells: np.ndarray, how: str) -> None:
+        """A selection: labelled at once when small, else previewed until Enter."""
+        self._drop_pending()
         if len(cells) <= CONFIRM_ABOVE:
-            self._drop_pending()
             self._label(cells, how)
             return
-        self._drop_pending()
         self.pending = PendingSelection(
             self.session.client.scene, f"/{self.key}/selection", cells, how
         )
@@ -421,7 +611,11 @@ class PillarMode(Mode):
             self.cancel_selection.disabled = True
 
     def confirm_selection(self) -> None:
-        """Enter: label the previewed pillars with the class chosen now."""
+        """Enter: label the previewed pillars with the class chosen now (or close the
+        polygon being drawn)."""
+        if self.pending is None and len(self.polygon) >= 3:
+            self._close_polygon()
+            return
         if self.pending is None:
             self.status.content = "No selection to apply: shift-drag a rectangle first."
             return
@@ -430,14 +624,38 @@ class PillarMode(Mode):
         self._label(pending.cells, pending.how)
 
     def cancel_pending(self) -> None:
-        """Esc: drop the previewed selection, nothing written."""
+        """Esc: drop the previewed selection (and a polygon being drawn), nothing written."""
+        if self.polygon:
+            self.polygon = []
+            self._mark("polygon", np.zeros((0, 2, 3)))
+            self.status.content = "Polygon dropped."
         if self.pending is None:
             return
         n = len(self.pending.cells)
         self._drop_pending()
         self.status.content = f"Selection of {n:,} pillars dropped; nothing written."
 
+    def _unlocked(self, cells: np.ndarray) -> np.ndarray:
+        """The pillars "Apply to" lets a write reach: all, those without a human label, or
+        those now shown as one class."""
+        choice = self.apply_to.value
+        if choice == APPLY_TO[0]:
+            return cells
+        k, found = self.map.cell_index(cells)
+        cells, k = cells[found], k[found]
+        human, klass = self.view.pillar_state(k)
+        if choice == APPLY_TO[1]:
+            return cells[human < 0]
+        wanted = APPLY_TO.index(choice) - 2  # "Only <class>" in PillarClass order
+        return cells[klass == wanted]
+
     def _label(self, cells: np.ndarray, how: str) -> None:
+        cells = self._unlocked(cells)
+        if not len(cells):
+            self.status.content = (
+                f"Nothing to label: no pillar of the {how} is {self.apply_to.value.lower()}."
+            )
+            return
         value = self.label_value
         try:
             result = self.session.write_pillar_labels(cells, np.full(len(cells), value))
