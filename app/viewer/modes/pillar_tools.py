@@ -1,8 +1,9 @@
 """The labelling view's click tools besides the brush, as geometry on arrays:
 
-- Fill: the pillars connected to the clicked one through neighbours (bridging one empty pillar)
-  whose top heights differ by at most a step (a magic wand over the pillar grid: a road with camber or a slope fills
-  whole, a kerb or a car's flank stops it), within a radius of the click.
+- Fill: the pillars connected to the clicked one through neighbours (bridging one empty
+  pillar) whose top heights differ by at most a step (a magic wand over the pillar grid: a road
+  with camber or a slope fills whole, a kerb or a car's flank stops it), within a radius of the
+  click.
 - Polygon: vertices picked in 3D (so the polygon survives camera moves), projected with the
   camera at closing time; the shown points inside it (and visible, as for the rectangle) give
   the pillars. CloudCompare's segmentation polygon; viser reports no free-hand drags, so this is
