@@ -5,7 +5,9 @@ the real ESPNetv2 weights)."""
 from __future__ import annotations
 
 import threading
+import zipfile
 from collections.abc import Iterator
+from datetime import UTC, datetime
 from pathlib import Path
 
 import cv2
@@ -15,10 +17,14 @@ import pytest
 from sqlmodel import Session, select
 
 from app.core.errors import ConfigError, StaleWriteError
+from app.core.labels import MOVING_OFFSET
 from app.core.settings import Settings
 from app.io import open_survey
+from app.io.semantickitti import read_label_file
 from app.jobs.clutter_tasks import recompute_clutter, run_clutter_task
 from app.jobs.registry import task_for
+from app.reports.exports import slug
+from app.reports.semantickitti_labels import write_semantickitti_zip
 from app.simulate.survey import SimulationConfig, simulate
 from app.store import clutter_review
 from app.store.clutter_review import (
@@ -29,7 +35,15 @@ from app.store.clutter_review import (
     review_decisions,
 )
 from app.store.db import init_db, make_engine
-from app.store.models import AuditEvent, ClutterDecision, ClutterInstance, Decision, Survey
+from app.store.models import (
+    AuditEvent,
+    ClutterDecision,
+    ClutterInstance,
+    Decision,
+    Job,
+    JobStatus,
+    Survey,
+)
 from app.store.surveys import register_opened_survey
 from tests.jobs.conftest import job_context
 from tests.pipelines.clutter.conftest import weights_dir  # noqa: F401  (the fixture)
@@ -156,6 +170,47 @@ def test_recompute_applies_approvals_and_rejections(ran: dict) -> None:
     again = recompute_clutter(job_context(settings, engine, 3, context.survey_id), {})
     assert map_points(again["files"]["cleaned"]) == cleaned_before
     assert again["metrics"] is not None  # the simulator's reference labels: the paper's metrics
+
+
+def test_semantickitti_labels_of_a_real_run(ran: dict, tmp_path: Path) -> None:
+    """The SemanticKITTI export of the run (issue 20): one word per point of every frame, read
+    back by the SemanticKITTI reader; every point the run removed carries a class, a moving
+    object's points a moving id, the points it kept no moving id."""
+    context, survey, result = ran["context"], ran["survey"], ran["result"]
+    settings = ran["settings"]
+    now = datetime.now(UTC)
+    with Session(context.engine) as session:
+        session.add(
+            Job(survey_id=context.survey_id, kind="run:clutter", status=JobStatus.succeeded,
+                result=result, started_at=now, finished_at=now)
+        )  # fmt: skip
+        session.commit()
+        record = session.get(Survey, context.survey_id)
+        decisions = review_decisions(session, context.survey_id)
+        _, states = list_instances(session, context.survey_id, limit=1000)
+        manifest = write_semantickitti_zip(session, settings, record, tmp_path / "labels.zip")
+    assert all(d[2] == Decision.pending for d in decisions)  # the pipeline's own flags
+    with zipfile.ZipFile(tmp_path / "labels.zip") as zf:
+        zf.extractall(tmp_path)
+    sequence = tmp_path / "sequences" / slug(record.name) / "labels"
+    assert len(manifest["frames"]) == len(survey.frames)
+    moving_ids = set(MOVING_OFFSET.values())
+    moving = {(s.frame_id, s.instance_index) for s in states if s.moving}
+    removed_total = 0
+    for frame in survey.frames:
+        read = read_label_file(sequence / f"{frame.frame_id}.label", frame.point_count)
+        semantic = read["semantic"]
+        removed = np.load(Path(result["files"]["labels"]) / f"{frame.frame_id}.npy").astype(bool)
+        owner = np.load(Path(result["files"]["instances"]) / f"{frame.frame_id}.npz")["instance"]
+        assert (semantic[removed] > 0).all()
+        assert not np.isin(semantic[~removed], list(moving_ids)).any()
+        mine = np.array([(frame.frame_id, int(k)) in moving for k in range(owner.max() + 1)])
+        if len(mine):
+            of_moving = removed & (owner >= 0) & mine[np.maximum(owner, 0)]
+            assert np.isin(semantic[of_moving], list(moving_ids)).all()
+        assert (read["instance"][removed] > 0).all()
+        removed_total += int(removed.sum())
+    assert removed_total > 0 and sum(manifest["points_per_id"].values()) >= removed_total
 
 
 def test_bad_config_names_the_field(tmp_path: Path) -> None:
