@@ -14,6 +14,7 @@ from app.api.disk_space import DiskSpace, refuse_writes_on_full_disk
 from app.api.errors import document_disk_full, install_error_handlers
 from app.api.orphans import remove_orphans
 from app.api.routes import (
+    areas,
     auth,
     clutter,
     dashboard,
@@ -78,6 +79,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_error_handlers(app)
     for module in (health, auth, users, surveys, jobs, pillars, clutter, guardrails, models):
         app.include_router(module.router)
+    app.include_router(areas.router)
     app.include_router(vocabulary.router)
     app.include_router(exports.router)
     app.include_router(viewer.router)

@@ -10,7 +10,7 @@ from typing import Annotated
 
 import typer
 
-from app.cli.common import console
+from app.cli.common import console, err_console
 
 user_app = typer.Typer(help="Manage the web app's users.")
 
@@ -65,7 +65,9 @@ def export(
     """Export from the web app's store (as the dashboard's downloads do): the cleaned, removed or
     classified map of the newest clutter or phantom run (LAZ with the survey's CRS when it has
     one, or PCD), SemanticKITTI labels of the newest clutter run, approved guardrail meshes,
-    pillar labels, the QA report."""
+    pillar labels, the QA report. While review is pending (clutter decisions, work areas not
+    signed off, guardrail models) it prints the same warning line as the dashboard (on stderr)
+    and exports the current state."""
     import os
     import shutil
 
@@ -86,6 +88,7 @@ def export(
     from app.reports.semantickitti_labels import write_semantickitti_zip
     from app.store.db import get_engine
     from app.store.surveys import find_survey
+    from app.store.work_areas import export_readiness
 
     if what not in EXPORTS:
         raise ConfigError("WHAT", f"must be one of {', '.join(EXPORTS)} (got {what!r})")
@@ -104,6 +107,9 @@ def export(
     try:
         with Session(get_engine()) as session:
             record = find_survey(session, survey)
+            warning = export_readiness(session, record.id).warning
+            if warning:
+                err_console.print(f"warning: {warning}", markup=False, soft_wrap=True)
             if what in ("cleaned-laz", "removed-laz"):
                 which = what.split("-")[0]
                 path, job, crs = map_with_crs(session, settings, record, which, source, staged)

@@ -45,7 +45,7 @@ from app.store import models  # noqa: F401  (registers every table on SQLModel.m
 
 log = logging.getLogger(__name__)
 
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 
 
 def _to_v2(conn: Connection) -> None:
@@ -168,12 +168,48 @@ def _to_v5(conn: Connection) -> None:
     )
 
 
+def _to_v6(conn: Connection) -> None:
+    """Version 6: work areas, stretches of a survey's drive assigned, labelled and signed off
+    (`app.store.work_areas`)."""
+    conn.exec_driver_sql(
+        """CREATE TABLE work_area (
+            id INTEGER NOT NULL,
+            created_at DATETIME NOT NULL,
+            updated_at DATETIME NOT NULL,
+            version INTEGER NOT NULL,
+            survey_id INTEGER NOT NULL,
+            area_index INTEGER NOT NULL,
+            station_start DOUBLE NOT NULL,
+            station_end DOUBLE NOT NULL,
+            x_min DOUBLE NOT NULL,
+            y_min DOUBLE NOT NULL,
+            x_max DOUBLE NOT NULL,
+            y_max DOUBLE NOT NULL,
+            assignee_id INTEGER,
+            reviewer_id INTEGER,
+            state VARCHAR(32) NOT NULL,
+            comment VARCHAR(1000) NOT NULL,
+            decided_by INTEGER,
+            decided_at DATETIME,
+            PRIMARY KEY (id),
+            CONSTRAINT uq_work_area_index UNIQUE (survey_id, area_index),
+            FOREIGN KEY(survey_id) REFERENCES survey (id) ON DELETE CASCADE,
+            FOREIGN KEY(assignee_id) REFERENCES user (id) ON DELETE SET NULL,
+            FOREIGN KEY(reviewer_id) REFERENCES user (id) ON DELETE SET NULL,
+            FOREIGN KEY(decided_by) REFERENCES user (id) ON DELETE SET NULL
+        )"""
+    )
+    conn.exec_driver_sql("CREATE INDEX ix_work_area_survey_id ON work_area (survey_id)")
+    conn.exec_driver_sql("CREATE INDEX ix_work_area_state ON work_area (state)")
+
+
 # target version -> function upgrading a database from version - 1 to it (runs in a transaction)
 MIGRATIONS: dict[int, Callable[[Connection], None]] = {
     2: _to_v2,
     3: _to_v3,
     4: _to_v4,
     5: _to_v5,
+    6: _to_v6,
 }
 
 _VERSION_TABLE = sa.Table(

@@ -95,6 +95,15 @@ class Pipeline(enum.StrEnum):
     clutter = "clutter"
 
 
+class AreaState(enum.StrEnum):
+    """Where a work area stands: open (being labelled) -> labelled (its annotator says done) ->
+    signed_off (a reviewer accepted it), or back to open (a reviewer rejected it)."""
+
+    open = "open"
+    labelled = "labelled"
+    signed_off = "signed_off"
+
+
 # --- tables ------------------------------------------------------------------------------
 
 
@@ -434,6 +443,36 @@ class GuardrailModel(Versioned, table=True):
     decided_at: datetime | None = Field(default=None, sa_type=UTCDateTime)
 
 
+class WorkAreaBase(Versioned):
+    """A work area's columns the API shows as they are (`WorkAreaPublic`)."""
+
+    survey_id: int = survey_fk()
+    area_index: int = Field(ge=0)  # along the drive, from 0
+    station_start: float = Field(sa_type=sa.Double)  # metres along the survey's frame poses
+    station_end: float = Field(sa_type=sa.Double)
+    # world bounding box of its pillars (float64; the trajectory piece's when it has none)
+    x_min: float = Field(sa_type=sa.Double)
+    y_min: float = Field(sa_type=sa.Double)
+    x_max: float = Field(sa_type=sa.Double)
+    y_max: float = Field(sa_type=sa.Double)
+    assignee_id: int | None = user_fk()  # the annotator who labels it
+    reviewer_id: int | None = user_fk()  # the reviewer who signs it off (any reviewer: None)
+    state: AreaState = Field(
+        default=AreaState.open, sa_type=enum_type(AreaState), nullable=False, index=True
+    )
+    comment: str = Field(default="", max_length=1000)  # the last rejection's reason
+    decided_by: int | None = user_fk()  # who signed it off or rejected it last
+    decided_at: datetime | None = Field(default=None, sa_type=UTCDateTime)
+
+
+class WorkArea(WorkAreaBase, table=True):
+    """A stretch of a survey's drive that one annotator labels and a reviewer signs off (a CVAT
+    job). A survey's areas are cut together (`app.review.work_areas`) and replaced together."""
+
+    __tablename__ = "work_area"
+    __table_args__ = (sa.UniqueConstraint("survey_id", "area_index", name="uq_work_area_index"),)
+
+
 class AuditEvent(Record, table=True):
     """Who did what to which record; `payload` holds the details (e.g. before/after values)."""
 
@@ -465,5 +504,6 @@ TABLES: tuple[type[SQLModel], ...] = (
     ClutterDecision,
     GuardrailSlice,
     GuardrailModel,
+    WorkArea,
     AuditEvent,
 )

@@ -239,6 +239,7 @@ def test_concurrent_first_starts_create_the_database_once(db_path: Path) -> None
 
 V3_TABLES = ("auth_session", "login_throttle")
 V4_TABLES = ("pillar_tombstone", "issued_id")
+V6_TABLES = ("work_area",)
 
 
 def test_version_1_database_is_upgraded_to_2_keeping_labels(
@@ -250,7 +251,13 @@ def test_version_1_database_is_upgraded_to_2_keeping_labels(
     old = make_engine(f"sqlite:///{db_path}")
     with old.begin() as conn:  # the version 1 tables: today's minus what version 2 added
         for table in SQLModel.metadata.sorted_tables:
-            if table.name not in ("pillar_edit_batch", "pillar_edit", *V3_TABLES, *V4_TABLES):
+            if table.name not in (
+                "pillar_edit_batch",
+                "pillar_edit",
+                *V3_TABLES,
+                *V4_TABLES,
+                *V6_TABLES,
+            ):
                 table.create(conn)
         conn.exec_driver_sql("DROP INDEX ix_pillar_label_tile")
         conn.exec_driver_sql("DROP INDEX ix_pillar_label_source_updated")
@@ -312,7 +319,7 @@ def test_version_2_database_gets_login_sessions_and_throttling(
     old = make_engine(f"sqlite:///{db_path}")
     with old.begin() as conn:
         for table in SQLModel.metadata.sorted_tables:
-            if table.name not in (*V3_TABLES, *V4_TABLES):
+            if table.name not in (*V3_TABLES, *V4_TABLES, *V6_TABLES):
                 table.create(conn)
         conn.exec_driver_sql("PRAGMA user_version = 2")
         conn.exec_driver_sql(
@@ -348,7 +355,7 @@ def test_version_3_database_gets_tombstones_edit_versions_and_issued_ids(
     old = make_engine(f"sqlite:///{db_path}")
     with old.begin() as conn:
         for table in SQLModel.metadata.sorted_tables:
-            if table.name not in V4_TABLES:
+            if table.name not in (*V4_TABLES, *V6_TABLES):
                 table.create(conn)
         conn.exec_driver_sql("DROP INDEX ix_pillar_edit_cell_version")
         for column in ("version", "version_before"):
@@ -392,6 +399,7 @@ def test_version_4_database_gets_sensor_kinds(
     old = make_engine(f"sqlite:///{db_path}")
     with old.begin() as conn:
         SQLModel.metadata.create_all(conn)
+        conn.exec_driver_sql("DROP TABLE work_area")
         for table, column in (
             ("survey", "sensor_kind"),
             ("survey", "sensor_note"),
@@ -420,4 +428,39 @@ def test_version_4_database_gets_sensor_kinds(
         kinds = conn.exec_driver_sql("SELECT format, sensor_kind FROM survey ORDER BY id").all()
         assert kinds == [("semantickitti", "rotating"), ("las", "unknown"), ("sim", "unknown")]
         assert conn.exec_driver_sql("SELECT sensor_kind FROM model_version").scalar() == "profile"
+    engine.dispose()
+
+
+def test_version_5_database_gets_work_areas(
+    db_path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The real version 6 migration: the work area table has the shape a new database gets,
+    with its indexes, and its rows go with their survey."""
+    monkeypatch.setattr(migrations, "SCHEMA_VERSION", 5)
+    monkeypatch.setattr(migrations, "MIGRATIONS", {v: MIGRATIONS[v] for v in range(2, 6)})
+    old = make_engine(f"sqlite:///{db_path}")
+    with old.begin() as conn:
+        for table in SQLModel.metadata.sorted_tables:
+            if table.name not in V6_TABLES:
+                table.create(conn)
+        conn.exec_driver_sql("PRAGMA user_version = 5")
+    _fill(old)  # survey 1
+    engine, fresh = _upgraded(old, db_path, tmp_path, monkeypatch)
+    assert _columns(engine, "work_area") == _columns(fresh, "work_area")
+
+    def indexes(e: Engine) -> set[tuple]:
+        with e.connect() as conn:
+            return {tuple(r)[1:3] for r in conn.exec_driver_sql("PRAGMA index_list(work_area)")}
+
+    assert indexes(engine) == indexes(fresh)
+    fresh.dispose()
+    with engine.begin() as conn:
+        conn.exec_driver_sql(
+            "INSERT INTO work_area (created_at, updated_at, version, survey_id, area_index,"
+            " station_start, station_end, x_min, y_min, x_max, y_max, state, comment)"
+            " VALUES ('2026-01-01', '2026-01-01', 1, 1, 0, 0, 100, 0, 0, 1, 1, 'open', '')"
+        )
+        conn.exec_driver_sql("DELETE FROM survey WHERE id = 1")
+        assert conn.exec_driver_sql("SELECT count(*) FROM work_area").scalar() == 0
+        assert conn.exec_driver_sql("PRAGMA foreign_key_check").all() == []
     engine.dispose()
