@@ -26,7 +26,7 @@ from sqlalchemy.engine import Engine
 from sqlmodel import Session, select
 
 from app.io.asprs import CLUTTER_LABEL_TO_ASPRS, REMOVED_CLUTTER_ASPRS, to_asprs
-from app.io.las import write_laz
+from app.io.las import read_las_points, write_laz
 from app.io.pcd import read_pcd
 from app.io.semantickitti import read_label_file
 from app.io.survey import Frame as SimFrame
@@ -792,3 +792,57 @@ def test_maps_for_other_tools_with_the_survey_crs(
     assert not laspy.read(io.BytesIO(plain.content)).header.global_encoding.wkt
     as_is = reviewer.get(f"/surveys/{sk}/exports/removed.laz")
     assert as_is.content == files["removed"].read_bytes()
+
+
+def pairs(frame: np.ndarray, index: np.ndarray) -> set[tuple[int, int]]:
+    return set(zip(frame.tolist(), index.tolist(), strict=True))
+
+
+def test_combined_maps_leave_out_what_either_run_removed(
+    server: Server, tmp_path: Path, engine: Engine, reviewer: httpx.Client
+) -> None:
+    """Issue 20: exports cover clutter, phantom and both combined. Points are known by their
+    (source frame, source index): the combined cleaned map is the clutter run's cleaned points
+    without those the phantom run removed; the combined removed map is the union."""
+    sid = add_frames_survey(engine, "Combined", "semantickitti", "/nowhere/09", [10, 10])
+    frame = np.repeat([0, 1], 10).astype(np.uint32)
+    index = np.tile(np.arange(10), 2).astype(np.uint32)
+    rng = np.random.default_rng(5)
+    xyz = rng.uniform(0, 5, (20, 3)) + [600_000.0, 5_000_000.0, 80.0]
+    clutter_gone = (frame == 0) & (index < 3)  # 3 points
+    phantom_gone = (frame == 1) & (index >= 6) | (frame == 0) & (index == 2)  # 5, one shared
+
+    def write(path: Path, mask: np.ndarray, label: int) -> Path:
+        return write_laz(path, xyz[mask], source_frame=frame[mask], source_index=index[mask],
+                         mmsclean_label=np.full(mask.sum(), label, np.uint8))  # fmt: skip
+
+    jobs = server.data_dir / "jobs"
+    clutter = {"cleaned": write(jobs / "c" / "cleaned.laz", ~clutter_gone, 0),
+               "removed": write(jobs / "c" / "removed.laz", clutter_gone, 1)}  # fmt: skip
+    phantom = {"cleaned": write(jobs / "p" / "cleaned.laz", ~phantom_gone, 0),
+               "removed": write(jobs / "p" / "removed.laz", phantom_gone, 3)}  # fmt: skip
+    add(engine, succeeded_job(sid, "run:clutter", clutter, None))
+    add(engine, succeeded_job(sid, "run:phantom", phantom, None))
+
+    def keys(content: bytes) -> set[tuple[int, int]]:
+        path = tmp_path / "download.laz"
+        path.write_bytes(content)
+        cloud = read_las_points(path)
+        return pairs(cloud.extra["source_frame"], cloud.extra["source_index"])
+
+    either = clutter_gone | phantom_gone
+    cleaned = reviewer.get(f"/surveys/{sid}/exports/cleaned.laz?source=combined")
+    assert cleaned.status_code == 200, cleaned.text
+    assert 'filename="Combined-combined-cleaned.laz"' in cleaned.headers["content-disposition"]
+    assert keys(cleaned.content) == pairs(frame[~either], index[~either])
+    removed = reviewer.get(f"/surveys/{sid}/exports/removed.laz?source=combined")
+    assert keys(removed.content) == pairs(frame[either], index[either])
+    path = tmp_path / "removed.laz"
+    path.write_bytes(removed.content)
+    labels = read_las_points(path).extra["mmsclean_label"]
+    assert sorted(labels.tolist()) == [1, 1, 1, 3, 3, 3, 3]  # each point as its run wrote it
+    # without a phantom run there is nothing to combine: 404 naming it
+    alone = add_frames_survey(engine, "Alone", "semantickitti", "/nowhere/10", [10, 10])
+    add(engine, succeeded_job(alone, "run:clutter", clutter, None))
+    missing = reviewer.get(f"/surveys/{alone}/exports/cleaned.laz?source=combined")
+    assert missing.status_code == 404 and "phantom" in missing.json()["detail"]

@@ -32,6 +32,7 @@ from app.api.downloads import downloader
 from app.api.errors import errors
 from app.api.types import Id
 from app.core.settings import Settings
+from app.reports.combined_maps import write_combined_map
 from app.reports.exports import (
     csv_pieces,
     exported,
@@ -44,7 +45,7 @@ from app.reports.exports import (
 from app.reports.map_exports import map_with_crs, write_classified_laz, write_map_pcd
 from app.reports.qa_report import build_qa_report
 from app.reports.semantickitti_labels import write_semantickitti_zip
-from app.store.models import User
+from app.store.models import Survey, User
 from app.store.surveys import get_survey
 
 router = APIRouter(
@@ -77,9 +78,11 @@ def _sent_once(path: Path, media_type: str, filename: str) -> FileResponse:
 # --- clutter maps -------------------------------------------------------------------------
 
 
-MapSource = Literal["newest", "clutter", "phantom"]
+MapSource = Literal["newest", "clutter", "phantom", "combined"]
 SOURCE = Query(
-    "newest", description="the pipeline whose run: clutter, phantom, or the newest of both"
+    "newest",
+    description="the pipeline whose run: clutter, phantom, the newest of both, or combined "
+    "(what either removed left out of one map)",
 )
 
 
@@ -92,6 +95,8 @@ def _map_download(
     which: str, survey_id: int, user: User, session: SessionDep, settings: SettingsDep, source: str
 ) -> FileResponse:
     survey = get_survey(session, survey_id)
+    if source == "combined":
+        return _combined_download(which, survey, user, session, settings)
     dest = temp_file(settings, ".laz")
     try:
         path, job, crs = map_with_crs(session, settings, survey, which, source, dest)
@@ -108,6 +113,23 @@ def _map_download(
         return response
     dest.unlink(missing_ok=True)
     return FileResponse(path, media_type=media, filename=name, headers=headers)
+
+
+def _combined_download(
+    which: str, survey: Survey, user: User, session: SessionDep, settings: SettingsDep
+) -> FileResponse:
+    """The `which` map of the newest clutter and phantom runs combined (`combined_maps`)."""
+    dest = temp_file(settings, ".laz")
+    try:
+        jobs, count, crs = write_combined_map(session, settings, survey, which, dest)
+        exported(session, user.id, survey, f"{which}_laz", source="combined",
+                 job_ids=[j.id for j in jobs], points=count, crs=crs)  # fmt: skip
+    except BaseException:
+        dest.unlink(missing_ok=True)
+        raise
+    response = _sent_once(dest, LAS_MEDIA[".laz"], f"{slug(survey.name)}-combined-{which}.laz")
+    response.headers["X-Mmsclean-CRS"] = header_text(crs)
+    return response
 
 
 @router.get("/cleaned.laz", response_class=FileResponse)
