@@ -6,13 +6,16 @@ camera looks or the last brush stroke landed; loaded when the focus moves to ano
 Points are coloured by their pillar's label: human labels in full colour, model pre-labels
 lighter, unlabelled grey. A label change anywhere resends colours only.
 
-Tools: a class palette (hotkeys 1-4, 0 erases); the brush (click: the ray meets the local ground,
-every pillar within the radius is labelled, one undoable batch; the brush lands on the surface
-under the cursor, the ground where there is none); the rectangle (shift-drag: the pillars of the
-shown points inside it that the user can see, within a depth range, `pillar_selection`; a large
-selection is previewed and written on Enter); undo / redo (Ctrl+Z / Ctrl+Y, the user's own batches
-in the store); hiding classes; point size; "next uncertain area" (N) flies the camera to the
-area whose unreviewed model pre-labels are least confident and outlines it.
+Tools: a class palette (hotkeys 1-4, 0 erases); click tools (B G P M I, `pillar_tools`): the
+brush (every pillar within the radius of the surface point under the cursor, or of the ground
+where there is none; one undoable batch), fill (the pillars connected through small height
+steps), polygon (clicks, Enter closes), measure and inspect; the rectangle (shift-drag: the
+pillars of the shown points inside it that the user can see, within a depth range,
+`pillar_selection`). A selection over CONFIRM_ABOVE pillars is previewed and written on Enter.
+"Apply to" locks pillars: only unlabelled ones, or only one class, are written. Undo / redo
+(Ctrl+Z / Ctrl+Y, the user's own batches in the store); "next uncertain area" (N) flies the
+camera to the area whose unreviewed model pre-labels are least confident and outlines it; H
+shows the shortcut sheet.
 
 Display: colour by label, height above ground, intensity or model confidence (`colour_modes`);
 a height slice (only points between two heights above the ground are shown, and so selectable:
