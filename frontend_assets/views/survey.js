@@ -1,6 +1,7 @@
 // One survey: its sensor kind (declared here when unknown), start its pipelines, open the
-// viewer modes, see the review state (pillar labels, clutter decisions, guardrail models),
-// download exports; and its metrics page.
+// viewer modes, see the review state (pillar labels, clutter decisions, guardrail models), its
+// work areas (views/areas.js), download exports (with a warning while review is pending); and
+// its metrics page.
 
 import { api, hasRole } from "../api.js";
 import {
@@ -20,6 +21,7 @@ import {
 import { modelHeadline, pipelineOf, renderMetrics } from "../metrics.js";
 import { bars, figure } from "../plots.js";
 import { sensorBlock } from "../sensors.js";
+import { readinessLine, workAreasBlock } from "./areas.js";
 
 // The options a run job takes that people change; everything else stays the paper's default.
 const PIPELINE_FORMS = [
@@ -371,7 +373,7 @@ async function latestSucceeded(surveyId, kinds) {
   return jobs[0] || null;
 }
 
-function exportsSection(survey, removalRun, clutterRun, guardrailModels, humanLabels) {
+function exportsSection(survey, removalRun, clutterRun, guardrailModels, humanLabels, readiness) {
   const approved = guardrailModels.some((m) => m.status === "approved");
   const reasons = {
     removal: removalRun ? null : "needs a finished clutter or phantom run",
@@ -409,7 +411,8 @@ function exportsSection(survey, removalRun, clutterRun, guardrailModels, humanLa
     if (e.needs === "clutter" && clutterRun) from = ` of ${clutterRun.kind} job ${clutterRun.id}, as reviewed`;
     return h("li", {}, link, h("span", { class: "muted" }, reason ? ` ${reason}` : from));
   });
-  return h("ul", { class: "exports", id: "exports" }, items);
+  // the links stay usable while review is pending: the line says what an export would miss
+  return [readinessLine(readiness), h("ul", { class: "exports", id: "exports" }, items)];
 }
 
 // --- the pages ------------------------------------------------------------------------------
@@ -451,19 +454,22 @@ export async function surveyView(ctx, root, id) {
     ),
     section("Review state", review),
   );
+  const areas = workAreasBlock(ctx, survey, { onChange: () => loadReview() });
+  root.append(section("Work areas", areas.el));
   if (hasRole(user, "reviewer")) root.append(section("Exports", exportsBox));
 
   async function loadReview() {
-    const [stats, frames, models, removalRun, clutterRun] = await Promise.all([
+    const [stats, frames, models, removalRun, clutterRun, readiness] = await Promise.all([
       api(`/surveys/${survey.id}/pillars/stats`),
       api(`/surveys/${survey.id}/clutter/frames`),
       api(`/surveys/${survey.id}/guardrails/models`),
       latestSucceeded(survey.id, REMOVAL_KINDS),
       latestSucceeded(survey.id, ["run:clutter"]), // the run whose review units are labelled
+      api(`/surveys/${survey.id}/export-readiness`),
     ]);
     review.replaceChildren(pillarSection(stats), clutterSection(frames), guardrailSection(models));
     const humanLabels = stats.human.reduce((a, b) => a + b, 0);
-    exportsBox.replaceChildren(exportsSection(survey, removalRun, clutterRun, models, humanLabels));
+    exportsBox.replaceChildren(...exportsSection(survey, removalRun, clutterRun, models, humanLabels, readiness).filter(Boolean));
   }
 
   async function refresh() {
@@ -490,6 +496,7 @@ export async function surveyView(ctx, root, id) {
   for (const form of PIPELINE_FORMS) cards[form.kind].show(survey.latest_jobs?.[form.kind]);
   lastJobs = survey.latest_jobs || {};
   await loadReview();
+  areas.load().catch((error) => ctx.error(error)); // the first read may build the survey's map
   poller = ctx.poll(refresh);
 }
 

@@ -573,6 +573,91 @@ def test_retraining_says_what_it_needs_and_how_the_last_one_ended(
     assert shown.locator("a").get_attribute("href") == f"#/jobs/{failed['id']}"
 
 
+def log_out(page) -> None:
+    page.click("#logout")
+    page.wait_for_selector("#login-form")
+
+
+@pytest.mark.e2e
+def test_work_areas_are_assigned_labelled_signed_off_and_exports_warn(
+    page, dashboard_server: Server, tmp_path: Path
+) -> None:
+    """The review workflow on the survey page (issue 20): a reviewer cuts the sample's drive
+    into 20 m areas and assigns one, its annotator marks it labelled, its reviewer rejects it
+    with a comment, then signs it off; the export links stay usable under a warning line that
+    lists the areas not signed off."""
+    dashboard_server.add_user("area-ann", "annotator", password="area-ann-pass-1")
+    dashboard_server.add_user("area-rev", "reviewer", password="area-rev-pass-1")
+    with dashboard_server.client() as admin:
+        survey = next(s for s in admin.get("/surveys").json() if "urban-60m" in s["name"])
+    url = f"/#/surveys/{survey['id']}"
+
+    log_in(page)
+    page.goto(url)
+    page.locator("#areas-form").wait_for()
+    page.fill("#areas-length", "20")
+    page.click("#areas-create")
+    rows = page.locator("#areas-table tr[data-area]")
+    rows.nth(2).wait_for()
+    assert rows.count() == 3
+    first = page.locator("#areas-table tr[data-area='0']")
+    assert "0 – 20 m" in first.inner_text()
+    assert first.locator("[data-viewer-area='0']").get_attribute("href") == (
+        f"/viewer?survey={survey['id']}&mode=pillars"
+    )
+    warning = page.locator("#export-warning")
+    warning.wait_for()
+    assert "3 of 3 work areas not signed off (0, 1, 2)" in warning.inner_text()
+    assert page.locator("#exports a[data-export='qa-report.html']").count() == 1  # usable
+    first.locator("select[data-assignee='0']").select_option(label="area-ann (annotator)")
+    first.locator("select[data-reviewer='0']").select_option(label="area-rev (reviewer)")
+    first.locator("button[data-action='assign']").click()
+    page.wait_for_function(
+        """() => document.querySelector("#areas-table tr[data-area='0'] td[data-col='assignee']")
+            ?.textContent === "area-ann" """
+    )
+    log_out(page)
+
+    log_in(page, "area-ann", "area-ann-pass-1")
+    page.goto(url)
+    first.locator("button[data-action='labelled']").click()
+    page.locator("#areas-table tr[data-area='0'][data-state='labelled']").wait_for()
+    unassigned = page.locator("#areas-table tr[data-area='1'] button[data-action='labelled']")
+    assert unassigned.count() == 0
+    assert page.locator("#areas-form").count() == 0  # annotators do not cut areas
+    log_out(page)
+
+    log_in(page, "area-rev", "area-rev-pass-1")
+    page.goto(url)
+    first.locator("input[data-comment='0']").fill("the kerb at 12 m is ground")
+    first.locator("button[data-action='reject']").click()
+    page.locator("#areas-table tr[data-area='0'][data-state='open']").wait_for()
+    assert "rejected: the kerb at 12 m is ground" in first.inner_text()
+    log_out(page)
+
+    log_in(page, "area-ann", "area-ann-pass-1")
+    page.goto(url)
+    first.locator("button[data-action='labelled']").click()
+    page.locator("#areas-table tr[data-area='0'][data-state='labelled']").wait_for()
+    log_out(page)
+
+    log_in(page, "area-rev", "area-rev-pass-1")
+    page.goto(url)
+    first.locator("button[data-action='sign-off']").click()
+    page.locator("#areas-table tr[data-area='0'][data-state='signed_off']").wait_for()
+    page.wait_for_function(
+        """() => document.querySelector("#export-warning")?.textContent
+            .includes("2 of 3 work areas not signed off (1, 2)")"""
+    )
+    assert page.locator("#exports a[data-export='qa-report.html']").count() == 1
+    page.locator("#work-areas").screenshot(path=str(tmp_path / "work-areas.png"))
+    with dashboard_server.client() as admin:
+        ready = admin.get(f"/surveys/{survey['id']}/export-readiness").json()
+        assert ready["warning"] in page.locator("#export-warning").inner_text()
+        areas = admin.get(f"/surveys/{survey['id']}/areas").json()
+    assert [a["state"] for a in areas] == ["signed_off", "open", "open"]
+
+
 @pytest.mark.e2e
 def test_an_annotator_sees_only_what_the_role_allows(page, dashboard_server: Server) -> None:
     dashboard_server.add_user("annie", "annotator", password="annotator-pass-1")
