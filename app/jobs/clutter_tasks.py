@@ -6,8 +6,10 @@ The review units ("instances"), their membership files and mask images are made 
 `app.pipelines.clutter.review_units`.
 The mask images lie in the run's folder: recompute finds the membership of the instances in
 the store from their `mask_path`, so the rows and the files cannot come from different runs.
-A decision applies to all points of its instance: approved -> removed, rejected -> kept,
-pending -> the pipeline's flag.
+Reviewers' corrections of the membership apply first (`app.store.clutter_corrections`: points
+taken out of an instance are kept, a missed object added is a new instance); then a decision
+applies to all points of its instance: approved -> removed, rejected -> kept, pending -> the
+pipeline's flag.
 """
 
 from __future__ import annotations
@@ -43,13 +45,14 @@ from app.jobs.registry import JobContext, task
 from app.jobs.task_config import validated
 from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.maps import maps_offset, write_frame_maps
+from app.pipelines.clutter.review_corrections import ADD, REMOVE
 from app.pipelines.clutter.review_units import apply_decisions
 from app.pipelines.clutter.run import reference_metrics, run_clutter_report
 from app.pipelines.clutter.segmenter import WEIGHTS_FILE
 from app.pipelines.clutter.tiled import TILE_LENGTH, clutter_halo
 from app.pipelines.outputs import write_frame_labels, write_report
 from app.pipelines.tiling import MAPS
-from app.store import clutter_review
+from app.store import clutter_corrections, clutter_review
 from app.store.models import Decision
 from app.store.surveys import get_survey, survey_footprint
 
@@ -218,6 +221,7 @@ def recompute_clutter(context: JobContext, config: dict[str, Any]) -> dict[str, 
         record = get_survey(session, sid)
         source, fmt = record.source_path, record.format
         decisions = clutter_review.review_decisions(session, sid)
+        corrections = clutter_corrections.survey_corrections(session, sid)
         run = clutter_review.run_folder_of([d[3] for d in decisions])
         if run is None:
             job = clutter_review.latest_run(session, sid)
@@ -228,7 +232,9 @@ def recompute_clutter(context: JobContext, config: dict[str, Any]) -> dict[str, 
     run_config = _run_config(run)
     context.progress(0.05, "applying the decisions")
     verdicts = [(frame_id, index, VERDICT[d]) for frame_id, index, d, _ in decisions]
-    removed, in_view, pipeline_removed = apply_decisions(survey, run / "instances", verdicts)
+    removed, in_view, pipeline_removed = apply_decisions(
+        survey, run / "instances", verdicts, corrections
+    )
     context.progress(0.4, "writing the maps")
     out = context.workdir
     write_frame_labels(
@@ -249,6 +255,10 @@ def recompute_clutter(context: JobContext, config: dict[str, Any]) -> dict[str, 
         "map_points": maps["map_points"],
         "instances": len(decisions),
         "decisions": tally,
+        "corrections": {
+            kind: sum(c.kind == kind for cs in corrections.values() for c in cs)
+            for kind in (REMOVE, ADD)
+        },
     }
     report: dict[str, Any] = {
         "pipeline": "clutter",

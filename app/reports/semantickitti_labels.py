@@ -3,7 +3,8 @@ tooling read them: one file per frame, a uint32 per point of the frame in its po
 
 The run's review units say which instance owns each point (`<run>/instances/<frame>.npz`), the
 store what the run called each instance (class, moving, track) and the reviewers' verdicts, which
-are applied as `clutter:recompute` applies them (approved: removed, rejected: kept, pending: the
+are applied as `clutter:recompute` applies them (after the reviewers' corrections of the
+membership) (approved: removed, rejected: kept, pending: the
 pipeline's flag), so the labels are the review as it stands at the export. Ids:
 
 - a removed point: its instance's class (`CLUTTER_CLASS_SEMANTIC`), as SemanticKITTI's moving id
@@ -42,7 +43,7 @@ from app.io.semantickitti import label_bytes
 from app.pipelines.clutter.review_units import reviewed_frame
 from app.reports.exports import slug
 from app.reports.qa_report import job_file
-from app.store import clutter_review
+from app.store import clutter_corrections, clutter_review
 from app.store.clutter_review import InstanceClass
 from app.store.models import Decision, Job, Survey
 from app.store.surveys import frame_point_counts
@@ -177,6 +178,7 @@ def _write_zip(
     unknown = set(by_frame) - {f for f, _ in frames}
     if unknown:
         raise ConflictError(f"clutter instances name frame {sorted(unknown)[0]!r}, not in survey")
+    corrections = clutter_corrections.survey_corrections(session, survey.id)
     sequence = sequence_name(survey)
     totals = np.zeros(1 << 16, dtype=np.int64)
     written = []
@@ -184,7 +186,9 @@ def _write_zip(
         for frame_id, count in frames:  # a frame at a time
             mine = by_frame.get(frame_id, [])
             verdicts = [(r.instance_index, VERDICT[r.decision]) for r, _ in mine]
-            reviewed = reviewed_frame(folder, frame_id, count or None, verdicts)
+            reviewed = reviewed_frame(
+                folder, frame_id, count or None, verdicts, corrections.get(frame_id, ())
+            )
             table = FrameTable.of(mine, int(reviewed.owner.max(initial=-1)) + 1)
             semantic, instance = frame_labels(reviewed.owner, reviewed.removed, table)
             name = f"sequences/{sequence}/labels/{slug(frame_id)}.label"

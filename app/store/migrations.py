@@ -45,7 +45,7 @@ from app.store import models  # noqa: F401  (registers every table on SQLModel.m
 
 log = logging.getLogger(__name__)
 
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 
 
 def _to_v2(conn: Connection) -> None:
@@ -203,6 +203,35 @@ def _to_v6(conn: Connection) -> None:
     conn.exec_driver_sql("CREATE INDEX ix_work_area_state ON work_area (state)")
 
 
+def _to_v7(conn: Connection) -> None:
+    """Version 7: reviewers' corrections of clutter instances (points taken out of an
+    instance, missed objects added; `app.store.clutter_corrections`). IF NOT EXISTS: tests
+    build older databases from today's tables, this one included."""
+    conn.exec_driver_sql(
+        """CREATE TABLE IF NOT EXISTS clutter_correction (
+            id INTEGER NOT NULL,
+            created_at DATETIME NOT NULL,
+            survey_id INTEGER NOT NULL,
+            frame_id VARCHAR(64) NOT NULL,
+            instance_id INTEGER NOT NULL,
+            kind VARCHAR(16) NOT NULL,
+            points BLOB NOT NULL,
+            point_count INTEGER NOT NULL,
+            user_id INTEGER,
+            PRIMARY KEY (id),
+            FOREIGN KEY(survey_id) REFERENCES survey (id) ON DELETE CASCADE,
+            FOREIGN KEY(instance_id) REFERENCES clutter_instance (id) ON DELETE CASCADE,
+            FOREIGN KEY(user_id) REFERENCES user (id) ON DELETE SET NULL
+        )"""
+    )
+    for name, columns in (
+        ("ix_clutter_correction_survey_id", "survey_id"),
+        ("ix_clutter_correction_frame", "survey_id, frame_id"),
+        ("ix_clutter_correction_instance_id", "instance_id"),
+    ):
+        conn.exec_driver_sql(f"CREATE INDEX IF NOT EXISTS {name} ON clutter_correction ({columns})")
+
+
 # target version -> function upgrading a database from version - 1 to it (runs in a transaction)
 MIGRATIONS: dict[int, Callable[[Connection], None]] = {
     2: _to_v2,
@@ -210,6 +239,7 @@ MIGRATIONS: dict[int, Callable[[Connection], None]] = {
     4: _to_v4,
     5: _to_v5,
     6: _to_v6,
+    7: _to_v7,
 }
 
 _VERSION_TABLE = sa.Table(

@@ -385,6 +385,23 @@ class ClutterDecision(Versioned, table=True):
     instance: ClutterInstance = Relationship(back_populates="decision")
 
 
+class ClutterCorrection(Created, table=True):
+    """A reviewer's correction of a clutter instance's points (`app.store.clutter_corrections`):
+    `remove` takes `points` out of the instance (they are kept), `add` made the instance (a
+    missed object) of `points`. Applied in id order over the run's membership."""
+
+    __tablename__ = "clutter_correction"
+    __table_args__ = (sa.Index("ix_clutter_correction_frame", "survey_id", "frame_id"),)
+
+    survey_id: int = survey_fk()
+    frame_id: str = Field(max_length=64)
+    instance_id: int = Field(foreign_key="clutter_instance.id", ondelete="CASCADE", index=True)
+    kind: str = Field(max_length=16)  # "remove" | "add"
+    points: bytes = Field(sa_type=sa.LargeBinary, nullable=False)  # int32 point indices, sorted
+    point_count: int = Field(ge=0)
+    user_id: int | None = user_fk()
+
+
 class GuardrailSliceBase(Record):
     """A slice's columns the API shows (`GuardrailSlicePublic`); the table adds `Versioned`'s
     after `id` (column order is the schema's)."""
@@ -502,6 +519,7 @@ TABLES: tuple[type[SQLModel], ...] = (
     IssuedId,
     ClutterInstance,
     ClutterDecision,
+    ClutterCorrection,
     GuardrailSlice,
     GuardrailModel,
     WorkArea,

@@ -10,10 +10,12 @@ time, so ids are handed out in commit order), and costs one index range read per
 
 The same tail reports the review writes of the other modes per survey (`ReviewChange`: which
 `REVIEW_ACTIONS` happened): clutter decisions (`clutter.approve` / `clutter.reject` /
-`clutter.reset`, survey in the payload) and a new clutter run (`clutter.ingest`), guardrail slice
-labels (`guardrail_slice.label`) and model decisions (`guardrail_model.approve` / `.reject`),
-a new guardrail run (`guardrail.ingest`) and a rebuild of its models (`guardrail.rebuild`),
-and finished jobs (`job.succeeded`, reported as `job.succeeded:<kind>`: new results to show).
+`clutter.reset`, survey in the payload), corrections of clutter instances
+(`clutter.remove_points`, `clutter.add_object`) and a new clutter run (`clutter.ingest`),
+guardrail slice labels (`guardrail_slice.label`) and model decisions
+(`guardrail_model.approve` / `.reject`), a new guardrail run (`guardrail.ingest`) and a
+rebuild of its models (`guardrail.rebuild`), and finished jobs (`job.succeeded`, reported as
+`job.succeeded:<kind>`: new results to show).
 
 The feed polls every `interval` seconds; `wake()` makes it poll now, which the API calls after
 a label or review write so open viewers recolour within milliseconds instead of at the next poll.
@@ -39,12 +41,20 @@ BATCH_ACTIONS = ("pillar.label", "pillar.undo", "pillar.redo")
 MODEL_ACTION = "pillar.model_labels"
 LABEL_ACTIONS = (*BATCH_ACTIONS, MODEL_ACTION)
 CLUTTER_DECISIONS = frozenset({"clutter.approve", "clutter.reject", "clutter.reset"})
+CLUTTER_CORRECTIONS = frozenset({"clutter.remove_points", "clutter.add_object"})
 CLUTTER_RUN = "clutter.ingest"
 SLICE_LABEL = "guardrail_slice.label"
 MODEL_DECISIONS = frozenset({"guardrail_model.approve", "guardrail_model.reject"})
 GUARDRAIL_RUN = frozenset({"guardrail.ingest", "guardrail.rebuild"})
 REVIEW_ACTIONS = frozenset(
-    {*CLUTTER_DECISIONS, CLUTTER_RUN, SLICE_LABEL, *MODEL_DECISIONS, *GUARDRAIL_RUN}
+    {
+        *CLUTTER_DECISIONS,
+        *CLUTTER_CORRECTIONS,
+        CLUTTER_RUN,
+        SLICE_LABEL,
+        *MODEL_DECISIONS,
+        *GUARDRAIL_RUN,
+    }
 )
 
 _ACTIONS = frozenset({*LABEL_ACTIONS, *REVIEW_ACTIONS, JOB_SUCCEEDED})

@@ -151,19 +151,19 @@ def test_missing_migration_is_a_programming_error(monkeypatch: pytest.MonkeyPatc
 def test_database_from_a_newer_mmsclean_is_refused(engine: Engine, db_path: Path) -> None:
     _fill(engine)
     with engine.begin() as conn:
-        conn.exec_driver_sql("PRAGMA user_version = 7")
+        conn.exec_driver_sql(f"PRAGMA user_version = {NEXT}")
     engine.dispose()
     reopened = make_engine(f"sqlite:///{db_path}")
     with pytest.raises(SchemaVersionError) as caught:
         init_db(reopened)
     message = str(caught.value)
     assert message == (
-        f"database {db_path} has schema version 7, this mmsclean knows up to "
+        f"database {db_path} has schema version {NEXT}, this mmsclean knows up to "
         f"{SCHEMA_VERSION}; upgrade mmsclean"
     )
     assert "\n" not in message and isinstance(caught.value, MmscleanError)
     assert caught.value.exit_code != 0
-    assert _user_version(reopened) == 7  # untouched
+    assert _user_version(reopened) == NEXT  # untouched
     reopened.dispose()
 
 

@@ -1,7 +1,10 @@
 """Clutter review mode on a real `run:clutter` of a small simulated street (the real ESPNetv2
 weights): the frame's points coloured by the pipeline's flags and the decisions, approve /
 reject through the store with versions (a stale one reloads), a click selects the instance
-under it, approve-all, next pending frame, recompute queued, read-only for annotators."""
+under it, approve-all, next pending frame, recompute queued, read-only for annotators; the panel
+width, the selection on the camera image, and shift-drag corrections of an instance's extent
+(remove points from it, add a missed object) written through the store and seen by another
+client."""
 
 from __future__ import annotations
 
@@ -14,15 +17,17 @@ import numpy as np
 import pytest
 from sqlalchemy.engine import Engine
 from sqlmodel import Session, select
+from viser import SceneRectSelectEvent
 
 from app.core.errors import PermissionDeniedError
 from app.io import open_survey
 from app.jobs.registry import task_for
 from app.simulate.survey import SimulationConfig, simulate
+from app.store.clutter_corrections import frame_corrections
 from app.store.clutter_review import DecisionWrite, decide, frame_counts, get_instance
-from app.store.models import Decision, Job, JobStatus
+from app.store.models import AuditEvent, Decision, Job, JobStatus
 from app.store.surveys import register_opened_survey
-from app.viewer.modes.clutter import ClutterMode
+from app.viewer.modes.clutter import ADD_OBJECT, RECTANGLE, REMOVE_FROM_INSTANCE, ClutterMode
 from app.viewer.modes.clutter_states import (
     APPROVED,
     REJECTED,
@@ -31,7 +36,8 @@ from app.viewer.modes.clutter_states import (
     STATE_RGB,
     point_states,
 )
-from app.viewer.picking import click_angle, pick_on_ray
+from app.viewer.modes.pillar_selection import rectangle_points
+from app.viewer.picking import ScreenCamera, click_angle, pick_on_ray
 from tests.jobs.conftest import job_context
 from tests.pipelines.clutter.conftest import weights_dir  # noqa: F401  (the fixture)
 from tests.viewer.test_modes_common import (
@@ -267,3 +273,125 @@ def test_decisions_by_someone_else_show_up_live(review: Review) -> None:
         time.sleep(0.05)
     colors = cloud_colors(connection, mark)
     assert (colors[shown_owner == chosen.instance_index] == SELECTED_RGB).all()
+
+
+def screen_rect(mode: ClutterMode, camera, points: np.ndarray, pad: float = 0.01):
+    """The screen rectangle (corners in 0..1) around the given frame points."""
+    screen = ScreenCamera.of(camera)
+    px, depth = screen.project(mode.xyz[points])
+    uv = px[depth > 0] / np.array([screen.width, screen.height])
+    return tuple(uv.min(axis=0) - pad), tuple(uv.max(axis=0) + pad)
+
+
+def test_panel_width_and_shift_drag_corrections(review: Review) -> None:
+    """Large panel (theme and width on the wire, a sharper image), the selection drawn on the
+    camera image, a shift-drag that takes part of the selected instance out of it and one that
+    adds a missed object: versioned store writes by this user, the colours at once, another
+    client following; the default panel back when the mode is left."""
+    connection, mode = open_mode(review, "rev")
+    watcher, other = open_mode(review, "rev2")
+    session = connection.session
+    frame_id = mode.frames[mode.frame_index].frame_id
+    assert other.frames[other.frame_index].frame_id == frame_id  # both open the same frame
+
+    mark = connection.mark()
+    connection.call(mode.set_panel_width, "Large")
+    theme = connection.wait(lambda m: m.get("type") == "ThemeConfigurationMessage", mark)
+    assert theme["control_width"] == "large"
+    width = connection.wait(lambda m: m.get("type") == "GuiSetPanelWidthMessage", mark)
+    assert width["width"] >= 700
+    assert mode.photo is not None and mode.photo[0].shape[1] == 1280
+
+    # select the instance with the most shown points that project into the camera image
+    shown_owner = mode.owner[mode.shown]
+    row = mode.pixels[0]
+    in_image = np.bincount(
+        shown_owner[(shown_owner >= 0) & (row[mode.shown] >= 0)], minlength=len(mode.by_index)
+    )
+    target = mode.by_index[int(np.argmax(in_image))]
+    connection.call(mode.select, target.instance_index)
+    image, scale = mode._overlay(), mode.photo[1]
+    mine = np.flatnonzero((mode.owner == target.instance_index) & (row >= 0))
+    r = np.minimum((row[mine] * scale).astype(int), image.shape[0] - 1)
+    c = np.minimum((mode.pixels[1][mine] * scale).astype(int), image.shape[1] - 1)
+    assert (image[r, c] == SELECTED_RGB).all(axis=1).mean() > 0.9  # highlighted on the image
+
+    # remove the upper half (on screen) of the instance's shown points from it
+    camera = session.client.camera
+    points = mode.shown[shown_owner == target.instance_index]
+    lo, hi = screen_rect(mode, camera, points)
+    hi = (hi[0], 0.5 * (lo[1] + hi[1]))
+    inside = rectangle_points(
+        mode.xyz[mode.shown], camera, lo, hi, float(mode.point_size.value), RECTANGLE
+    )
+    taken = mode.shown[inside & (shown_owner == target.instance_index)]
+    assert 0 < len(taken) < len(points)
+    event = SceneRectSelectEvent(
+        client=session.client, client_id=session.client.client_id,
+        screen_min=lo, screen_max=hi, modifier="shift",
+    )  # fmt: skip
+    assert mode.correct_mode.value == REMOVE_FROM_INSTANCE
+    mark = connection.mark()
+    connection.call(mode.on_rect_select, event)
+    with Session(review.engine) as db:
+        now = get_instance(db, review.survey_id, target.id)
+        corrections = frame_corrections(db, review.survey_id, frame_id)
+        audit = db.exec(select(AuditEvent).where(AuditEvent.action == "clutter.remove_points"))
+        audit = audit.all()
+    assert now.version == target.version + 1 and now.point_count == target.point_count - len(taken)
+    assert [c.kind for c in corrections] == ["remove"]
+    assert np.array_equal(corrections[0].points, np.sort(taken))
+    assert audit[-1].user_id == review.users["rev"][0]
+    assert (mode.owner[taken] == -1).all() and not mode.flags[taken].any()  # kept
+    colors = None
+    deadline = time.monotonic() + 10
+    while (
+        colors is None
+        or (colors[inside & (shown_owner == target.instance_index)] == SELECTED_RGB)
+        .all(axis=1)
+        .any()
+    ):
+        assert time.monotonic() < deadline, "the taken points still look selected"
+        colors = cloud_colors(connection, mark)
+        time.sleep(0.05)
+    # the other client follows through the label feed
+    deadline = time.monotonic() + 10
+    while other.by_index[target.instance_index].version != now.version:
+        assert time.monotonic() < deadline, "the other client never saw the correction"
+        time.sleep(0.05)
+    watcher.call(lambda: None)
+    assert (other.owner[taken] == -1).all()
+
+    # add a missed object: free shown points around one near the middle of the screen
+    connection.call(lambda: setattr(mode.correct_mode, "value", ADD_OBJECT))
+    connection.call(lambda: setattr(mode.object_class, "value", "person"))
+    free = mode.shown[mode.owner[mode.shown] < 0]
+    screen = ScreenCamera.of(camera)
+    px, depth = screen.project(mode.xyz[free])
+    uv = px / np.array([screen.width, screen.height])
+    ok = (depth > 0) & (uv > 0.2).all(axis=1) & (uv < 0.8).all(axis=1)
+    centre = uv[ok][np.argmin(np.abs(uv[ok] - 0.5).sum(axis=1))]
+    lo, hi = tuple(centre - 0.03), tuple(centre + 0.03)
+    event = SceneRectSelectEvent(
+        client=session.client, client_id=session.client.client_id,
+        screen_min=lo, screen_max=hi, modifier="shift",
+    )  # fmt: skip
+    before = len(mode.states)
+    connection.call(mode.on_rect_select, event)
+    assert len(mode.states) == before + 1
+    added = mode.by_index[mode.selected]
+    assert added.class_name == "person" and added.decision == Decision.approved
+    assert added.version == 1 and added.user_id == review.users["rev"][0]
+    assert added.point_count > 0 and (mode.owner == added.instance_index).sum() == added.point_count
+    assert (mode.state[mode.owner == added.instance_index] == APPROVED).all()
+    assert "person" in mode.rows[-1].label
+    deadline = time.monotonic() + 10
+    while added.instance_index not in other.by_index:
+        assert time.monotonic() < deadline, "the other client never saw the added object"
+        time.sleep(0.05)
+
+    # leaving the mode gives the other modes the default panel back
+    mark = connection.mark()
+    connection.switch("Guardrail review")
+    theme = connection.wait(lambda m: m.get("type") == "ThemeConfigurationMessage", mark)
+    assert theme["control_width"] == "medium"

@@ -6,15 +6,22 @@ reviewers approve (remove the instance's points), reject (keep them) or reset th
 (the pipeline decides), many at once, each with the decision version they saw (a stale one: 409
 with the current state); POST /recompute queues the job that rebuilds the cleaned and removed
 maps from the decisions.
+
+Reviewers also correct an instance's extent: POST .../instances/{id}/remove-points takes the
+listed points (indices in the frame) out of the instance, which keeps them (with the version
+seen: the instance's version goes up, a stale one is 409); POST .../frames/{frame}/objects
+makes a missed object of the listed points that belong to no instance, a new instance of a
+clutter class, approved. Recompute applies both (`app.store.clutter_corrections`).
 """
 
 from __future__ import annotations
 
 from datetime import datetime
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Request
+from fastapi import Path as PathParam
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field
 from sqlmodel import SQLModel
@@ -25,6 +32,8 @@ from app.api.schemas import JobPublic
 from app.api.types import Id, Offset, Version
 from app.core.errors import ConflictError, NotFoundError
 from app.jobs.queue import enqueue
+from app.review import clutter_corrections
+from app.store.clutter_corrections import MAX_POINTS, OBJECT_CLASSES, Corrected
 from app.store.clutter_review import (
     MAX_PAGE,
     RECOMPUTE_KIND,
@@ -91,6 +100,36 @@ class DecisionBatch(BaseModel):
     decisions: list[DecisionIn] = Field(min_length=1, max_length=MAX_DECISIONS)
 
 
+PointIndex = Annotated[int, Field(ge=0, le=2**31 - 1)]
+ObjectClass = Literal.__getitem__(OBJECT_CLASSES)  # the clutter classes of app.core.labels
+FrameId = Annotated[str, PathParam(min_length=1, max_length=64)]
+
+
+class RemovePointsIn(BaseModel):
+    version: Version = Field(ge=1, description="the instance's decision version the reviewer saw")
+    points: list[PointIndex] = Field(
+        min_length=1, max_length=MAX_POINTS, description="point indices in the instance's frame"
+    )
+
+
+class AddObjectIn(BaseModel):
+    class_name: ObjectClass = Field(description="what the missed object is")  # type: ignore[valid-type]
+    points: list[PointIndex] = Field(
+        min_length=1,
+        max_length=MAX_POINTS,
+        description="point indices in the frame; those already in an instance are left to it",
+    )
+
+
+class CorrectionOut(BaseModel):
+    instance: InstancePublic = Field(description="the instance after the correction")
+    points: int = Field(description="how many points the correction moved")
+
+    @classmethod
+    def of(cls, done: Corrected) -> CorrectionOut:
+        return cls(instance=InstancePublic.of(done.state), points=done.points)
+
+
 @router.get("/instances", response_model=InstancePage, responses=errors(422))
 def read_instances(
     survey_id: Id,
@@ -155,6 +194,56 @@ def post_decisions(
     states = decide(session, survey_id, writes, user.id)
     wake_viewer(request)
     return [InstancePublic.of(s) for s in states]
+
+
+@router.post(
+    "/instances/{instance_id}/remove-points",
+    response_model=CorrectionOut,
+    responses=errors(403, 409, 422),
+)
+def post_remove_points(
+    survey_id: Id,
+    instance_id: Id,
+    body: RemovePointsIn,
+    user: Reviewer,
+    session: SessionDep,
+    request: Request,
+) -> CorrectionOut:
+    """Take the instance's points among `points` out of it: they are kept whatever its
+    decision. 409 when `version` is not the instance's current one (with `current`) or a new
+    run replaced the instances; 422 when no listed point belongs to the instance or one is
+    outside the frame."""
+    get_survey(session, survey_id)
+    done = clutter_corrections.remove_points(
+        session, survey_id, instance_id, body.version, body.points, user.id
+    )
+    wake_viewer(request)
+    return CorrectionOut.of(done)
+
+
+@router.post(
+    "/frames/{frame_id}/objects",
+    response_model=CorrectionOut,
+    status_code=201,
+    responses=errors(403, 409, 422),
+)
+def post_object(
+    survey_id: Id,
+    frame_id: FrameId,
+    body: AddObjectIn,
+    user: Reviewer,
+    session: SessionDep,
+    request: Request,
+) -> CorrectionOut:
+    """A missed object: the listed points that belong to no instance become a new instance of
+    `class_name` on the frame, approved by you (its points are removed by the next recompute).
+    404 for an unknown frame; 422 when every point already belongs to an instance."""
+    get_survey(session, survey_id)
+    done = clutter_corrections.add_object(
+        session, survey_id, frame_id, body.class_name, body.points, user.id
+    )
+    wake_viewer(request)
+    return CorrectionOut.of(done)
 
 
 @router.post("/recompute", response_model=JobPublic, status_code=202, responses=errors(403, 409))

@@ -13,12 +13,13 @@
 Per frame a run writes `<frame>.npz` (per point: `instance`, int32, -1 none; `removed`, the
 pipeline's own flag; `in_view`) and `<frame>/<index>.png`, each instance's mask image
 (`overlays.py`). The store rows are plain dicts: the clutter job stores them. After review,
-`apply_decisions` reads the membership back and applies the reviewers' verdicts.
+`apply_decisions` reads the membership back, applies the reviewers' corrections of it
+(`review_corrections`: points taken out of an instance, missed objects added) and their verdicts.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,6 +36,7 @@ from app.pipelines.clutter.fusion import FrameEvidence, track_decisions
 from app.pipelines.clutter.instances import mask_components
 from app.pipelines.clutter.overlays import class_colour, mask_crop, top_view, write_png
 from app.pipelines.clutter.pipeline import ClutterResult
+from app.pipelines.clutter.review_corrections import MembershipCorrection, corrected_membership
 from app.pipelines.clutter.segmenter import CLUTTER_CLASSES, CachedSegmenter
 
 FREE_SPACE = "free-space"
@@ -271,17 +273,21 @@ def apply_decisions(
     survey: Survey,
     folder: Path,
     verdicts: list[tuple[str, int, int]],
+    corrections: dict[str, list[MembershipCorrection]] | None = None,
 ) -> tuple[list[np.ndarray], list[np.ndarray], int]:
     """Per frame the removed flags after review and the camera-view flags, and how many points
     the pipeline itself removed. `verdicts`: (frame id, instance index, verdict) with verdict 1
-    (approved: its points go), 0 (rejected: they stay) or -1 (pending: the pipeline's flag)."""
+    (approved: its points go), 0 (rejected: they stay) or -1 (pending: the pipeline's flag);
+    `corrections`: per frame id, the reviewers' corrections of the membership, in order."""
     by_frame = verdicts_by_frame(verdicts)
+    corrections = corrections or {}
     removed, in_view = [], []
     pipeline_removed = 0
     for frame in survey.frames:
         reviewed = reviewed_frame(
-            folder, frame.frame_id, frame.point_count, by_frame.pop(frame.frame_id, [])
-        )
+            folder, frame.frame_id, frame.point_count, by_frame.pop(frame.frame_id, []),
+            corrections.get(frame.frame_id, ()),
+        )  # fmt: skip
         pipeline_removed += int(reviewed.pipeline_removed.sum())
         removed.append(reviewed.removed)
         in_view.append(reviewed.in_view)
@@ -309,10 +315,15 @@ class ReviewedFrame:
 
 
 def reviewed_frame(
-    folder: Path, frame_id: str, point_count: int | None, verdicts: list[tuple[int, int]]
+    folder: Path,
+    frame_id: str,
+    point_count: int | None,
+    verdicts: list[tuple[int, int]],
+    corrections: Sequence[MembershipCorrection] = (),
 ) -> ReviewedFrame:
-    """The frame's membership (`folder/<frame>.npz`) with its (instance index, verdict) pairs
-    applied: a frame at a time, so a caller holds one frame's arrays."""
+    """The frame's membership (`folder/<frame>.npz`) with the reviewers' `corrections` and its
+    (instance index, verdict) pairs applied: a frame at a time, so a caller holds one frame's
+    arrays. `owner` is the corrected membership, `pipeline_removed` the run's own flags."""
     path = folder / f"{frame_id}.npz"
     try:
         with np.load(path) as data:
@@ -321,7 +332,12 @@ def reviewed_frame(
         raise InputError(path, f"unreadable review membership ({exc})") from None
     if point_count is not None and len(owner) != point_count:
         raise InputError(path, f"{len(owner)} points, frame {frame_id} has {point_count}")
-    state = np.full(int(owner.max(initial=-1)) + 1, -1, dtype=np.int8)
+    pipeline_flags = flags.astype(bool)
+    # the run's instances and those the corrections add (an instance may have lost every point)
+    size = max([int(owner.max(initial=-1)) + 1, *(c.instance_index + 1 for c in corrections)])
+    if corrections:
+        owner, flags = corrected_membership(owner, pipeline_flags, corrections)
+    state = np.full(size, -1, dtype=np.int8)
     if verdicts:
         index, value = np.array(verdicts).T
         if index.max() >= len(state):
@@ -332,4 +348,4 @@ def reviewed_frame(
     owned = owner >= 0
     choice = state[owner[owned]]
     gone[owned] = np.where(choice < 0, gone[owned], choice == 1)
-    return ReviewedFrame(owner, gone, flags, view.astype(bool))
+    return ReviewedFrame(owner, gone, pipeline_flags, view.astype(bool))

@@ -13,6 +13,22 @@ session's user); a stale version means someone else decided first: the frame is 
 reviewer told. "Recompute cleaned map" queues `clutter:recompute`. Decisions written by anyone
 else (the API, another client) re-read the open frame's instances and recolour it, keeping the
 selection; a new clutter run reloads the mode.
+
+Camera and 3D together: "Panel width" (small / medium / large, the viser theme's control width
+and the panel's own width, per client; medium when the mode is left) makes the camera image
+beside the 3D view as large as the reviewer wants. Selecting an instance (a click on one of its
+points, or *Select* in the list) draws it magenta in both views: its points in 3D, and on the
+camera image its projected points, its mask outlined and its box. viser reports no hover events
+to the server, so the selection stands in for hovering over an object.
+
+Correcting an instance's extent (reviewers), with a shift-drag rectangle in the 3D view (the
+shown points inside it that the camera sees, depth-aware as the pillar mode's rectangle,
+`pillar_selection.rectangle_points`): "Remove from instance" takes the selected instance's
+points inside it out of the instance (they are kept, whatever its decision); "Add missed
+object" makes the points inside it that belong to no instance a new instance of the chosen
+class on this frame, approved. Both are versioned, audited store writes attributed to the user
+(`app.review.clutter_corrections`, the API's too); other clients follow through the label feed
+and `clutter:recompute` applies them.
 """
 
 from __future__ import annotations
@@ -28,13 +44,23 @@ from app.geometry.projection import pixel_indices, project
 from app.io import open_survey
 from app.io.survey import Camera, Frame, Survey
 from app.jobs.queue import enqueue
+from app.review import clutter_corrections
+from app.review.clutter_corrections import RunMembership
 from app.store import clutter_review
+from app.store.clutter_corrections import OBJECT_CLASSES
 from app.store.clutter_review import DecisionWrite, FrameCount, InstanceState
 from app.store.models import Decision, Role
 from app.store.models import Survey as SurveyRecord
-from app.viewer.label_feed import CLUTTER_DECISIONS, CLUTTER_RUN
+from app.viewer.label_feed import CLUTTER_CORRECTIONS, CLUTTER_DECISIONS, CLUTTER_RUN
 from app.viewer.modes.base import Mode
-from app.viewer.modes.clutter_images import blank_image, mask_thumbnail, masked_photo, overlay
+from app.viewer.modes.clutter_images import (
+    IMAGE_WIDTHS,
+    blank_image,
+    mask_thumbnail,
+    masked_photo,
+    overlay,
+    pixel_bbox,
+)
 from app.viewer.modes.clutter_states import (
     LEGEND,
     SELECTED_RGB,
@@ -45,14 +71,22 @@ from app.viewer.modes.clutter_states import (
     state_colors,
 )
 from app.viewer.modes.common import checked_user, evenly, legend_html, may, pick_clicked
+from app.viewer.modes.pillar_selection import RectangleOptions, rectangle_points
 
 if TYPE_CHECKING:
-    from viser import SceneClickEvent
+    from viser import SceneClickEvent, SceneRectSelectEvent
 
     from app.viewer.session import ViewerSession
 
 FRAME_VIEW = (-12.0, 9.0)  # camera behind the sensor (m along its heading) and above it
 ACTIONS = {"Approve": Decision.approved, "Reject": Decision.rejected, "Reset": Decision.pending}
+# "Panel width": the viser theme's control width and the panel's width in px (medium: viser's
+# own 20 em; large: room for the camera image beside the 3D view)
+PANEL_WIDTHS = {"Small": ("small", 256), "Medium": ("medium", 320), "Large": ("large", 760)}
+DEFAULT_WIDTH = "Medium"
+REMOVE_FROM_INSTANCE = "Remove from instance"
+ADD_OBJECT = "Add missed object"
+RECTANGLE = RectangleOptions(through=False, near=0.0, far=float("inf"))  # what the user sees
 
 
 class ClutterMode(Mode):
@@ -69,6 +103,8 @@ class ClutterMode(Mode):
         self.states: list[InstanceState] = []
         self.selected: int | None = None  # instance index in the frame
         self.frame_index = 0
+        self.panel_width = DEFAULT_WIDTH
+        self.raw_photo: np.ndarray | None = None
         gui = session.client.gui
         self.folder = run_folder(session, self.survey_id)
         if self.folder is None:
@@ -100,6 +136,8 @@ class ClutterMode(Mode):
         if self.cloud is not None:
             self.cloud.remove()
             self.cloud = None
+        if getattr(self, "panel_width", DEFAULT_WIDTH) != DEFAULT_WIDTH:
+            self._apply_width(DEFAULT_WIDTH)  # the other modes get the default panel back
 
     def _camera(self) -> Camera | None:
         """The camera the run segmented (its report's config), else the survey's first."""
@@ -122,6 +160,7 @@ class ClutterMode(Mode):
         with session.mode_folder:
             self.heading = gui.add_markdown("")
             nav = gui.add_button_group("Frame", ("Previous", "Next", "Next pending"))
+            self.width_control = gui.add_button_group("Panel width", tuple(PANEL_WIDTHS))
             self.image = gui.add_image(blank_image(), label="Camera", format="jpeg")
             legend = [(n, STATE_RGB[s]) for n, s in LEGEND] + [("selected", SELECTED_RGB)]
             gui.add_html(legend_html(legend))
@@ -134,6 +173,15 @@ class ClutterMode(Mode):
                 self.selected_image = gui.add_image(
                     np.zeros((8, 8, 3), np.uint8), label="Mask", format="png", visible=False
                 )
+            with gui.add_folder("Correct (shift-drag)", visible=self.reviewer):
+                self.correct_mode = gui.add_dropdown(
+                    "Shift-drag", (REMOVE_FROM_INSTANCE, ADD_OBJECT),
+                    hint="Remove the selected instance's points inside the rectangle from it, "
+                    "or make the points inside it that belong to no instance a new object",
+                )  # fmt: skip
+                self.object_class = gui.add_dropdown(
+                    "New object class", OBJECT_CLASSES, initial_value="car"
+                )
             recompute = gui.add_button(
                 "Recompute cleaned map",
                 hint="Queue clutter:recompute: the maps again from the decisions",
@@ -145,6 +193,7 @@ class ClutterMode(Mode):
             note = "" if self.reviewer else "Read only: deciding needs the reviewer role. "
             self.status = gui.add_markdown(note + "Click a point to select its instance.")
         nav.on_click(lambda event: submit(self._navigate, event.target.value))
+        self.width_control.on_click(lambda event: submit(self.set_panel_width, event.target.value))
         self.all_pending.on_click(
             lambda event: submit(self.decide_pending, ACTIONS[event.target.value])
         )
@@ -164,6 +213,23 @@ class ClutterMode(Mode):
         if self.cloud is not None:
             self.cloud.point_size = self.point_size.value
 
+    def _apply_width(self, width: str) -> None:
+        theme, pixels = PANEL_WIDTHS[width]
+        gui = self.session.client.gui
+        gui.configure_theme(control_width=theme)
+        gui.main_panel.set_width(pixels)
+        self.panel_width = width
+
+    def set_panel_width(self, width: str) -> None:
+        """Small / Medium / Large: the panel and the camera image drawn at its width."""
+        if width not in PANEL_WIDTHS:
+            raise ConflictError(f"no panel width {width!r}")
+        self._apply_width(width)
+        if self.raw_photo is not None:
+            self.photo = masked_photo(self.raw_photo, self.states, IMAGE_WIDTHS[width])
+            self.image.image = self._overlay()
+        self.session.client.flush()
+
     # --- one frame ----------------------------------------------------------------------------
 
     def show_frame(self, index: int, move_camera: bool = True) -> None:
@@ -179,7 +245,8 @@ class ClutterMode(Mode):
         self.xyz = (sensor @ frame.pose[:3, :3].T + frame.pose[:3, 3] - self.origin).astype(
             np.float32
         )
-        self.owner, self.flags = self._membership(count.frame_id, len(sensor))
+        self.membership = self._membership(count.frame_id, len(sensor))
+        self._correct_membership()
         # the budget: every instance point when they fit, and a third at least for the rest
         others = np.flatnonzero(self.owner < 0)
         rest = evenly(others, max(self.cap - int((self.owner >= 0).sum()), self.cap // 3))
@@ -187,10 +254,11 @@ class ClutterMode(Mode):
         self.shown = np.sort(np.concatenate([owned, rest]))
         self.pixels = self._project(frame)
         self._reload_states()
+        self.raw_photo = None if self.pixels is None else frame.image(self.camera.name)
         self.photo = (
             None
-            if self.pixels is None
-            else masked_photo(frame.image(self.camera.name), self.states)
+            if self.raw_photo is None
+            else masked_photo(self.raw_photo, self.states, IMAGE_WIDTHS[self.panel_width])
         )
         if self.cloud is not None:
             self.cloud.remove()
@@ -207,18 +275,27 @@ class ClutterMode(Mode):
             self._look_at_frame(frame)
         self.session.client.flush()
 
-    def _membership(self, frame_id: str, n: int) -> tuple[np.ndarray, np.ndarray]:
-        """(instance per point, the pipeline's removed flag) from the run's npz."""
+    def _membership(self, frame_id: str, n: int) -> RunMembership:
+        """The frame's membership as the run wrote it (instance per point, the pipeline's
+        removed flag); none where the run wrote no file for the frame."""
         path = self.folder / "instances" / f"{frame_id}.npz"
         if not path.is_file():
-            return np.full(n, -1, np.int32), np.zeros(n, bool)
-        with np.load(path) as data:
-            owner, flags = data["instance"], data["removed"].astype(bool)
-        if len(owner) != n:
+            return RunMembership(self.folder, frame_id, np.full(n, -1, np.int32), np.zeros(n, bool))
+        with self.session.db() as db:
+            membership = clutter_corrections.run_membership(db, self.survey_id, frame_id)
+        if len(membership.owner) != n:
             raise ConflictError(
-                f"{path}: {len(owner)} points, frame {frame_id} has {n}; run clutter again"
+                f"{path}: {len(membership.owner)} points, frame {frame_id} has {n}; "
+                "run clutter again"
             )
-        return owner, flags
+        return membership
+
+    def _correct_membership(self) -> None:
+        """`owner` / `flags`: the run's membership with the reviewers' corrections applied."""
+        with self.session.db() as db:
+            self.owner, self.flags = clutter_corrections.frame_membership(
+                db, self.survey_id, self.membership
+            )
 
     def _project(self, frame: Frame) -> tuple[np.ndarray, np.ndarray] | None:
         """(row, col) pixel of each point in the camera image (-1 outside), or None."""
@@ -233,6 +310,7 @@ class ClutterMode(Mode):
 
     def _reload_states(self) -> None:
         frame_id = self.frames[self.frame_index].frame_id
+        self._correct_membership()
         self.states = frame_instances(self.session, self.survey_id, frame_id)
         self.by_index = {s.instance_index: s for s in self.states}
         self.state = point_states(
@@ -276,11 +354,11 @@ class ClutterMode(Mode):
 
     def _overlay(self) -> np.ndarray:
         """The masked camera image with the instances' points dotted by state and the selected
-        instance boxed."""
+        instance highlighted as in 3D (its points, mask outline and box)."""
         if self.pixels is None or self.photo is None:
             return blank_image()
         selected = None if self.selected is None else self.by_index.get(self.selected)
-        return overlay(self.photo, self.pixels, self.owner, self.state, selected)
+        return overlay(self.photo, self.pixels, self.owner, self.state, selected, self.raw_photo)
 
     def _row_label(self, s: InstanceState) -> str:
         mark = "▶ " if s.instance_index == self.selected else ""
@@ -360,7 +438,11 @@ class ClutterMode(Mode):
         """Someone decided (re-read the open frame's decisions) or ran clutter again (reload)."""
         if CLUTTER_RUN in actions:
             self.session.reload_mode()
-        elif actions & CLUTTER_DECISIONS and self.folder is not None and self.cloud is not None:
+        elif (
+            actions & (CLUTTER_DECISIONS | CLUTTER_CORRECTIONS)
+            and self.folder is not None
+            and self.cloud is not None
+        ):
             self._refresh()
 
     # --- actions ------------------------------------------------------------------------------
@@ -383,6 +465,78 @@ class ClutterMode(Mode):
             return
         self.select(instance)
         self.status.content = f"Selected #{instance} ({self.by_index[instance].class_name})."
+
+    def on_rect_select(self, event: SceneRectSelectEvent) -> None:
+        """Shift-drag: correct the selected instance, or add a missed object (reviewers), with
+        the shown points inside the rectangle that the camera sees."""
+        if self.folder is None or self.cloud is None:
+            return
+        checked_user(self.session, Role.reviewer, "correcting clutter instances")
+        inside = rectangle_points(
+            self.xyz[self.shown], event.client.camera, event.screen_min, event.screen_max,
+            float(self.point_size.value), RECTANGLE,
+        )  # fmt: skip
+        points = self.shown[inside]
+        if self.correct_mode.value == ADD_OBJECT:
+            self.add_object(points, self.object_class.value)
+        else:
+            self.remove_from_selected(points)
+
+    def remove_from_selected(self, points: np.ndarray) -> None:
+        """Take the selected instance's points among `points` (frame indices) out of it."""
+        user = checked_user(self.session, Role.reviewer, "correcting clutter instances")
+        state = None if self.selected is None else self.by_index.get(self.selected)
+        if state is None:
+            self.status.content = "Select an instance first, then shift-drag over its points."
+            return
+        mine = points[self.owner[points] == state.instance_index]
+        if not len(mine):
+            self.status.content = f"No point of #{state.instance_index} inside the rectangle."
+            return
+        try:
+            with self.session.db() as db:
+                done = clutter_corrections.remove_points(
+                    db, self.survey_id, state.id, state.version, mine, user.id, self.membership
+                )
+        except StaleWriteError as exc:
+            self._stale(exc)
+            return
+        self.session.viewer.labels_written()  # other clients follow now
+        self.status.content = (
+            f"{done.points:,} point(s) taken out of #{state.instance_index}: they stay in the map."
+        )
+        self._refresh()
+
+    def add_object(self, points: np.ndarray, class_name: str) -> None:
+        """A missed object: the points among `points` that belong to no instance become a new
+        instance of `class_name` on this frame, approved, and selected."""
+        user = checked_user(self.session, Role.reviewer, "adding clutter objects")
+        free = points[self.owner[points] < 0]
+        if not len(free):
+            self.status.content = "No point inside the rectangle is free of an instance."
+            return
+        bbox = None if self.pixels is None else pixel_bbox(self.pixels, free)
+        frame_id = self.frames[self.frame_index].frame_id
+        try:
+            with self.session.db() as db:
+                done = clutter_corrections.add_object(
+                    db, self.survey_id, frame_id, class_name, free, user.id, self.membership, bbox
+                )
+        except StaleWriteError as exc:
+            self._stale(exc)
+            return
+        self.session.viewer.labels_written()
+        self.selected = done.state.instance_index
+        self.status.content = (
+            f"Added #{done.state.instance_index} {class_name} of {done.points:,} point(s), "
+            "approved: recompute removes them."
+        )
+        self._refresh()
+
+    def _stale(self, exc: StaleWriteError) -> None:
+        self.session.notify("Changed meanwhile", f"{exc.message} (reloaded)", error=True)
+        self.status.content = "Someone else changed it first: the frame was reloaded."
+        self._refresh()
 
     def decide(self, states: Sequence[InstanceState], decision: Decision) -> None:
         """One versioned batch through the store; stale -> re-read and tell the reviewer."""

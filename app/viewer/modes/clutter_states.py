@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from app.store import clutter_review
+from app.store import clutter_corrections, clutter_review
 from app.store.clutter_review import InstanceState
 from app.store.models import Decision
 
@@ -76,13 +76,7 @@ def state_colors(state: np.ndarray, z: np.ndarray, selected: np.ndarray | None) 
 def run_folder(session: ViewerSession, survey_id: int) -> Path | None:
     """The folder of the clutter run whose instances the store holds (None: no run yet)."""
     with session.db() as db:
-        decisions = clutter_review.review_decisions(db, survey_id)
-        folder = clutter_review.run_folder_of([d[3] for d in decisions])
-        if folder is None:
-            job = clutter_review.latest_run(db, survey_id)
-            if job is not None and "instances" in (job.result or {}).get("files", {}):
-                folder = Path(job.result["files"]["instances"]).parent
-    return folder
+        return clutter_corrections.current_run_folder(db, survey_id)
 
 
 def frame_instances(session: ViewerSession, survey_id: int, frame_id: str) -> list[InstanceState]:
