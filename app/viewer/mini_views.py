@@ -63,18 +63,23 @@ def top_view(
 
 
 def side_view(
-    xyz: np.ndarray, rgb: np.ndarray, focus: np.ndarray, heading: np.ndarray
+    xyz: np.ndarray,
+    rgb: np.ndarray,
+    focus: np.ndarray,
+    heading: np.ndarray,
+    half_width: float = HALF_WIDTH,
 ) -> np.ndarray:
     """The slab of +-SLAB metres along the drive through `focus`, seen from the right of the
-    drive (ahead to the right of the image)."""
-    width = int(round(2 * HALF_WIDTH / PIXEL))
+    drive (ahead to the right of the image); with another heading and half width, the
+    cross-section along any line (a measured one)."""
+    width = int(round(2 * half_width / PIXEL))
     height = int(round((SIDE_BELOW + SIDE_ABOVE) / PIXEL))
     along, left = _axes(heading)
     points = np.asarray(xyz, dtype=np.float64)
     rel = points[:, :2] - np.asarray(focus, dtype=np.float64)[:2]
     lateral = rel @ left
     slab = np.abs(lateral) <= SLAB
-    u = (rel[slab] @ along + HALF_WIDTH) / PIXEL
+    u = (rel[slab] @ along + half_width) / PIXEL
     v = (float(focus[2]) + SIDE_ABOVE - points[slab, 2]) / PIXEL
     image = _raster(u, v, lateral[slab] * -1.0, rgb[slab], width, height)  # nearest to the right
     return _mark(image, width // 2, int(round(SIDE_ABOVE / PIXEL)))

@@ -20,7 +20,8 @@ shows the shortcut sheet.
 Display: colour by label, height above ground, intensity or model confidence (`colour_modes`);
 a height slice (only points between two heights above the ground are shown, and so selectable:
 label under trees and canopies); rounded points (a depth cue on dense scans); top and side
-views of the focus beside the 3D view (`mini_views`), in the same colours.
+views of the focus beside the 3D view (`mini_views`), in the same colours; after a measurement
+the side view is the cross-section along the measured line.
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ from app.viewer.colour_modes import (
     height_colors,
     intensity_colors,
 )
-from app.viewer.mini_views import HALF_WIDTH, side_view, top_view
+from app.viewer.mini_views import HALF_WIDTH, SLAB, side_view, top_view
 from app.viewer.modes.base import Mode
 from app.viewer.modes.common import TARGET_RGB
 from app.viewer.modes.pillar_selection import (
@@ -97,6 +98,8 @@ SHORTCUTS = """| key | action |
 | N | next uncertain area |
 | T F S O | top, front, side, oblique view |
 | H | this sheet |"""
+SIDE_LABEL = "Side (from the right, 4 m slab)"
+SECTION_MAX = 30.0  # metres each way from the middle of a measured line's cross-section
 VIEWS_MOVE = 0.5  # metres the focus moves before the top / side views are redrawn
 HEIGHT_SLICE = (-2.0, 40.0)  # metres above the ground: the height slice slider's ends
 
@@ -127,6 +130,7 @@ class PillarMode(Mode):
         self.brush_at: np.ndarray | None = None
         self.polygon: list[np.ndarray] = []  # local vertices of the polygon being drawn
         self.measured: list[np.ndarray] = []
+        self.section: tuple[np.ndarray, np.ndarray] | None = None  # the last measured line
         self._build_gui()
         self._draw("overview", self.map.overview)
         self._focus(session.client.camera.look_at)
@@ -202,9 +206,7 @@ class PillarMode(Mode):
                 self.show_views = gui.add_checkbox("Show", initial_value=True)
                 blank = np.full((10, 10, 3), 255, dtype=np.uint8)
                 self.top_image = gui.add_image(blank, label="Top (drive up)", format="png")
-                self.side_image = gui.add_image(
-                    blank, label="Side (from the right, 4 m slab)", format="png"
-                )
+                self.side_image = gui.add_image(blank, label=SIDE_LABEL, format="png")
             with gui.add_folder("Display", expand_by_default=False):
                 self.colour_menu = gui.add_dropdown("Colour by", COLOUR_MODES, initial_value=LABEL)
                 self.height_slider = gui.add_multi_slider(
@@ -363,7 +365,8 @@ class PillarMode(Mode):
             cloud.point_shading = "gradient" if self.rounded.value else "flat"
 
     def _draw_views(self) -> None:
-        """The top and side images of the points around the camera's focus (`mini_views`)."""
+        """The top image of the points around the camera's focus and the side image: along the
+        drive there, or the cross-section along the last measured line (`mini_views`)."""
         self.top_image.visible = self.side_image.visible = bool(self.show_views.value)
         if not self.show_views.value or not len(self.map):
             return
@@ -371,12 +374,20 @@ class PillarMode(Mode):
         focus = np.asarray(camera.look_at, dtype=np.float64)
         shown = self._shown()
         xyz = np.asarray(self.map.xyz[shown], dtype=np.float64)
-        near = np.abs(xyz[:, :2] - focus[:2]).max(axis=1) <= HALF_WIDTH * 1.5
-        points, xyz = shown[near], xyz[near]
-        rgb = self._colors(points)
         heading = heading_at(self.session.trajectory, focus[:2])
-        self.top_image.image = top_view(xyz, rgb, focus, heading)
-        self.side_image.image = side_view(xyz, rgb, focus, heading)
+        near = np.abs(xyz[:, :2] - focus[:2]).max(axis=1) <= HALF_WIDTH * 1.5
+        self.top_image.image = top_view(xyz[near], self._colors(shown[near]), focus, heading)
+        if self.section is None:
+            self.side_image.label = SIDE_LABEL
+            self.side_image.image = side_view(xyz[near], self._colors(shown[near]), focus, heading)
+            return
+        a, b = self.section
+        middle, half = (a + b) / 2.0, min(float(np.hypot(*(b - a)[:2])) / 2.0 + 1.0, SECTION_MAX)
+        near = np.abs(xyz[:, :2] - middle[:2]).max(axis=1) <= half + SLAB
+        self.side_image.label = f"Section along the measured line ({2 * half:.0f} m)"
+        self.side_image.image = side_view(
+            xyz[near], self._colors(shown[near]), middle, b - a, half_width=half
+        )
 
     def on_labels_changed(self, changed: np.ndarray) -> None:
         """Resend the colours of the clouds holding changed pillars (with classes hidden, a
@@ -399,6 +410,7 @@ class PillarMode(Mode):
                 cloud.colors = self._colors(shown)
                 touched = True
         if touched:
+            self.session.client.flush()  # the colours first: the views can follow
             self._draw_views()
 
     # --- tools --------------------------------------------------------------------------------
@@ -414,17 +426,22 @@ class PillarMode(Mode):
         return np.concatenate([self.shown_overview, self.shown_tile])
 
     def _surface_hit(self, event: SceneClickEvent) -> np.ndarray | None:
-        """(3,) local point a click means: the shown point under the cursor (on the surface
-        drawn there), else where the ray meets the ground; None when it meets neither."""
+        """(3,) local point a click means: on the click ray (exactly under the cursor) at the
+        depth of the surface drawn there (the shown point picked), else where the ray meets the
+        ground; None when it meets neither. The picked point itself may lie a few pixels off
+        the cursor: a brush or a polygon vertex there would land beside what the user meant."""
         shown = self._shown()
         angle = click_angle(event.client.camera)
+        origin = np.asarray(event.ray_origin, dtype=np.float64)
+        direction = np.asarray(event.ray_direction, dtype=np.float64)
         hit_point = pick_on_ray(
-            self.map.xyz[shown], event.ray_origin, event.ray_direction, angle,
-            float(self.point_size.value),
-        )  # fmt: skip
-        if hit_point >= 0:
-            return np.asarray(self.map.xyz[shown[hit_point]], dtype=np.float64)
-        return ray_ground_hit(self.map.ground, event.ray_origin, event.ray_direction)
+            self.map.xyz[shown], origin, direction, angle, float(self.point_size.value)
+        )
+        if hit_point < 0:
+            return ray_ground_hit(self.map.ground, origin, direction)
+        direction = direction / np.linalg.norm(direction)
+        depth = float((np.asarray(self.map.xyz[shown[hit_point]], np.float64) - origin) @ direction)
+        return origin + depth * direction
 
     def on_click(self, event: SceneClickEvent) -> None:
         """The click tool's action at the point under the cursor."""
@@ -534,12 +551,15 @@ class PillarMode(Mode):
         self.measured.append(hit)
         if len(self.measured) == 1:
             self._mark("measure", np.zeros((0, 2, 3)))
+            self.section = None
             self.status.content = "Measure: click the second point."
             return
         a, b = self.measured[-2], self.measured[-1]
         self.measured = []
         self._mark("measure", np.stack([a, b])[None])
-        self.status.content = measure_text(a, b)
+        self.status.content = measure_text(a, b) + "; its cross-section is the side view."
+        self.section = (a, b)
+        self._draw_views()
 
     def _inspect(self, hit: np.ndarray) -> None:
         """Inspect: the point's world coordinates, height above ground, intensity, pillar and
