@@ -6,6 +6,9 @@ world coordinates loses centimetres). Alongside the points the map keeps what se
 
 - `intensity`: each point's return intensity as the sensor gave it (NaN where the survey has
   none), for the viewer's "colour by intensity";
+- `rgb`: each point's colour in its own frame's camera image (KITTI image_2: the point projected
+  with the camera's calibration, the pixel it lands on), (0, 0, 0) with `has_rgb` False where
+  the frame has no image or the point is outside it, for "colour by camera";
 - `cell`: each point's pillar on the store grid (an index into `cells`, the occupied pillars),
   so a label change becomes a colour change by one fancy index;
 - points ordered by 50 m tile, so the full-resolution points of a tile are one slice;
@@ -37,13 +40,14 @@ import numpy as np
 
 from app.geometry.ground import GroundModel, estimate_ground
 from app.geometry.pillars import PillarGrid
+from app.geometry.projection import pixel_indices, project
 from app.geometry.voxels import voxel_downsample
 from app.io import open_survey
 from app.io.accumulate import accumulate
 from app.store.models import Survey
 from app.store.pillar_labels import STORE_GRID
 
-CACHE_VERSION = 4  # 3: a folder of arrays, the per-point ones memory-mapped; 4: intensity
+CACHE_VERSION = 5  # 3: a folder of arrays, the per-point ones memory-mapped; 4: intensity; 5: rgb
 TILE_SIZE = 50.0  # metres: the full-resolution unit
 OVERVIEW_VOXEL = 0.2  # metres: one overview point per voxel
 GROUND_CELL = 1.0  # metres
@@ -90,6 +94,8 @@ class SurveyMap:
     origin: np.ndarray  # (3,) float64 world position of local (0, 0, 0)
     xyz: np.ndarray  # (N, 3) float32 local coordinates, ordered by tile
     intensity: np.ndarray  # (N,) float32 sensor units, NaN where the survey has none
+    rgb: np.ndarray  # (N, 3) uint8 camera colour, see has_rgb
+    has_rgb: np.ndarray  # (N,) bool: the point was seen by its frame's camera
     cell: np.ndarray  # (N,) int32 index into `cells`
     cells: np.ndarray  # (M,) int64 sorted store-grid ids of the occupied pillars
     tile_ids: np.ndarray  # (T,) int64 sorted TILE_GRID ids of the occupied tiles
@@ -142,12 +148,14 @@ def accumulate_local(source: MapSource) -> tuple[np.ndarray, np.ndarray]:
     return amap.xyz, amap.world_xy
 
 
-def _local_frames(source: MapSource):
+def _local_frames(source: MapSource, with_rgb: bool = True):
     """Per frame (a map file: per chunk), in order: (local float32 xyz, float32 intensity (NaN:
-    none), tile id, store cell id from the exact world xy)."""
+    none), tile id, store cell id from the exact world xy, (n, 3) uint8 camera colour, (n,)
+    seen by the camera)."""
     survey = open_survey(source.source_path, source.format)
     origin = np.asarray(source.origin, dtype=np.float64)
     for frame in survey.frames:
+        camera = next((c for c in survey.cameras.values() if c.name in frame.image_paths), None)
         for _, cloud in frame.world_chunks():
             world = cloud.xyz
             xyz = (world - origin).astype(np.float32)
@@ -156,7 +164,27 @@ def _local_frames(source: MapSource):
                 intensity = np.full(len(xyz), np.nan, dtype=np.float32)
             else:
                 intensity = np.asarray(cloud.intensity, dtype=np.float32)
-            yield xyz, intensity, TILE_GRID.point_cell_ids(xyz[:, :2]), cells
+            rgb, seen = _camera_colours(frame, camera if with_rgb else None, len(xyz))
+            yield xyz, intensity, TILE_GRID.point_cell_ids(xyz[:, :2]), cells, rgb, seen
+
+
+def _camera_colours(frame, camera, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 3) uint8 colour of each point of a frame in its camera image and (n,) whether it
+    lands there; none seen without a camera or an image. A frame with an image is one chunk:
+    its sensor points, in the order of its world points."""
+    rgb, seen = np.zeros((n, 3), dtype=np.uint8), np.zeros(n, dtype=bool)
+    if camera is None:
+        return rgb, seen
+    sensor = frame.points().xyz
+    if len(sensor) != n:
+        return rgb, seen
+    proj = project(sensor, camera.P, camera.T_cam_sensor, camera.width, camera.height)
+    image = frame.image(camera.name)
+    rows, cols = pixel_indices(proj)
+    inside = (rows < image.shape[0]) & (cols < image.shape[1])
+    seen[np.flatnonzero(proj.in_image)[inside]] = True
+    rgb[seen] = image[rows[inside], cols[inside], :3]
+    return rgb, seen
 
 
 class _Union:
@@ -186,7 +214,7 @@ def build_map(source: MapSource, overview_points: int, folder: Path) -> None:
     50 m tile), then capped; the ground is estimated from the overview."""
     cells, low, high = _Union(), np.full(3, np.inf), np.full(3, -np.inf)
     tile_counts: dict[int, int] = {}
-    for xyz, _, tile, cell in _local_frames(source):
+    for xyz, _, tile, cell, _, _ in _local_frames(source, with_rgb=False):
         ids, counts = np.unique(tile, return_counts=True)
         for t, c in zip(ids.tolist(), counts.tolist(), strict=True):
             tile_counts[t] = tile_counts.get(t, 0) + c
@@ -201,14 +229,18 @@ def build_map(source: MapSource, overview_points: int, folder: Path) -> None:
     xyz_out = _open_array(folder / "xyz.npy", (n, 3), np.float32)
     cell_out = _open_array(folder / "cell.npy", (n,), np.int32)
     intensity_out = _open_array(folder / "intensity.npy", (n,), np.float32)
+    rgb_out = _open_array(folder / "rgb.npy", (n, 3), np.uint8)
+    seen_out = _open_array(folder / "has_rgb.npy", (n,), np.bool_)
     filled = tile_start[:-1].copy()
-    for xyz, intensity, tile, cell in _local_frames(source):
+    for xyz, intensity, tile, cell, rgb, seen in _local_frames(source):
         order = np.argsort(tile, kind="stable")
         k = np.searchsorted(tile_ids, tile[order])
         ranks = np.arange(len(order)) - np.searchsorted(k, k)  # position within its tile run
         slots = filled[k] + ranks
         xyz_out[slots] = xyz[order]
         intensity_out[slots] = intensity[order]
+        rgb_out[slots] = rgb[order]
+        seen_out[slots] = seen[order]
         cell_out[slots] = np.searchsorted(cell_table, cell[order]).astype(np.int32)
         filled += np.bincount(k, minlength=len(tile_ids))
     overview = [
@@ -226,10 +258,10 @@ def build_map(source: MapSource, overview_points: int, folder: Path) -> None:
     else:
         ground_origin, heights = np.zeros(2), np.zeros((1, 1), dtype=np.float32)
         low, high = np.zeros(3), np.zeros(3)
-    for array in (xyz_out, cell_out, intensity_out):
+    for array in (xyz_out, cell_out, intensity_out, rgb_out, seen_out):
         if isinstance(array, np.memmap):  # an empty map's arrays are plain
             array.flush()
-    del xyz_out, cell_out, intensity_out
+    del xyz_out, cell_out, intensity_out, rgb_out, seen_out
     np.savez(
         folder / "index.npz",
         origin=np.asarray(source.origin, dtype=np.float64),
@@ -261,6 +293,8 @@ def _read_map(folder: Path) -> SurveyMap:
     return SurveyMap(
         xyz=np.load(folder / "xyz.npy", mmap_mode=mode),
         intensity=np.load(folder / "intensity.npy", mmap_mode=mode),
+        rgb=np.load(folder / "rgb.npy", mmap_mode=mode),
+        has_rgb=np.load(folder / "has_rgb.npy", mmap_mode=mode),
         cell=np.load(folder / "cell.npy", mmap_mode=mode),
         **small,
     )

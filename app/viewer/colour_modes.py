@@ -1,6 +1,7 @@
 """What the labelling view colours points by, besides their label: height above the ground
 (to pick out kerbs, cars and canopies), the sensor's intensity (road markings, signs), and the
-phantom model's confidence (where to look first). Colours are mid-tone, never near white: the
+phantom model's confidence (where to look first), the camera's colour where a frame's image saw
+the point (what the object is). Colours are mid-tone, never near white: the
 viewer's background is white.
 """
 
@@ -12,7 +13,8 @@ LABEL = "Label"
 HEIGHT = "Height above ground"
 INTENSITY = "Intensity"
 CONFIDENCE = "Model confidence"
-COLOUR_MODES = (LABEL, HEIGHT, INTENSITY, CONFIDENCE)
+CAMERA = "Camera colour"
+COLOUR_MODES = (LABEL, HEIGHT, INTENSITY, CONFIDENCE, CAMERA)
 
 HEIGHT_RANGE = (-0.5, 8.0)  # metres above the ground from the first to the last ramp colour
 NO_VALUE_RGB = np.array((150, 150, 150), dtype=np.float64)  # no intensity / no model label
@@ -58,3 +60,10 @@ def confidence_colors(confidence: np.ndarray) -> np.ndarray:
     """Red (unsure, 0.25 or less: a four-class model's chance level) to green (sure); grey
     where the model gave no label."""
     return ramp(confidence, 0.25, 1.0, CONFIDENCE_RAMP)
+
+
+def camera_colors(rgb: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """The camera's colour where it saw the point, grey elsewhere."""
+    out = np.tile(NO_VALUE_RGB.astype(np.uint8), (len(seen), 1))
+    out[seen] = np.asarray(rgb)[seen]
+    return out

@@ -171,7 +171,7 @@ def test_multi_view_and_colour_modes_on_real_semantickitti(
     viewer_browser, real_server: Server, artefacts
 ) -> None:
     """Real data (SemanticKITTI 08, ten HDL-64E frames): the 3D view with the top and side
-    views, coloured by intensity and by height."""
+    views, coloured by intensity, by height and by the camera's colour."""
     api = real_server.client()
     path = Path(os.environ["MMSCLEAN_REAL_DATA"]) / "semantickitti" / "sequences" / REAL_SEQUENCE
     imported = api.post(
@@ -200,6 +200,9 @@ def test_multi_view_and_colour_modes_on_real_semantickitti(
         page.wait_for_timeout(3000)
         assert colourful_share(page) > 0.02
         save_screenshot(page, artefacts, "real-height", docs="viewer_real_08_height.png")
+        pick_option(page, "Height above ground", "Camera colour")  # image_2's colours
+        page.wait_for_timeout(3000)
+        save_screenshot(page, artefacts, "real-camera", docs="viewer_real_08_camera.png")
     finally:
         context.close()
     assert not errors, errors

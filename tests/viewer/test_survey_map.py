@@ -133,3 +133,39 @@ def test_the_streamed_map_is_the_whole_map_sorted_by_tile(tmp_path: Path) -> Non
     low, high = m.bounds()
     np.testing.assert_array_equal(low, local.min(axis=0))
     np.testing.assert_array_equal(high, local.max(axis=0))
+
+
+def test_real_kitti_points_carry_intensity_and_their_camera_colour(
+    real_data: Path, tmp_path: Path
+) -> None:
+    """SemanticKITTI 05, real (ten HDL-64E frames with image_2): every point keeps its
+    reflectance; the points in front of the camera take the colour of the image pixel they
+    project to (checked for one frame against the image itself), the others none."""
+    from app.geometry.projection import pixel_indices, project
+    from app.io import open_survey
+
+    sequence = real_data / "semantickitti" / "sequences" / "05"
+    survey = open_survey(sequence, "semantickitti")
+    origin = np.floor(survey.frames[0].world_points().xyz.min(axis=0))
+    source = MapSource(5, str(sequence), "semantickitti", tuple(origin.tolist()), 0, 0)
+    m = load_map(source, tmp_path / "cache", overview_points=10_000)
+    assert np.isfinite(np.asarray(m.intensity)).all()
+    assert 0.0 <= float(np.min(m.intensity)) and float(np.max(m.intensity)) <= 1.0
+    seen = np.asarray(m.has_rgb)
+    assert 0.05 < seen.mean() < 0.5  # the forward camera sees a slice of the 360 degree scan
+    assert (np.asarray(m.rgb)[~seen] == 0).all()
+    # frame 0 alone: its points' colours are the image's pixels where they project
+    frame = survey.frames[0]
+    camera = next(iter(survey.cameras.values()))
+    proj = project(frame.points().xyz, camera.P, camera.T_cam_sensor, camera.width, camera.height)
+    rows, cols = pixel_indices(proj)
+    expected = frame.image(camera.name)[rows, cols, :3]
+    local = (frame.world_points().xyz - origin).astype(np.float32)[proj.in_image]
+    # find frame 0's points in the map (tile-sorted): match by exact local coordinates
+    key = {tuple(p): i for i, p in enumerate(np.asarray(m.xyz)[seen].tolist())}
+    at = [key.get(tuple(p)) for p in local[:500].tolist()]
+    found = [i for i in at if i is not None]
+    assert len(found) > 450
+    colours = np.asarray(m.rgb)[seen][found]
+    matched = [j for j, i in enumerate(at) if i is not None]
+    assert (colours == expected[:500][matched]).all(axis=1).mean() > 0.95

@@ -17,7 +17,8 @@ pillars of the shown points inside it that the user can see, within a depth rang
 camera to the area whose unreviewed model pre-labels are least confident and outlines it; H
 shows the shortcut sheet.
 
-Display: colour by label, height above ground, intensity or model confidence (`colour_modes`);
+Display: colour by label, height above ground, intensity, model confidence or the camera's
+colour (`colour_modes`);
 a height slice (only points between two heights above the ground are shown, and so selectable:
 label under trees and canopies); rounded points (a depth cue on dense scans); top and side
 views of the focus beside the 3D view (`mini_views`), in the same colours; after a measurement
@@ -35,11 +36,13 @@ from app.core.labels import PillarClass
 from app.store.pillar_labels import NO_LABEL, STORE_GRID
 from app.store.pillar_reads import label_counts, uncertain_areas
 from app.viewer.colour_modes import (
+    CAMERA,
     COLOUR_MODES,
     CONFIDENCE,
     HEIGHT,
     INTENSITY,
     LABEL,
+    camera_colors,
     confidence_colors,
     height_colors,
     intensity_colors,
@@ -296,6 +299,8 @@ class PillarMode(Mode):
             return intensity_colors(np.asarray(self.map.intensity[points]))
         if self.colour_by == CONFIDENCE:
             return confidence_colors(self.view.point_confidence(points))
+        if self.colour_by == CAMERA:
+            return camera_colors(np.asarray(self.map.rgb[points]), self.map.has_rgb[points])
         return self.view.point_colors(points)
 
     def _draw(self, name: str, points: np.ndarray) -> None:
@@ -354,6 +359,8 @@ class PillarMode(Mode):
         self.colour_by = self.colour_menu.value
         if self.colour_by == INTENSITY and not np.isfinite(self.map.intensity[:1_000]).any():
             self.status.content = "This survey recorded no intensity: its points are grey."
+        if self.colour_by == CAMERA and not self.map.has_rgb[self.map.overview].any():
+            self.status.content = "No camera image saw these points: they are grey."
         for name in ("overview", "tile"):
             cloud = self.clouds.get(name)
             if cloud is not None:
