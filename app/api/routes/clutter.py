@@ -106,7 +106,9 @@ FrameId = Annotated[str, PathParam(min_length=1, max_length=64)]
 
 
 class RemovePointsIn(BaseModel):
-    version: Version = Field(ge=1, description="the instance's decision version the reviewer saw")
+    version: int = Field(
+        ge=1, le=2**63 - 1, description="the instance's decision version the reviewer saw"
+    )
     points: list[PointIndex] = Field(
         min_length=1, max_length=MAX_POINTS, description="point indices in the instance's frame"
     )
