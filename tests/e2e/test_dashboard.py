@@ -269,7 +269,7 @@ def test_run_phantom_from_the_survey_page_and_read_its_metrics(
     )
     save_screenshot(page, tmp_path, "survey", docs=True)
     # a phantom run removes points: its cleaned map is exported (it waited for a clutter run)
-    cleaned = page.locator("#exports li", has_text="cleaned map")
+    cleaned = page.locator("#exports li", has_text="cleaned map (LAZ)")
     cleaned.locator("a[data-export='cleaned.laz']").wait_for()
     assert f"run:phantom job {job['id']}" in cleaned.inner_text()
     # the model picker names each version's scanner kind and held-out F (issue 20, defect 9)
