@@ -1,10 +1,11 @@
 """The review modes in a real browser (Debian's Chromium, software WebGL) against `mmsclean serve`
 with the sample survey and a small simulated street with moving objects (the sample is scanned
 by a profile scanner, whose scan plane the forward camera never sees, so clutter runs on the
-street): approve a clutter instance in the clutter mode, fly to the next uncertain slice (outlined)
-and toggle it with one click at the screen centre, fly to the next uncertain pillar area
-(outlined), reject then accept a reconstructed guardrail and download the mesh export; each
-checked through the REST API. One screenshot per mode goes to docs/ (see conftest)."""
+street): approve a clutter instance in the clutter mode and make its panel large, fly to the
+next uncertain slice (outlined) and toggle it with one click at the screen centre, fly to the
+next uncertain pillar area (outlined), reject then accept a reconstructed guardrail and
+download the mesh export; each checked through the REST API. One screenshot per mode goes to
+docs/ (see conftest)."""
 
 from __future__ import annotations
 
@@ -130,6 +131,12 @@ def canvas_box(page) -> dict:
     return box
 
 
+def camera_image(page) -> dict:
+    """The bounding box of the widest picture the page shows (the clutter mode's camera)."""
+    boxes = [b for b in (i.bounding_box() for i in page.locator("img").all()) if b]
+    return max(boxes, key=lambda b: b["width"])
+
+
 @pytest.mark.e2e
 def test_approve_a_clutter_instance(open_viewer, viewer_server: Server, street, artefacts) -> None:
     reviewer = viewer_server.add_user("clutterrev", "reviewer", PASSWORD)
@@ -164,7 +171,10 @@ def test_approve_a_clutter_instance(open_viewer, viewer_server: Server, street, 
     name = f"#{other['instance_index']} {other['class_name']}"
     row_button(page, f"{name}, {other['point_count']:,} pts: pending", "Select").click()
     page.get_by_text(f"▶ {name}").wait_for()
-    page.get_by_text(f"Frame {index + 1} / {len(frames)}").scroll_into_view_if_needed()
+    # a large panel: the camera image (the widest picture in the panel) grows
+    small = camera_image(page)["width"]
+    row_button(page, "Panel width", "Large").click()
+    wait_until("a larger camera image", lambda: camera_image(page)["width"] > 1.5 * small)
     close_notifications(page)
     page.wait_for_timeout(2000)  # software WebGL draws the new colours
     save_screenshot(page, artefacts, "clutter", docs="viewer_clutter.png")
