@@ -241,6 +241,8 @@ def test_fill_polygon_measure_inspect_and_class_locks(opened) -> None:
     connection.call(mode.on_click, click_at(connection, np.array([2.0, 2.0, 0.0])))
     connection.call(mode.on_click, click_at(connection, np.array([20.0, 10.0, CANOPY_Z])))
     assert "Distance **" in mode.status.content and "vertical +6.00 m" in mode.status.content
+    # the side view is now the cross-section along the measured line
+    assert mode.section is not None and mode.side_image.label.startswith("Section along")
     connection.call(mode._pick_tool, INSPECT)
     connection.call(mode.on_click, click_at(connection, np.array([20.0, 10.0, CANOPY_Z])))
     text = mode.status.content
