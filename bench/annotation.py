@@ -1,0 +1,465 @@
+"""A timed labelling session in a real browser (issue 20): a scripted annotator labels a 100 m
+street of a real SemanticKITTI sequence with the viewer's tools, as a person would.
+
+A real `mmsclean serve` on loopback with the sequence imported; Debian's Chromium (headless,
+software WebGL) driven by Playwright, logged in as an annotator. The page's websocket frames are
+watched both ways: the camera it sends (so the script knows where every pillar is on screen,
+projected as the server projects it: `app.viewer.picking.ScreenCamera`) and the colour updates
+it receives. The annotator's answers are the sequence's reference pillar classes
+(`bench.labelling_loop.reference_answers`: SemanticKITTI labels through the shared pillar rule).
+
+The street: the pillars within 50 m along and 15 m across the drive of the sequence's middle
+pose. The camera: the top view (T) zoomed (mouse wheel) until it is about 80 m above the street.
+The session, in the order an annotator works:
+
+1. Fill (G, a click on the road, Enter): the ground.
+2. With "Apply to: unlabelled only": per connected group of unlabelled non-ground pillars of one
+   reference class in the street (largest first, 30 pillars or more), a rectangle (shift-drag
+   round its box) where the group fills most of its box, else a polygon (P, clicks round its
+   convex hull, Enter); Enter again where the selection is previewed.
+3. The brush (B, radius 0.4 m) on every non-ground pillar still unlabelled.
+
+It stops when every non-ground pillar of the street holds a human label or after 10 minutes of
+interaction. Per tool: interactions, pillars labelled, seconds of interaction (from the first
+input event to the colours received and drawn) and pillars per minute; the latency from the
+committing input (the click, or Enter) to the colours received, p50 / p90; and the class
+accuracy of the labels against the reference.
+
+    MMSCLEAN_REAL_DATA=../shared/data .venv/bin/python -m bench.annotation [--sequence 08]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import msgspec
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import ConvexHull, cKDTree
+
+from app.io import open_survey
+from app.io.accumulate import accumulate
+from app.store.pillar_labels import STORE_GRID
+from app.viewer.picking import ScreenCamera
+from bench.common import append_results, markdown_table
+from bench.labelling_loop import reference_answers
+from bench.viewer import login
+from bench.viewer_browser import AFTER_DRAWING, CHROMIUM, CHROMIUM_ARGS, VIEWPORT
+from tests.api.server import Server
+from tests.viewer.wire import decode_frame, is_color_update
+
+STREET_ALONG, STREET_ACROSS = 50.0, 15.0  # metres each way from the middle pose
+CAMERA_HEIGHT = 80.0  # metres above the street, top view
+BUDGET_S = 600.0  # seconds of interaction
+GROUP_MIN = 30  # pillars: smaller groups are brushed
+RECT_FILL = 0.6  # a group filling this share of its box gets a rectangle, else a polygon
+BRUSH_RADIUS = 0.4
+PANEL_X = 0.72  # share of the canvas width left of the GUI panel (clicks stay left of it)
+ANSWER_TIMEOUT_S = 2.0  # an interaction that changed nothing gets no colours
+CLASS_KEYS = {0: "1", 1: "2", 2: "3", 3: "4"}  # PillarClass -> hotkey
+PASSWORD = "password-123"
+OVERVIEW_POINTS = 500_000  # the default: every pillar of a ten-frame sequence is shown
+TILE_POINTS = 100_000  # the tile in focus, kept small for software WebGL
+
+
+class Page:
+    """The viewer tab: the camera it last sent and the colour updates it received."""
+
+    def __init__(self, browser, server: Server, token: str, survey_id: int):
+        self.context = browser.new_context(viewport=VIEWPORT)
+        self.context.add_cookies([{"name": "mmsclean_token", "value": token, "url": server.url}])
+        self.page = self.context.new_page()
+        self.camera: dict | None = None
+        self.colours: list[float] = []
+        self.sent: list[float] = []  # when the page sent each message but its camera
+        self.errors: list[str] = []
+        self.page.on("pageerror", lambda exc: self.errors.append(str(exc)))
+        self.page.on("websocket", self._watch)
+        self.page.goto(f"{server.url}/viewer?survey={survey_id}")
+
+    def _watch(self, ws) -> None:
+        def received(payload) -> None:
+            if isinstance(payload, bytes) and any(
+                is_color_update(m) for m in decode_frame(payload)
+            ):
+                self.colours.append(time.perf_counter())
+
+        def sent(payload) -> None:
+            if not isinstance(payload, bytes):
+                return
+            try:
+                message = msgspec.msgpack.decode(payload)
+            except msgspec.DecodeError:
+                return
+            if isinstance(message, dict) and message.get("type") == "ViewerCameraMessage":
+                self.camera = message
+            else:  # a click, a rectangle, a key's command, a GUI value: the server's work
+                self.sent.append(time.perf_counter())
+
+        ws.on("framereceived", received)
+        ws.on("framesent", sent)
+
+    def screen(self) -> ScreenCamera:
+        c = self.camera
+        return ScreenCamera.of(
+            type("Camera", (), {
+                "wxyz": c["wxyz"], "position": c["position"], "fov": c["fov"],
+                "image_width": c["image_width"], "image_height": c["image_height"],
+            })
+        )  # fmt: skip
+
+    def canvas(self) -> dict:
+        return self.page.locator("canvas").first.bounding_box()
+
+    def colours_after(self, since: int) -> tuple[float, float] | None:
+        """(when the first colour update after the `since`-th arrived, seconds the server took:
+        from the page's last message before it to its arrival), once drawn; None: none came."""
+        deadline = time.perf_counter() + ANSWER_TIMEOUT_S
+        while len(self.colours) <= since:
+            if time.perf_counter() > deadline:
+                return None
+            self.page.wait_for_timeout(5)
+        self.page.evaluate(AFTER_DRAWING)
+        arrived = self.colours[since]
+        asked = max((t for t in self.sent if t <= arrived), default=arrived)
+        return arrived, arrived - asked
+
+
+class Tally:
+    def __init__(self) -> None:
+        self.rows: dict[str, dict] = {}
+        self.latency: list[float] = []  # seconds from the committing input to the colours
+        self.server: list[float] = []  # of which from the page's message to the colours
+
+    def add(
+        self, tool: str, seconds: float, pillars: int, latency: tuple[float, float] | None
+    ) -> None:
+        """One interaction; latency: (input to colours received, the server's share)."""
+        row = self.rows.setdefault(tool, {"n": 0, "s": 0.0, "pillars": 0})
+        row["n"] += 1
+        row["s"] += seconds
+        row["pillars"] += pillars
+        if latency is not None:
+            self.latency.append(latency[0])
+            self.server.append(latency[1])
+
+    @property
+    def seconds(self) -> float:
+        return sum(r["s"] for r in self.rows.values())
+
+
+def street_pillars(sequence: Path, origin: np.ndarray) -> dict:
+    """The street's pillars: store ids, reference class, local centre and top."""
+    answers = reference_answers(sequence)
+    survey = open_survey(sequence, "semantickitti")
+    poses = survey.poses()
+    middle = poses[len(poses) // 2]
+    heading = poses[-1][:2, 3] - poses[0][:2, 3]
+    heading = heading / max(np.linalg.norm(heading), 1e-9)
+    amap = accumulate(survey, origin=origin)
+    world_xy = np.asarray(amap.world_xy, dtype=np.float64)
+    cells = STORE_GRID.point_cell_ids(world_xy)
+    uniq, inverse = np.unique(cells, return_inverse=True)
+    top = np.full(len(uniq), -np.inf)
+    np.maximum.at(top, inverse.ravel(), np.asarray(amap.xyz[:, 2], dtype=np.float64))
+    centre = STORE_GRID.cell_center(*STORE_GRID.decode(uniq))
+    rel = centre - middle[:2, 3]
+    along = rel @ heading
+    across = rel @ np.array([-heading[1], heading[0]])
+    street = (np.abs(along) <= STREET_ALONG) & (np.abs(across) <= STREET_ACROSS)
+    pos, found = answers.index(uniq)
+    keep = street & found
+    return {
+        "cells": uniq[keep], "klass": answers.classes[pos[keep]],
+        "local": np.column_stack([centre[keep] - origin[:2], top[keep]]),
+        "middle": middle[:3, 3] - origin,
+    }  # fmt: skip
+
+
+def labelled(api, survey_id: int, cells: np.ndarray) -> dict[int, int]:
+    """cell id -> human label of the street's pillars."""
+    x, y = STORE_GRID.cell_center(*STORE_GRID.decode(cells)).T
+    tile = api.get(
+        f"/surveys/{survey_id}/pillars/labels",
+        params={"x0": x.min() - 1, "y0": y.min() - 1, "x1": x.max() + 1, "y1": y.max() + 1,
+                "source": "human"},
+    ).json()  # fmt: skip
+    return dict(zip(tile["cell_id"], tile["label"], strict=True))
+
+
+def run_session(view: Page, api, survey_id: int, street: dict) -> Tally:
+    page, tally = view.page, Tally()
+    box = view.canvas()
+
+    def to_page(local: np.ndarray) -> np.ndarray:
+        """Page pixels of local points (the camera reports its render size, which may differ
+        from the canvas's CSS box)."""
+        screen = view.screen()
+        px, _ = screen.project(np.atleast_2d(local))
+        scale = np.array([box["width"] / screen.width, box["height"] / screen.height])
+        return px * scale + [box["x"], box["y"]]
+
+    def on_canvas(p: np.ndarray) -> bool:
+        return bool(box["x"] + 5 < p[0] < box["x"] + box["width"] * PANEL_X
+                    and box["y"] + 5 < p[1] < box["y"] + box["height"] - 5)  # fmt: skip
+
+    def act(tool: str, inputs, commit) -> None:
+        """Inputs, then the committing input; timed to the colours drawn."""
+        before = labelled_count()
+        mark = len(view.colours)
+        started = time.perf_counter()
+        inputs()
+        committed = time.perf_counter()
+        commit()
+        answered = view.colours_after(mark)
+        if answered is None and page.get_by_text("pillars selected").count():
+            page.keyboard.press("Enter")  # a large selection is previewed: apply it
+            committed = time.perf_counter()
+            answered = view.colours_after(mark)
+        done = time.perf_counter()
+        latency = None if answered is None else (answered[0] - committed, answered[1])
+        gained = labelled_count() - before
+        tally.add(tool, done - started, gained, latency)
+        print(f"{tally.seconds:7.1f} s  {tool:9s} +{gained:6d} pillars "
+              f"({'no answer' if latency is None else f'{latency[0] * 1000:.0f} ms'})",
+              flush=True)  # fmt: skip
+
+    cells, klass = street["cells"], street["klass"]
+    state = {"labels": {}}
+
+    def labelled_count() -> int:
+        state["labels"] = labelled(api, survey_id, cells)
+        return len(state["labels"])
+
+    def unlabelled(mask: np.ndarray) -> np.ndarray:
+        have = np.isin(cells, np.fromiter(state["labels"], dtype=np.int64))
+        return np.flatnonzero(mask & ~have)
+
+    # 1. fill: the road from the ground pillar near the middle pose with the most ground round it
+    ground = np.flatnonzero(klass == 0)
+    xy = street["local"][ground, :2]
+    close = ground[np.hypot(*(xy - street["middle"][:2]).T) < 15.0]
+    tree = cKDTree(xy)
+    crowd = np.array([len(n) for n in tree.query_ball_point(street["local"][close, :2], 1.0)])
+    seed = close[int(np.argmax(crowd))]
+    page.keyboard.press("1")
+    page.keyboard.press("g")
+    p = to_page(street["local"][seed])[0]
+    act("fill", lambda: None, lambda: page.mouse.click(*p))
+
+    # 2. groups of one class: rectangle or polygon, only unlabelled pillars
+    page.locator("input:not([type=hidden])[value='All pillars']").click()
+    page.get_by_role("option", name="Unlabelled only", exact=True).click()
+    page.evaluate("document.activeElement && document.activeElement.blur()")
+    for k, group in groups(cells, klass, unlabelled(klass != 0)):
+        if tally.seconds > BUDGET_S:
+            break
+        corners = to_page(street["local"][group])
+        if not all(on_canvas(c) for c in (corners.min(axis=0), corners.max(axis=0))):
+            continue
+        page.keyboard.press(CLASS_KEYS[k])
+        lo, hi = corners.min(axis=0) - 2, corners.max(axis=0) + 2
+        box_area = float(np.prod(hi - lo))
+        hull = ConvexHull(corners) if len(corners) >= 3 else None
+        if hull is None or hull.volume >= RECT_FILL * box_area:
+
+            def drag(lo=lo, hi=hi) -> None:
+                page.keyboard.down("Shift")
+                page.mouse.move(*lo)
+                page.mouse.down()
+                page.mouse.move(*hi, steps=4)
+
+            def release() -> None:
+                page.mouse.up()
+                page.keyboard.up("Shift")
+
+            act("rectangle", drag, release)
+        else:
+            vertices = corners[hull.vertices]
+            vertices = vertices[
+                np.linspace(0, len(vertices) - 1, min(len(vertices), 8)).astype(int)
+            ]
+
+            def clicks(vertices=vertices) -> None:
+                page.keyboard.press("p")
+                for n, v in enumerate(vertices, start=1):  # each vertex taken before the next
+                    page.mouse.click(*v, delay=20)
+                    page.get_by_text(f"Polygon: {n} vertices").wait_for(timeout=5000)
+
+            act("polygon", clicks, lambda: page.keyboard.press("Enter"))
+
+    # 3. the brush on what is left
+    radius = page.locator(
+        'xpath=//label[normalize-space(.)="Brush radius (m)"]'
+        '/ancestor::div[contains(@class,"mantine-Flex-root")][1]//input[not(@type="hidden")]'
+    ).last
+    radius.fill(str(BRUSH_RADIUS))
+    radius.press("Enter")
+    page.evaluate("document.activeElement && document.activeElement.blur()")
+    page.keyboard.press("b")
+    for i in unlabelled(klass != 0):
+        if tally.seconds > BUDGET_S:
+            break
+        if cells[i] in state["labels"]:
+            continue
+        p = to_page(street["local"][i])[0]
+        if not on_canvas(p):
+            continue
+        page.keyboard.press(CLASS_KEYS[int(klass[i])])
+        act("brush", lambda: None, lambda p=p: page.mouse.click(*p))
+    labelled_count()
+    return tally
+
+
+def groups(cells: np.ndarray, klass: np.ndarray, todo: np.ndarray):
+    """(class, indices) of connected groups (8-neighbours) of `todo` pillars of one class,
+    GROUP_MIN or more, largest first: each class's pillars rasterised and labelled."""
+    ix, iy = (np.asarray(a, dtype=np.int64) for a in STORE_GRID.decode(cells[todo]))
+    ix, iy = ix - ix.min(), iy - iy.min()
+    found = []
+    for k in np.unique(klass[todo]).tolist():
+        raster = np.zeros((ix.max() + 1, iy.max() + 1), dtype=bool)
+        mine = klass[todo] == k
+        raster[ix[mine], iy[mine]] = True
+        component, _ = ndimage.label(raster, structure=np.ones((3, 3)))
+        ids = component[ix[mine], iy[mine]]
+        sizes = np.bincount(ids)
+        for c in np.flatnonzero(sizes >= GROUP_MIN):
+            if c:
+                found.append((int(sizes[c]), k, todo[mine][ids == c]))
+    for _, k, members in sorted(found, key=lambda g: -g[0]):
+        yield k, members
+
+
+def zoom_to(view: Page, height: float) -> None:
+    """Mouse-wheel steps over the canvas until the camera is about `height` above its focus."""
+    box = view.canvas()
+    view.page.mouse.move(box["x"] + box["width"] * 0.4, box["y"] + box["height"] / 2)
+    for _ in range(60):
+        c = view.camera
+        distance = float(np.linalg.norm(np.subtract(c["position"], c["look_at"])))
+        if abs(distance - height) < 0.08 * height:
+            return
+        view.page.mouse.wheel(0, 120 if distance < height else -120)
+        view.page.wait_for_timeout(300)
+
+
+def measure(sequence: Path) -> dict:
+    from playwright.sync_api import sync_playwright
+
+    if not CHROMIUM.is_file():
+        raise SystemExit(f"Debian's Chromium is not installed at {CHROMIUM} (make system-deps)")
+    with tempfile.TemporaryDirectory() as tmp:
+        env = {"MMSCLEAN_SAMPLE_DIR": "", "MMSCLEAN_IMPORT_ROOT": str(sequence.parent),
+               "MMSCLEAN_RETRAIN_EVERY": "0", "MMSCLEAN_WORKERS": "1",
+               "MMSCLEAN_VIEWER_OVERVIEW_POINTS": str(OVERVIEW_POINTS),
+               "MMSCLEAN_VIEWER_TILE_POINTS": str(TILE_POINTS)}  # fmt: skip
+        server = Server(Path(tmp) / "var", env=env).start()
+        try:
+            admin = server.client()
+            record = admin.post(
+                "/surveys/import",
+                json={"path": str(sequence), "format": "semantickitti", "name": sequence.name},
+            )
+            record.raise_for_status()
+            survey_id = record.json()["id"]
+            origin = np.asarray(admin.get(f"/surveys/{survey_id}").json()["origin"], float)
+            street = street_pillars(sequence, origin)
+            annotator = server.add_user("annotator", "annotator", PASSWORD)
+            token = login(server, "annotator", PASSWORD)
+            with sync_playwright() as playwright:
+                browser = playwright.chromium.launch(
+                    executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_ARGS
+                )
+                view = Page(browser, server, token, survey_id)
+                view.page.get_by_text("Click: brush. Shift-drag: rectangle.").wait_for(
+                    timeout=600_000
+                )
+                view.page.wait_for_timeout(3000)
+                view.page.keyboard.press("t")
+                view.page.wait_for_timeout(1500)
+                zoom_to(view, CAMERA_HEIGHT)
+                view.page.wait_for_timeout(2000)
+                tally = run_session(view, annotator, survey_id, street)
+                errors = view.errors
+                browser.close()
+            labels = labelled(annotator, survey_id, street["cells"])
+        finally:
+            server.stop()
+    non_ground = street["klass"] != 0
+    have = np.array([c in labels for c in street["cells"].tolist()])
+    given = np.array([labels.get(c, -1) for c in street["cells"].tolist()])
+    return {"tally": tally, "pillars": len(street["cells"]), "non_ground": int(non_ground.sum()),
+            "non_ground_labelled": int((have & non_ground).sum()),
+            "accuracy": float((given[have] == street["klass"][have]).mean()) if have.any() else 0.0,
+            "errors": errors}  # fmt: skip
+
+
+def percentiles_ms(values: list[float]) -> tuple[float, float]:
+    """(p50, p90) in milliseconds; NaN without values."""
+    if not values:
+        return float("nan"), float("nan")
+    p90 = statistics.quantiles(values, n=10)[-1] if len(values) > 1 else values[0]
+    return statistics.median(values) * 1000.0, p90 * 1000.0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--sequence", default="08")
+    parser.add_argument("--no-record", action="store_true")
+    args = parser.parse_args(argv)
+    real = os.environ.get("MMSCLEAN_REAL_DATA")
+    if not real:
+        raise SystemExit("MMSCLEAN_REAL_DATA is not set (the real SemanticKITTI sample)")
+    sequence = Path(real).resolve() / "semantickitti" / "sequences" / args.sequence
+    result = measure(sequence)
+    tally: Tally = result["tally"]
+    rows = [
+        [tool, str(r["n"]), f"{r['pillars']:,}", f"{r['s']:.1f}",
+         f"{60.0 * r['pillars'] / r['s']:,.0f}" if r["s"] else "-"]
+        for tool, r in tally.rows.items()
+    ]  # fmt: skip
+    total = sum(r["pillars"] for r in tally.rows.values())
+    per_minute = 60.0 * total / max(tally.seconds, 1e-9)
+    interactions = sum(r["n"] for r in tally.rows.values())
+    rows.append(
+        ["all", str(interactions), f"{total:,}", f"{tally.seconds:.1f}", f"{per_minute:,.0f}"]
+    )
+    table = markdown_table(
+        ["tool", "interactions", "pillars labelled", "seconds", "pillars / min"], rows
+    )
+    p50, p90 = percentiles_ms(tally.latency)
+    s50, s90 = percentiles_ms(tally.server)
+    slow = sum(1 for s in tally.server if s > 0.2)
+    share = 100.0 * result["non_ground_labelled"] / max(result["non_ground"], 1)
+    summary = (
+        f"Street (SemanticKITTI {args.sequence}, real, 100 m x 30 m): {result['pillars']:,} "
+        f"pillars with points, {result['non_ground']:,} non-ground; labelled "
+        f"{result['non_ground_labelled']:,} of them ({share:.1f} %) "
+        f"in {tally.seconds / 60.0:.1f} min of interaction; class accuracy of the labels "
+        f"{100.0 * result['accuracy']:.1f} %. Latency from the committing input (click or "
+        f"key) to the colours received: p50 {p50:.0f} ms, p90 {p90:.0f} ms; of which the "
+        f"server's (from the page's message to the colours): p50 {s50:.0f} ms, p90 {s90:.0f} ms, "
+        f"{slow} of {len(tally.server)} interactions over 200 ms. Page errors: "
+        f"{len(result['errors'])}."
+    )
+    print(table)
+    print(summary)
+    if not args.no_record:
+        append_results(
+            "Timed labelling session in the browser (issue 20)",
+            "MMSCLEAN_REAL_DATA=../shared/data python -m bench.annotation "
+            f"--sequence {args.sequence}",
+            table, summary,
+        )  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
