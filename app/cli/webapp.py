@@ -58,7 +58,11 @@ def export(
         bool, typer.Option(help="pillars: add the model's pre-labels to the human labels")
     ] = False,
     source: Annotated[
-        str, typer.Option(help="maps: the run of clutter, phantom, or the newest of both")
+        str,
+        typer.Option(
+            help="maps: the run of clutter, phantom, the newest of both, or combined (cleaned /"
+            " removed LAZ: what either removed)"
+        ),
     ] = "newest",
     overwrite: Annotated[bool, typer.Option(help="replace OUT if it exists")] = False,
 ) -> None:
@@ -75,6 +79,7 @@ def export(
 
     from app.core.errors import ConfigError
     from app.core.settings import get_settings
+    from app.reports.combined_maps import write_combined_map
     from app.reports.exports import (
         REMOVERS,
         csv_pieces,
@@ -92,8 +97,12 @@ def export(
 
     if what not in EXPORTS:
         raise ConfigError("WHAT", f"must be one of {', '.join(EXPORTS)} (got {what!r})")
-    if source not in ("newest", *REMOVERS):
-        raise ConfigError("--source", f"must be newest, {' or '.join(REMOVERS)} (got {source!r})")
+    if source not in ("newest", *REMOVERS, "combined"):
+        raise ConfigError(
+            "--source", f"must be newest, {', '.join(REMOVERS)} or combined (got {source!r})"
+        )
+    if source == "combined" and what not in ("cleaned-laz", "removed-laz"):
+        raise ConfigError("--source", "combined is for cleaned-laz and removed-laz only")
     if mesh_format not in ("glb", "obj"):
         raise ConfigError("--mesh-format", f"must be glb or obj (got {mesh_format!r})")
     if out.exists() and not overwrite:
@@ -110,7 +119,13 @@ def export(
             warning = export_readiness(session, record.id).warning
             if warning:
                 err_console.print(f"warning: {warning}", markup=False, soft_wrap=True)
-            if what in ("cleaned-laz", "removed-laz"):
+            if what in ("cleaned-laz", "removed-laz") and source == "combined":
+                which = what.split("-")[0]
+                jobs, points, crs = write_combined_map(session, settings, record, which, staged)
+                shutil.move(staged, partial)
+                details = {"source": "combined", "job_ids": [j.id for j in jobs],
+                           "points": points, "crs": crs}  # fmt: skip
+            elif what in ("cleaned-laz", "removed-laz"):
                 which = what.split("-")[0]
                 path, job, crs = map_with_crs(session, settings, record, which, source, staged)
                 shutil.copyfile(path, partial)

@@ -82,6 +82,16 @@ const EXPORTS = [
     needs: "removal",
     maps: ["cleaned", "removed"],
   },
+  {
+    file: "cleaned.laz?source=combined",
+    text: "cleaned map, clutter and phantom combined (LAZ)",
+    needs: "combined",
+  },
+  {
+    file: "removed.laz?source=combined",
+    text: "removed points, clutter and phantom combined (LAZ)",
+    needs: "combined",
+  },
   { file: "cleaned.pcd", text: "cleaned map (PCD)", needs: "removal", maps: ["cleaned"] },
   { file: "map.pcd", text: "map with labels (PCD)", needs: "removal", maps: ["cleaned", "removed"] },
   { file: "semantickitti-labels.zip", text: "SemanticKITTI labels per frame (zip)", needs: "clutter" },
@@ -373,10 +383,13 @@ async function latestSucceeded(surveyId, kinds) {
   return jobs[0] || null;
 }
 
-function exportsSection(survey, removalRun, clutterRun, guardrailModels, humanLabels, readiness) {
+function exportsSection(survey, runs, guardrailModels, humanLabels, readiness) {
+  const { removalRun, clutterRun, clutterMapRun, phantomRun } = runs;
   const approved = guardrailModels.some((m) => m.status === "approved");
   const reasons = {
     removal: removalRun ? null : "needs a finished clutter or phantom run",
+    combined:
+      clutterMapRun && phantomRun ? null : "needs a finished clutter run and a finished phantom run",
     clutter: clutterRun ? null : "needs a finished clutter run",
     guardrails: approved ? null : "needs an approved guardrail model",
     pillars: humanLabels > 0 ? null : "needs human pillar labels (label pillars in the viewer)",
@@ -409,6 +422,9 @@ function exportsSection(survey, removalRun, clutterRun, guardrailModels, humanLa
     let from = "";
     if (e.needs === "removal" && removalRun) from = ` of ${removalRun.kind} job ${removalRun.id}, the newest`;
     if (e.needs === "clutter" && clutterRun) from = ` of ${clutterRun.kind} job ${clutterRun.id}, as reviewed`;
+    if (e.needs === "combined" && !reason) {
+      from = ` of ${clutterMapRun.kind} job ${clutterMapRun.id} and run:phantom job ${phantomRun.id}`;
+    }
     return h("li", {}, link, h("span", { class: "muted" }, reason ? ` ${reason}` : from));
   });
   // the links stay usable while review is pending: the line says what an export would miss
@@ -459,17 +475,21 @@ export async function surveyView(ctx, root, id) {
   if (hasRole(user, "reviewer")) root.append(section("Exports", exportsBox));
 
   async function loadReview() {
-    const [stats, frames, models, removalRun, clutterRun, readiness] = await Promise.all([
-      api(`/surveys/${survey.id}/pillars/stats`),
-      api(`/surveys/${survey.id}/clutter/frames`),
-      api(`/surveys/${survey.id}/guardrails/models`),
-      latestSucceeded(survey.id, REMOVAL_KINDS),
-      latestSucceeded(survey.id, ["run:clutter"]), // the run whose review units are labelled
-      api(`/surveys/${survey.id}/export-readiness`),
-    ]);
+    const [stats, frames, models, removalRun, clutterRun, clutterMapRun, phantomRun, readiness] =
+      await Promise.all([
+        api(`/surveys/${survey.id}/pillars/stats`),
+        api(`/surveys/${survey.id}/clutter/frames`),
+        api(`/surveys/${survey.id}/guardrails/models`),
+        latestSucceeded(survey.id, REMOVAL_KINDS),
+        latestSucceeded(survey.id, ["run:clutter"]), // the run whose review units are labelled
+        latestSucceeded(survey.id, CLUTTER_KINDS), // the clutter maps a combined export uses
+        latestSucceeded(survey.id, ["run:phantom"]),
+        api(`/surveys/${survey.id}/export-readiness`),
+      ]);
+    const runs = { removalRun, clutterRun, clutterMapRun, phantomRun };
     review.replaceChildren(pillarSection(stats), clutterSection(frames), guardrailSection(models));
     const humanLabels = stats.human.reduce((a, b) => a + b, 0);
-    exportsBox.replaceChildren(...exportsSection(survey, removalRun, clutterRun, models, humanLabels, readiness).filter(Boolean));
+    exportsBox.replaceChildren(...exportsSection(survey, runs, models, humanLabels, readiness).filter(Boolean));
   }
 
   async function refresh() {

@@ -841,6 +841,15 @@ def test_combined_maps_leave_out_what_either_run_removed(
     path.write_bytes(removed.content)
     labels = read_las_points(path).extra["mmsclean_label"]
     assert sorted(labels.tolist()) == [1, 1, 1, 3, 3, 3, 3]  # each point as its run wrote it
+    # the command line writes the same map
+    out = tmp_path / "combined.laz"
+    done = mmsclean_export(
+        server, str(sid), "cleaned-laz", "--source", "combined", "--out", str(out)
+    )
+    assert done.returncode == 0, done.stderr
+    assert keys(out.read_bytes()) == pairs(frame[~either], index[~either])
+    done = mmsclean_export(server, str(sid), "map-pcd", "--source", "combined", "--out", "x.pcd")
+    assert done.returncode != 0 and "cleaned-laz and removed-laz only" in done.stderr
     # without a phantom run there is nothing to combine: 404 naming it
     alone = add_frames_survey(engine, "Alone", "semantickitti", "/nowhere/10", [10, 10])
     add(engine, succeeded_job(alone, "run:clutter", clutter, None))
