@@ -272,6 +272,10 @@ def test_run_phantom_from_the_survey_page_and_read_its_metrics(
     cleaned = page.locator("#exports li", has_text="cleaned map (LAZ)")
     cleaned.locator("a[data-export='cleaned.laz']").wait_for()
     assert f"run:phantom job {job['id']}" in cleaned.inner_text()
+    # the combined maps wait for a clutter run too, and say so
+    combined = page.locator("#exports li", has_text="cleaned map, clutter and phantom combined")
+    assert combined.locator("span.disabled").count() == 1
+    assert "needs a finished clutter run and a finished phantom run" in combined.inner_text()
     # the model picker names each version's scanner kind and held-out F (issue 20, defect 9)
     page.reload()
     versions = page.locator("#opt-run-phantom-model_id option[data-sensor]")
