@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -72,6 +73,21 @@ def save_screenshot(page, artefacts: Path, name: str, docs: str | None = None) -
             target.parent.mkdir(exist_ok=True)
             page.screenshot(path=str(target))
     return path
+
+
+WAIT_S = 30.0
+
+
+def wait_until(what: str, check, timeout: float = WAIT_S):
+    """check()'s first truthy value, polled every 0.2 s; AssertionError naming `what` after
+    `timeout` seconds."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = check()
+        if value:
+            return value
+        time.sleep(0.2)
+    raise AssertionError(f"timed out waiting for {what}")
 
 
 def close_notifications(page) -> None:

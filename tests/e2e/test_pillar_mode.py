@@ -7,17 +7,14 @@ the street is previewed and written only on Enter, and takes only what the user 
 
 from __future__ import annotations
 
-import time
-
 import httpx
 import pytest
 
 from tests.api.server import Server
-from tests.e2e.conftest import close_notifications, save_screenshot
+from tests.e2e.conftest import close_notifications, save_screenshot, wait_until
 from tests.e2e.pixels import count_pixels, is_selection_green
 
 PASSWORD = "password-123"
-WAIT_S = 30.0
 
 
 def human_labels(api: httpx.Client) -> list[tuple[int, int, int]]:
@@ -27,16 +24,6 @@ def human_labels(api: httpx.Client) -> list[tuple[int, int, int]]:
         params={"x0": -200, "y0": -200, "x1": 200, "y1": 200, "source": "human"},
     ).json()
     return list(zip(tile["cell_id"], tile["label"], tile["user_id"], strict=True))
-
-
-def wait_until(what: str, check, timeout: float = WAIT_S):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = check()
-        if value:
-            return value
-        time.sleep(0.2)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 def canvas_box(page) -> dict:

@@ -29,11 +29,11 @@ from tests.e2e.conftest import (
     VIEWER_TILE_POINTS,
     close_notifications,
     save_screenshot,
+    wait_until,
 )
 from tests.e2e.pixels import count_pixels, is_target_red
 
 PASSWORD = "password-123"
-WAIT_S = 30.0
 JOB_TIMEOUT_S = 600.0  # two pipeline runs on two shared cores
 SAMPLE = 1  # the sample survey: guardrails
 
@@ -94,16 +94,6 @@ def street(viewer_server: Server) -> int:
     for job in jobs:
         wait_job(api, job["id"])
     return street_id
-
-
-def wait_until(what: str, check, timeout: float = WAIT_S):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = check()
-        if value:
-            return value
-        time.sleep(0.2)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 def switch_mode(page, name: str) -> None:
@@ -277,6 +267,14 @@ def test_qa_mode_shows_the_maps_and_metrics(
     page.get_by_text("Cleaned map:").wait_for(timeout=60_000)
     page.get_by_text("Clutter (job").wait_for()
     page.get_by_text("Phantom (job").wait_for()
+    # issue 20, defect 7: the metrics tables fit the side panel (a wide one ran off its edge)
+    page.get_by_text("360°").first.wait_for()
+    overflow = page.eval_on_selector_all(
+        "table",
+        "ts => ts.map(t => t.getBoundingClientRect().right"
+        " - t.parentElement.getBoundingClientRect().right)",
+    )
+    assert overflow and max(overflow) <= 1.0, overflow
     href = page.get_by_role("link", name="QA report").get_attribute("href")
     assert href == f"/surveys/{street}/exports/qa-report.html"
     close_notifications(page)

@@ -7,7 +7,6 @@ to docs/ (see conftest)."""
 from __future__ import annotations
 
 import os
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -22,22 +21,12 @@ from tests.e2e.conftest import (
     api_login,
     close_notifications,
     save_screenshot,
+    wait_until,
 )
 from tests.e2e.pixels import canvas_pixels
 
 PASSWORD = "password-123"
-WAIT_S = 30.0
 REAL_SEQUENCE = "08"
-
-
-def wait_until(what: str, check, timeout: float = WAIT_S):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = check()
-        if value:
-            return value
-        time.sleep(0.2)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 def blur(page) -> None:
