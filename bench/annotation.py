@@ -61,7 +61,8 @@ GROUP_MIN = 30  # pillars: smaller groups are brushed
 RECT_FILL = 0.6  # a group filling this share of its box gets a rectangle, else a polygon
 BRUSH_RADIUS = 0.4
 PANEL_X = 0.72  # share of the canvas width left of the GUI panel (clicks stay left of it)
-ANSWER_TIMEOUT_S = 2.0  # an interaction that changed nothing gets no colours
+ANSWER_TIMEOUT_S = 15.0  # the longest wait for an interaction's colours
+DEAD_ENDS = ("Nothing to label", "No visible points", "no shown pillar", "met no point")
 CLASS_KEYS = {0: "1", 1: "2", 2: "3", 3: "4"}  # PillarClass -> hotkey
 PASSWORD = "password-123"
 OVERVIEW_POINTS = 500_000  # the default: every pillar of a ten-frame sequence is shown
@@ -117,14 +118,26 @@ class Page:
     def canvas(self) -> dict:
         return self.page.locator("canvas").first.bounding_box()
 
-    def colours_after(self, since: int) -> tuple[float, float] | None:
+    def texts(self) -> set[str]:
+        return set(self.page.locator("p").all_inner_texts())
+
+    def colours_after(
+        self, since: int, shown: set[str], preview_ok: bool = False
+    ) -> tuple[float, float] | None:
         """(when the first colour update after the `since`-th arrived, seconds the server took:
-        from the page's last message before it to its arrival), once drawn; None: none came."""
+        from the page's last message before it to its arrival), once drawn; None: none came
+        (a new status line says nothing was labelled or a preview waits for Enter, or time ran
+        out). `shown`: the page's text lines before the interaction."""
         deadline = time.perf_counter() + ANSWER_TIMEOUT_S
         while len(self.colours) <= since:
             if time.perf_counter() > deadline:
                 return None
-            self.page.wait_for_timeout(5)
+            new = " ".join(self.texts() - shown)
+            if any(t in new for t in DEAD_ENDS):
+                return None
+            if not preview_ok and "pillars selected" in new:
+                return None
+            self.page.wait_for_timeout(40)
         self.page.evaluate(AFTER_DRAWING)
         arrived = self.colours[since]
         asked = max((t for t in self.sent if t <= arrived), default=arrived)
@@ -215,13 +228,14 @@ def run_session(view: Page, api, survey_id: int, street: dict) -> Tally:
         mark = len(view.colours)
         started = time.perf_counter()
         inputs()
+        shown = view.texts()
         committed = time.perf_counter()
         commit()
-        answered = view.colours_after(mark)
-        if answered is None and page.get_by_text("pillars selected").count():
+        answered = view.colours_after(mark, shown)
+        if answered is None and "pillars selected" in " ".join(view.texts() - shown):
             page.keyboard.press("Enter")  # a large selection is previewed: apply it
             committed = time.perf_counter()
-            answered = view.colours_after(mark)
+            answered = view.colours_after(mark, shown, preview_ok=True)
         done = time.perf_counter()
         latency = None if answered is None else (answered[0] - committed, answered[1])
         gained = labelled_count() - before
