@@ -118,6 +118,15 @@ class Page:
     def canvas(self) -> dict:
         return self.page.locator("canvas").first.bounding_box()
 
+    def settle(self, quiet_s: float = 0.3) -> None:
+        """Wait until no colour update has arrived for `quiet_s` (one write recolours the
+        overview and the tile in focus: the second may come after the first is counted)."""
+        while True:
+            count = len(self.colours)
+            self.page.wait_for_timeout(quiet_s * 1000)
+            if len(self.colours) == count:
+                return
+
     def texts(self) -> set[str]:
         return set(self.page.locator("p").all_inner_texts())
 
@@ -224,6 +233,7 @@ def run_session(view: Page, api, survey_id: int, street: dict) -> Tally:
 
     def act(tool: str, inputs, commit) -> None:
         """Inputs, then the committing input; timed to the colours drawn."""
+        view.settle()  # the previous interaction's colours all in, outside the timing
         before = labelled_count()
         mark = len(view.colours)
         started = time.perf_counter()
