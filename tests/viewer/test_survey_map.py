@@ -150,7 +150,7 @@ def test_real_kitti_points_carry_intensity_and_their_camera_colour(
     source = MapSource(5, str(sequence), "semantickitti", tuple(origin.tolist()), 0, 0)
     m = load_map(source, tmp_path / "cache", overview_points=10_000)
     assert np.isfinite(np.asarray(m.intensity)).all()
-    assert 0.0 <= float(np.min(m.intensity)) and float(np.max(m.intensity)) <= 1.0
+    assert float(np.min(m.intensity)) >= 0.0 and float(np.max(m.intensity)) <= 1.0
     seen = np.asarray(m.has_rgb)
     assert 0.05 < seen.mean() < 0.5  # the forward camera sees a slice of the 360 degree scan
     assert (np.asarray(m.rgb)[~seen] == 0).all()
