@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from datetime import UTC, datetime, timedelta, timezone
 
+import numpy as np
 import pytest
 from sqlalchemy.engine import Engine
 from sqlalchemy.exc import IntegrityError, StatementError
@@ -14,6 +15,7 @@ from app.store.models import (
     TABLES,
     AuditEvent,
     AuthSession,
+    ClutterCorrection,
     ClutterDecision,
     ClutterInstance,
     Decision,
@@ -36,6 +38,7 @@ from app.store.models import (
     Role,
     Survey,
     User,
+    WorkArea,
 )
 
 IDENTITY = [float(v) for v in (1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1)]
@@ -149,6 +152,19 @@ def _populate(session: Session) -> dict[str, int]:
     session.add_all([human, predicted, instance, slice_, rail, event, batch])
     session.flush()
     session.add(PillarEdit(batch_id=batch.id, cell_id=42, before_label=None, after_label=3))
+    points = np.array([3, 5, 8], dtype=np.int32)
+    session.add(
+        ClutterCorrection(
+            survey_id=survey.id, frame_id="000001", instance_id=instance.id, kind="remove",
+            points=points.tobytes(), point_count=len(points), user_id=user.id,
+        )
+    )  # fmt: skip
+    session.add(
+        WorkArea(
+            survey_id=survey.id, area_index=0, station_start=0.0, station_end=100.0,
+            x_min=0.0, y_min=0.0, x_max=100.0, y_max=20.0, assignee_id=user.id,
+        )
+    )  # fmt: skip
     session.add(PillarTombstone(survey_id=survey.id, cell_id=43, version=2, user_id=user.id))
     session.add(IssuedId(name="clutter_instance", last_id=7))
     now = datetime.now(UTC)
