@@ -841,6 +841,10 @@ def test_combined_maps_leave_out_what_either_run_removed(
     path.write_bytes(removed.content)
     labels = read_las_points(path).extra["mmsclean_label"]
     assert sorted(labels.tolist()) == [1, 1, 1, 3, 3, 3, 3]  # each point as its run wrote it
+    # only the cleaned and removed LAZ maps combine: the others refuse it (422, not a 500)
+    for other in ("classified.laz", "cleaned.pcd", "map.pcd"):
+        refused = reviewer.get(f"/surveys/{sid}/exports/{other}?source=combined")
+        assert refused.status_code == 422 and "source" in refused.json()["detail"]
     # the command line writes the same map
     out = tmp_path / "combined.laz"
     done = mmsclean_export(

@@ -78,8 +78,13 @@ def _sent_once(path: Path, media_type: str, filename: str) -> FileResponse:
 # --- clutter maps -------------------------------------------------------------------------
 
 
-MapSource = Literal["newest", "clutter", "phantom", "combined"]
+MapSource = Literal["newest", "clutter", "phantom"]
 SOURCE = Query(
+    "newest", description="the pipeline whose run: clutter, phantom, or the newest of both"
+)
+# the cleaned and removed LAZ maps can also be both runs combined (`combined_maps`)
+CombinableSource = Literal["newest", "clutter", "phantom", "combined"]
+COMBINABLE_SOURCE = Query(
     "newest",
     description="the pipeline whose run: clutter, phantom, the newest of both, or combined "
     "(what either removed left out of one map)",
@@ -138,7 +143,7 @@ def cleaned_laz(
     user: Annotated[User, Depends(downloader("cleaned.laz"))],
     session: SessionDep,
     settings: SettingsDep,
-    source: MapSource = SOURCE,
+    source: CombinableSource = COMBINABLE_SOURCE,
 ) -> FileResponse:
     """The cleaned map (what was removed left out) of the newest finished clutter or phantom
     run."""
@@ -151,7 +156,7 @@ def removed_laz(
     user: Annotated[User, Depends(downloader("removed.laz"))],
     session: SessionDep,
     settings: SettingsDep,
-    source: MapSource = SOURCE,
+    source: CombinableSource = COMBINABLE_SOURCE,
 ) -> FileResponse:
     """The removed points (clutter or phantoms) of the newest finished clutter or phantom
     run."""
