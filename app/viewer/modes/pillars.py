@@ -383,10 +383,11 @@ class PillarMode(Mode):
         xyz = np.asarray(self.map.xyz[shown], dtype=np.float64)
         heading = heading_at(self.session.trajectory, focus[:2])
         near = np.abs(xyz[:, :2] - focus[:2]).max(axis=1) <= HALF_WIDTH * 1.5
-        self.top_image.image = top_view(xyz[near], self._colors(shown[near]), focus, heading)
+        rgb = self._colors(shown[near])
+        self.top_image.image = top_view(xyz[near], rgb, focus, heading)
         if self.section is None:
             self.side_image.label = SIDE_LABEL
-            self.side_image.image = side_view(xyz[near], self._colors(shown[near]), focus, heading)
+            self.side_image.image = side_view(xyz[near], rgb, focus, heading)
             return
         a, b = self.section
         middle, half = (a + b) / 2.0, min(float(np.hypot(*(b - a)[:2])) / 2.0 + 1.0, SECTION_MAX)
