@@ -37,6 +37,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import msgspec
 import numpy as np
@@ -107,13 +108,9 @@ class Page:
         ws.on("framesent", sent)
 
     def screen(self) -> ScreenCamera:
-        c = self.camera
-        return ScreenCamera.of(
-            type("Camera", (), {
-                "wxyz": c["wxyz"], "position": c["position"], "fov": c["fov"],
-                "image_width": c["image_width"], "image_height": c["image_height"],
-            })
-        )  # fmt: skip
+        """The camera the page last sent, as the server projects with it."""
+        fields = ("wxyz", "position", "fov", "image_width", "image_height")
+        return ScreenCamera.of(SimpleNamespace(**{k: self.camera[k] for k in fields}))
 
     def canvas(self) -> dict:
         return self.page.locator("canvas").first.bounding_box()
