@@ -57,3 +57,27 @@ def job_context(
         log=logging.getLogger(f"test-job-{job_id}"),
         report_progress=report,
     )
+
+
+def clutter_street(root: Path, weights_dir: Path) -> dict:
+    """A 7-frame simulated street registered in a fresh store under `root` and run through
+    `run:clutter`: {"context", "result", "survey", "settings"} (the clutter job tests' runs)."""
+    from sqlmodel import Session
+
+    from app.io import open_survey
+    from app.jobs.registry import task_for
+    from app.simulate.survey import SimulationConfig, simulate
+    from app.store.surveys import register_opened_survey
+
+    simulate(SimulationConfig(scene="urban", length=6.0, seed=3), root / "sim")
+    settings = Settings(data_dir=root / "var", weights_dir=weights_dir)
+    engine = make_engine(settings.database_url)
+    init_db(engine)
+    survey = open_survey(root / "sim", "sim")
+    with Session(engine) as session:
+        record = register_opened_survey(
+            session, survey, format="sim", source_path=(root / "sim").resolve()
+        )
+    context = job_context(settings, engine, 1, record.id)
+    result = task_for("run:clutter")(context, {"threads": 2})
+    return {"context": context, "result": result, "survey": survey, "settings": settings}

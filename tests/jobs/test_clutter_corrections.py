@@ -17,18 +17,13 @@ from sqlmodel import Session, select
 
 from app.core.errors import ConfigError, ConflictError, NotFoundError, StaleWriteError
 from app.core.labels import CLUTTER_CLASS_SEMANTIC
-from app.core.settings import Settings
-from app.io import open_survey
 from app.io.semantickitti import read_label_file
 from app.jobs.clutter_tasks import recompute_clutter
-from app.jobs.registry import task_for
 from app.reports.exports import slug
 from app.reports.semantickitti_labels import write_semantickitti_zip
 from app.review import clutter_corrections
-from app.simulate.survey import SimulationConfig, simulate
 from app.store.clutter_corrections import correction_counts, survey_corrections
 from app.store.clutter_review import get_instance, list_instances, replace_instances
-from app.store.db import init_db, make_engine
 from app.store.models import (
     AuditEvent,
     ClutterCorrection,
@@ -38,34 +33,19 @@ from app.store.models import (
     Role,
     Survey,
 )
-from app.store.surveys import register_opened_survey
 from app.store.users import create_user
-from tests.jobs.conftest import job_context
+from tests.jobs.conftest import clutter_street, job_context
 from tests.pipelines.clutter.conftest import weights_dir  # noqa: F401  (the fixture)
 
 
 @pytest.fixture(scope="module")
 def ran(tmp_path_factory: pytest.TempPathFactory, weights_dir: Path) -> Iterator[dict]:  # noqa: F811
     """A 7-frame simulated street registered in a fresh store and run through `run:clutter`."""
-    root = tmp_path_factory.mktemp("clutter-corrections")
-    simulate(SimulationConfig(scene="urban", length=6.0, seed=3), root / "sim")
-    settings = Settings(data_dir=root / "var", weights_dir=weights_dir)
-    engine = make_engine(settings.database_url)
-    init_db(engine)
-    survey = open_survey(root / "sim", "sim")
-    with Session(engine) as session:
-        record = register_opened_survey(
-            session, survey, format="sim", source_path=(root / "sim").resolve()
-        )
-        survey_id = record.id
-        user = create_user(session, "corrector", "password-123", Role.reviewer).id
-    context = job_context(settings, engine, 1, survey_id)
-    result = task_for("run:clutter")(context, {"threads": 2})
-    yield {
-        "context": context, "result": result, "survey": survey, "settings": settings,
-        "user": user,
-    }  # fmt: skip
-    engine.dispose()
+    street = clutter_street(tmp_path_factory.mktemp("clutter-corrections"), weights_dir)
+    with Session(street["context"].engine) as session:
+        street["user"] = create_user(session, "corrector", "password-123", Role.reviewer).id
+    yield street
+    street["context"].engine.dispose()
 
 
 def map_points(path: str) -> int:

@@ -19,13 +19,10 @@ from sqlmodel import Session, select
 from app.core.errors import ConfigError, StaleWriteError
 from app.core.labels import MOVING_OFFSET
 from app.core.settings import Settings
-from app.io import open_survey
 from app.io.semantickitti import read_label_file
 from app.jobs.clutter_tasks import recompute_clutter, run_clutter_task
-from app.jobs.registry import task_for
 from app.reports.exports import slug
 from app.reports.semantickitti_labels import write_semantickitti_zip
-from app.simulate.survey import SimulationConfig, simulate
 from app.store import clutter_review
 from app.store.clutter_review import (
     DecisionWrite,
@@ -44,28 +41,16 @@ from app.store.models import (
     JobStatus,
     Survey,
 )
-from app.store.surveys import register_opened_survey
-from tests.jobs.conftest import job_context
+from tests.jobs.conftest import clutter_street, job_context
 from tests.pipelines.clutter.conftest import weights_dir  # noqa: F401  (the fixture)
 
 
 @pytest.fixture(scope="module")
 def ran(tmp_path_factory: pytest.TempPathFactory, weights_dir: Path) -> Iterator[dict]:  # noqa: F811
     """A 7-frame simulated street registered in a fresh store and run through `run:clutter`."""
-    root = tmp_path_factory.mktemp("clutter-jobs")
-    simulate(SimulationConfig(scene="urban", length=6.0, seed=3), root / "sim")
-    settings = Settings(data_dir=root / "var", weights_dir=weights_dir)
-    engine = make_engine(settings.database_url)
-    init_db(engine)
-    survey = open_survey(root / "sim", "sim")
-    with Session(engine) as session:
-        record = register_opened_survey(
-            session, survey, format="sim", source_path=(root / "sim").resolve()
-        )
-    context = job_context(settings, engine, 1, record.id)
-    result = task_for("run:clutter")(context, {"threads": 2})
-    yield {"context": context, "result": result, "survey": survey, "settings": settings}
-    engine.dispose()
+    street = clutter_street(tmp_path_factory.mktemp("clutter-jobs"), weights_dir)
+    yield street
+    street["context"].engine.dispose()
 
 
 def test_run_ingests_every_instance_pending(ran: dict) -> None:
