@@ -28,7 +28,7 @@ guardrail-agreement's real rows are real.
 Usage: python -m bench.scale phantom|clutter|guardrail|agreement|guardrail-agreement|viewer|
        viewer-wire|viewer-browser
        [--lengths 0.25,0.5,1,2,4] [--scanner profile] [--tile-length 100] [--workers 2]
-       [--speedup-km 2] [--no-record]
+       [--speedup-km 2] [--streets profile,hdl64,real] [--no-record]
 """
 
 from __future__ import annotations
@@ -383,11 +383,14 @@ def part_guardrail_agreement(args) -> tuple[str, str, str]:
     from bench.phantom import simulated
 
     metres, tile, rows = 150.0, 50.0, []
+    wanted = set(args.streets.split(","))
     # seeds outside both classifiers' training sets
     streets = [(f"simulated {s}", open_survey(simulated("urban", metres, seed, s), "sim"), tile)
-               for s, seed in (("profile", 7), ("hdl64", 3))]  # fmt: skip
+               for s, seed in (("profile", 7), ("hdl64", 3)) if s in wanted]  # fmt: skip
     real = os.environ.get("MMSCLEAN_REAL_DATA")
-    for name in ("04", "05", "08") if real else ():
+    if "real" in wanted and not real:
+        raise SystemExit("guardrail-agreement: the real rows need MMSCLEAN_REAL_DATA")
+    for name in ("04", "05", "08") if "real" in wanted else ():
         survey = open_survey(Path(real) / "semantickitti" / "sequences" / name, "semantickitti")
         drive = float(arc_length(survey.poses()[:, :3, 3])[-1])
         streets.append((f"real SemanticKITTI {name}", survey, drive / 3))
@@ -542,6 +545,8 @@ def main() -> int:
     parser.add_argument("--speedup-km", type=float, default=2.0)
     parser.add_argument("--km", type=float, default=0.25, help="one: survey length")
     parser.add_argument("--cache", default="", help="viewer-build, viewer-open: cache folder")
+    parser.add_argument("--streets", default="profile,hdl64,real",
+                        help="guardrail-agreement: which of profile, hdl64, real")  # fmt: skip
     parser.add_argument("--no-record", action="store_true")
     args = parser.parse_args()
     steps = {
