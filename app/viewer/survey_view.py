@@ -143,16 +143,21 @@ class SurveyView:
 
     def point_colors(self, points: np.ndarray) -> np.ndarray:
         """(n, 3) uint8 colours of map points `points`."""
-        cells = self.map.cell[points]
+        return self.pillar_rgb(self.map.cell[points])
+
+    def pillar_rgb(self, k: np.ndarray) -> np.ndarray:
+        """(n, 3) uint8 colours of pillars `cells[k]` (a shown point's pillar, repeated)."""
         with self.lock:
-            return self.rgb[cells]
+            return self.rgb[k]
 
     def point_confidence(self, points: np.ndarray) -> np.ndarray:
         """(n,) float32 model confidence of the pillars of map points `points` (NaN: no model
         pre-label)."""
-        cells = self.map.cell[points]
+        return self.pillar_confidence(self.map.cell[points])
+
+    def pillar_confidence(self, k: np.ndarray) -> np.ndarray:
         with self.lock:
-            return np.where(self.model[cells] >= 0, self.confidence[cells], np.nan)
+            return np.where(self.model[k] >= 0, self.confidence[k], np.nan)
 
     def pillar_state(self, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(human label (-1: none), display class) of pillars `cells[k]`."""

@@ -76,6 +76,21 @@ def newest_colors(connection: Connection, name: str, since: int) -> np.ndarray:
     return np.asarray(colors).reshape(-1, 3)
 
 
+def test_shown_points_hold_what_the_clouds_show(opened) -> None:
+    """The positions and pillars kept per cloud (clicks and selections read them instead of
+    the memory-mapped map) are the map's, point for point, in the order the client got them."""
+    connection, _, _ = opened
+    mode = connection.mode
+    for name in ("overview", "tile"):
+        shown = mode.shown[name]
+        assert len(shown) and shown.xyz.dtype == np.float32 and shown.xyz.flags.c_contiguous
+        np.testing.assert_array_equal(shown.xyz, np.asarray(mode.map.xyz[shown.index]))
+        np.testing.assert_array_equal(shown.cell, np.asarray(mode.map.cell[shown.index]))
+    both = connection.call(mode._shown)
+    in_order = np.concatenate([mode.shown_overview, mode.shown_tile])
+    np.testing.assert_array_equal(both.index, in_order)
+
+
 def test_colour_by_height_then_intensity(opened) -> None:
     connection, _, _ = opened
     mode: PillarMode = connection.mode

@@ -47,7 +47,7 @@ from app.viewer.colour_modes import (
     height_colors,
     intensity_colors,
 )
-from app.viewer.mini_views import HALF_WIDTH, SLAB, side_view, top_view
+from app.viewer.mini_views import HALF_WIDTH, SLAB, side_view, top_view, within_square
 from app.viewer.modes.base import Mode
 from app.viewer.modes.common import TARGET_RGB
 from app.viewer.modes.pillar_selection import (
@@ -72,6 +72,7 @@ from app.viewer.picking import (
     ray_ground_hit,
 )
 from app.viewer.pillar_colors import CLASS_NAMES, DISPLAY_CLASSES, DISPLAY_NAMES, swatch_html
+from app.viewer.shown_points import ShownPoints
 from app.viewer.view_presets import heading_at
 
 if TYPE_CHECKING:
@@ -119,8 +120,8 @@ class PillarMode(Mode):
         self.hidden: set[int] = set()
         self.tile_id: int | None = None
         self.tile_points = np.zeros(0, dtype=np.int64)
-        self.shown_overview = np.zeros(0, dtype=np.int64)
-        self.shown_tile = np.zeros(0, dtype=np.int64)
+        self.shown = {"overview": ShownPoints.empty(), "tile": ShownPoints.empty()}
+        self._all_shown: ShownPoints | None = None
         self.clouds: dict[str, Any] = {}
         self.visited: set[tuple[float, float]] = set()
         self.commands: list[Any] = []
@@ -288,32 +289,51 @@ class PillarMode(Mode):
         return points
 
     def _height_above_ground(self, points: np.ndarray) -> np.ndarray:
-        xyz = np.asarray(self.map.xyz[points], dtype=np.float64)
+        return self._height_of(np.asarray(self.map.xyz[points]))
+
+    def _height_of(self, xyz: np.ndarray) -> np.ndarray:
+        xyz = np.asarray(xyz, dtype=np.float64)
         return xyz[:, 2] - self.map.ground.height(xyz[:, :2])
 
-    def _colors(self, points: np.ndarray) -> np.ndarray:
-        """(n, 3) uint8 colours of map points in the chosen colour mode."""
+    def _colors(self, shown: ShownPoints) -> np.ndarray:
+        """(n, 3) uint8 colours of shown points in the chosen colour mode."""
         if self.colour_by == HEIGHT:
-            return height_colors(self._height_above_ground(points))
+            return height_colors(self._height_of(shown.xyz))
         if self.colour_by == INTENSITY:
-            return intensity_colors(np.asarray(self.map.intensity[points]))
+            return intensity_colors(np.asarray(self.map.intensity[shown.index]))
         if self.colour_by == CONFIDENCE:
-            return confidence_colors(self.view.point_confidence(points))
+            return confidence_colors(self.view.pillar_confidence(shown.cell))
         if self.colour_by == CAMERA:
-            return camera_colors(np.asarray(self.map.rgb[points]), self.map.has_rgb[points])
-        return self.view.point_colors(points)
+            index = shown.index
+            return camera_colors(np.asarray(self.map.rgb[index]), self.map.has_rgb[index])
+        return self.view.pillar_rgb(shown.cell)
+
+    @property
+    def shown_overview(self) -> np.ndarray:
+        return self.shown["overview"].index
+
+    @property
+    def shown_tile(self) -> np.ndarray:
+        return self.shown["tile"].index
+
+    def _shown(self) -> ShownPoints:
+        """Every shown point, the overview's then the tile's."""
+        if self._all_shown is None:
+            self._all_shown = ShownPoints.join([self.shown["overview"], self.shown["tile"]])
+        return self._all_shown
 
     def _draw(self, name: str, points: np.ndarray) -> None:
         """(Re)send one cloud (positions and colours) with the points of `points` not hidden."""
-        shown = self._visible(points)
-        setattr(self, f"shown_{name}", shown)
+        shown = ShownPoints.gather(self.map, self._visible(points))
+        self.shown[name] = shown
+        self._all_shown = None
         old = self.clouds.pop(name, None)
         if old is not None:
             old.remove()
         if len(shown):
             self.clouds[name] = self.session.client.scene.add_point_cloud(
                 f"/{self.key}/{name}",
-                points=self.map.xyz[shown],
+                points=shown.xyz,
                 colors=self._colors(shown),
                 point_size=self.point_size.value,
                 precision="float32",
@@ -364,7 +384,7 @@ class PillarMode(Mode):
         for name in ("overview", "tile"):
             cloud = self.clouds.get(name)
             if cloud is not None:
-                cloud.colors = self._colors(getattr(self, f"shown_{name}"))
+                cloud.colors = self._colors(self.shown[name])
         self._draw_views()
 
     def _apply_shading(self) -> None:
@@ -380,21 +400,21 @@ class PillarMode(Mode):
         camera = self.session.client.camera
         focus = np.asarray(camera.look_at, dtype=np.float64)
         shown = self._shown()
-        xyz = np.asarray(self.map.xyz[shown], dtype=np.float64)
         heading = heading_at(self.session.trajectory, focus[:2])
-        near = np.abs(xyz[:, :2] - focus[:2]).max(axis=1) <= HALF_WIDTH * 1.5
-        rgb = self._colors(shown[near])
-        self.top_image.image = top_view(xyz[near], rgb, focus, heading)
+        near = shown.take(within_square(shown.xyz, focus, HALF_WIDTH * 1.5))
+        xyz = near.xyz.astype(np.float64)
+        rgb = self._colors(near)
+        self.top_image.image = top_view(xyz, rgb, focus, heading)
         if self.section is None:
             self.side_image.label = SIDE_LABEL
-            self.side_image.image = side_view(xyz[near], rgb, focus, heading)
+            self.side_image.image = side_view(xyz, rgb, focus, heading)
             return
         a, b = self.section
         middle, half = (a + b) / 2.0, min(float(np.hypot(*(b - a)[:2])) / 2.0 + 1.0, SECTION_MAX)
-        near = np.abs(xyz[:, :2] - middle[:2]).max(axis=1) <= half + SLAB
+        cut = shown.take(within_square(shown.xyz, middle, half + SLAB))
         self.side_image.label = f"Section along the measured line ({2 * half:.0f} m)"
         self.side_image.image = side_view(
-            xyz[near], self._colors(shown[near]), middle, b - a, half_width=half
+            cut.xyz.astype(np.float64), self._colors(cut), middle, b - a, half_width=half
         )
 
     def on_labels_changed(self, changed: np.ndarray) -> None:
@@ -406,15 +426,15 @@ class PillarMode(Mode):
         by_label = self.colour_by in (LABEL, CONFIDENCE)
         touched = False
         for name, source in (("overview", self.map.overview), ("tile", self.tile_points)):
-            shown = getattr(self, f"shown_{name}")
+            shown = self.shown[name]
             if self.hidden:
                 visible = self._visible(source)
-                if not np.array_equal(visible, shown):
+                if not np.array_equal(visible, shown.index):
                     self._draw(name, source)
                     touched = True
                     continue
             cloud = self.clouds.get(name)
-            if by_label and cloud is not None and mark[self.map.cell[shown]].any():
+            if by_label and cloud is not None and mark[shown.cell].any():
                 cloud.colors = self._colors(shown)
                 touched = True
         if touched:
@@ -430,9 +450,6 @@ class PillarMode(Mode):
             self.views_at = focus
             self._draw_views()
 
-    def _shown(self) -> np.ndarray:
-        return np.concatenate([self.shown_overview, self.shown_tile])
-
     def _surface_hit(self, event: SceneClickEvent) -> np.ndarray | None:
         """(3,) local point a click means: on the click ray (exactly under the cursor) at the
         depth of the surface drawn there (the shown point picked), else where the ray meets the
@@ -442,13 +459,11 @@ class PillarMode(Mode):
         angle = click_angle(event.client.camera)
         origin = np.asarray(event.ray_origin, dtype=np.float64)
         direction = np.asarray(event.ray_direction, dtype=np.float64)
-        hit_point = pick_on_ray(
-            self.map.xyz[shown], origin, direction, angle, float(self.point_size.value)
-        )
+        hit_point = pick_on_ray(shown.xyz, origin, direction, angle, float(self.point_size.value))
         if hit_point < 0:
             return ray_ground_hit(self.map.ground, origin, direction)
         direction = direction / np.linalg.norm(direction)
-        depth = float((np.asarray(self.map.xyz[shown[hit_point]], np.float64) - origin) @ direction)
+        depth = float((shown.xyz[hit_point].astype(np.float64) - origin) @ direction)
         return origin + depth * direction
 
     def on_click(self, event: SceneClickEvent) -> None:
@@ -505,9 +520,8 @@ class PillarMode(Mode):
         """Fill: the pillars connected to the one hit through small height steps (shown
         points within FILL_RADIUS), previewed like a large rectangle."""
         shown = self._shown()
-        xyz = np.asarray(self.map.xyz[shown], dtype=np.float64)
-        near = np.hypot(*(xyz[:, :2] - hit[:2]).T) <= FILL_RADIUS
-        cells, top = pillar_tops(self.map.cells[self.map.cell[shown[near]]], xyz[near, 2])
+        near = shown.take(np.hypot(*(shown.xyz[:, :2] - hit[:2]).T) <= FILL_RADIUS)
+        cells, top = pillar_tops(self.map.cells[near.cell], near.xyz[:, 2].astype(np.float64))
         seed = int(STORE_GRID.point_cell_ids((hit[:2] + self.map.origin[:2])[None])[0])
         region = fill_region(cells, top, seed, float(self.fill_step.value))
         if not len(region):
@@ -539,7 +553,7 @@ class PillarMode(Mode):
             return
         size = np.array([screen.width, screen.height])
         shown = self._shown()
-        xyz = self.map.xyz[shown]
+        xyz = shown.xyz
         lo, hi = corners_px.min(axis=0) / size, corners_px.max(axis=0) / size
         in_box = rectangle_points(
             xyz, camera, tuple(lo), tuple(hi), float(self.point_size.value),
@@ -548,7 +562,7 @@ class PillarMode(Mode):
         idx = np.flatnonzero(in_box)
         px, _ = screen.project(xyz[idx])
         inside = idx[points_in_polygon(px, corners_px)]
-        cells = self.map.cells[np.unique(self.map.cell[shown[inside]])]
+        cells = self.map.cells[np.unique(shown.cell[inside])]
         if not len(cells):
             self.status.content = "No visible points inside the polygon."
             return
@@ -573,8 +587,7 @@ class PillarMode(Mode):
         """Inspect: the point's world coordinates, height above ground, intensity, pillar and
         labels."""
         shown = self._shown()
-        xyz = np.asarray(self.map.xyz[shown], dtype=np.float64)
-        i = int(shown[np.argmin(((xyz - hit) ** 2).sum(axis=1))])
+        i = int(shown.index[np.argmin(((shown.xyz - hit) ** 2).sum(axis=1))])
         world = np.asarray(self.map.xyz[i], dtype=np.float64) + self.map.origin
         intensity = float(self.map.intensity[i])
         k = int(self.map.cell[i])
@@ -599,10 +612,10 @@ class PillarMode(Mode):
         shown = self._shown()
         options = self._rectangle_options()
         inside = rectangle_points(
-            self.map.xyz[shown], event.client.camera, event.screen_min, event.screen_max,
+            shown.xyz, event.client.camera, event.screen_min, event.screen_max,
             float(self.point_size.value), options,
         )  # fmt: skip
-        cells = self.map.cells[np.unique(self.map.cell[shown[inside]])]
+        cells = self.map.cells[np.unique(shown.cell[inside])]
         if not len(cells):
             self.session.notify("Rectangle", "No visible points inside the rectangle.")
             return
@@ -630,8 +643,8 @@ class PillarMode(Mode):
             return
         shown = self._shown()
         index = self.map.cell_index(self.pending.cells)[0]
-        picked = shown[np.isin(self.map.cell[shown], index)]
-        self.pending.draw(self.map.xyz[picked], float(self.point_size.value))
+        picked = np.isin(shown.cell, index)
+        self.pending.draw(shown.xyz[picked], float(self.point_size.value))
 
     def _drop_pending(self) -> None:
         if self.pending is not None:
