@@ -10,19 +10,28 @@ it receives. The annotator's answers are the sequence's reference pillar classes
 
 The street: the pillars within 50 m along and 15 m across the drive of the sequence's middle
 pose. The camera: the top view (T) zoomed (mouse wheel) until it is about 80 m above the street.
-The session, in the order an annotator works:
+The session, in the order an annotator works (label broadly, then carve out and correct what the
+colours show wrong):
 
 1. Fill (G, a click on the road, Enter): the ground.
-2. With "Apply to: unlabelled only": per connected group of unlabelled non-ground pillars of one
-   reference class in the street (largest first, 30 pillars or more), a rectangle (shift-drag
-   round its box) where the group fills most of its box, else a polygon (P, clicks round its
-   convex hull, Enter); Enter again where the selection is previewed.
-3. The brush (B, radius 0.4 m) on every non-ground pillar still unlabelled.
+2. With "Apply to: unlabelled only", the objects of the minority classes (every non-ground
+   class but the street's most common one): per connected group of one class (30 pillars or
+   more, largest first) a rectangle (shift-drag round its box) where the group fills most of
+   its box, else a polygon (P, clicks round its convex hull, Enter); Enter again where the
+   selection is previewed.
+3. The majority class in one rectangle over the whole street, with the height slice's lower
+   end dragged to 0.5 m above the ground (so the road the fill did not reach is not shown and
+   not selected); the slice back; one more rectangle, of ground, over the street (unlabelled
+   only): the road the fill did not reach.
+4. Corrections: per connected group of pillars with one wrong label that should be one class,
+   "Apply to" locked to the wrong label (its neighbours keep theirs) and the group outlined as
+   in 2 (8 pillars or more); the brush (B, radius 0.4 m) on each wrong pillar left.
 
-It stops when every non-ground pillar of the street holds a human label or after 10 minutes of
-interaction. Per tool: interactions, pillars labelled, seconds of interaction (from the first
-input event to the colours received and drawn) and pillars per minute; the latency from the
-committing input (the click, or Enter) to the colours received, p50 / p90; and the class
+It stops when the corrections are done or after 10 minutes of interaction (the height slice's
+drags count). Per tool: interactions, pillars labelled (given a label or another one), seconds
+of interaction (from the first input event to the colours received and drawn) and pillars per
+minute; the latency from the committing input (the click, or Enter) to the colours received,
+p50 / p90; the share of non-ground pillars labelled and when all of them were; and the class
 accuracy of the labels against the reference.
 
     MMSCLEAN_REAL_DATA=../shared/data .venv/bin/python -m bench.annotation [--sequence 08]
@@ -47,18 +56,22 @@ from scipy.spatial import ConvexHull, cKDTree
 from app.io import open_survey
 from app.io.accumulate import accumulate
 from app.store.pillar_labels import STORE_GRID
+from app.viewer.modes.pillars import APPLY_TO, HEIGHT_SLICE
 from app.viewer.picking import ScreenCamera
 from bench.common import append_results, markdown_table
 from bench.labelling_loop import reference_answers
 from bench.viewer import login
 from bench.viewer_browser import AFTER_DRAWING, CHROMIUM, CHROMIUM_ARGS, VIEWPORT
 from tests.api.server import Server
-from tests.viewer.wire import decode_frame, is_color_update
+from tests.viewer.wire import decode_frame, is_color_update, is_point_cloud
 
 STREET_ALONG, STREET_ACROSS = 50.0, 15.0  # metres each way from the middle pose
 CAMERA_HEIGHT = 80.0  # metres above the street, top view
 BUDGET_S = 600.0  # seconds of interaction
-GROUP_MIN = 30  # pillars: smaller groups are brushed
+GROUP_MIN = 30  # pillars: smaller objects of the minority classes are left to the corrections
+CORRECT_MIN = 8  # pillars: a wrong group this large is outlined, smaller ones are brushed
+SLICE_LOW = 0.5  # metres above the ground: the height slice's lower end for the majority class
+APPLY_ALL, APPLY_UNLABELLED = APPLY_TO[:2]
 RECT_FILL = 0.6  # a group filling this share of its box gets a rectangle, else a polygon
 BRUSH_RADIUS = 0.4
 PANEL_X = 0.72  # share of the canvas width left of the GUI panel (clicks stay left of it)
@@ -78,7 +91,8 @@ class Page:
         self.context.add_cookies([{"name": "mmsclean_token", "value": token, "url": server.url}])
         self.page = self.context.new_page()
         self.camera: dict | None = None
-        self.colours: list[float] = []
+        self.colours: list[float] = []  # arrival of each frame with a colour update
+        self.clouds: list[float] = []  # of each frame with a point cloud
         self.sent: list[float] = []  # when the page sent each message but its camera
         self.errors: list[str] = []
         self.page.on("pageerror", lambda exc: self.errors.append(str(exc)))
@@ -87,10 +101,13 @@ class Page:
 
     def _watch(self, ws) -> None:
         def received(payload) -> None:
-            if isinstance(payload, bytes) and any(
-                is_color_update(m) for m in decode_frame(payload)
-            ):
+            if not isinstance(payload, bytes):
+                return
+            messages = decode_frame(payload)
+            if any(is_color_update(m) for m in messages):
                 self.colours.append(time.perf_counter())
+            if any(is_point_cloud(m) for m in messages):
+                self.clouds.append(time.perf_counter())
 
         def sent(payload) -> None:
             if not isinstance(payload, bytes):
@@ -155,6 +172,8 @@ class Tally:
         self.rows: dict[str, dict] = {}
         self.latency: list[float] = []  # seconds from the committing input to the colours
         self.server: list[float] = []  # of which from the page's message to the colours
+        self.complete_at: tuple[float, float] | None = None  # (seconds, accuracy) when every
+        # non-ground pillar first held a label
 
     def add(
         self, tool: str, seconds: float, pillars: int, latency: tuple[float, float] | None
@@ -215,6 +234,8 @@ def labelled(api, survey_id: int, cells: np.ndarray) -> dict[int, int]:
 def run_session(view: Page, api, survey_id: int, street: dict) -> Tally:
     page, tally = view.page, Tally()
     box = view.canvas()
+    cells, klass = street["cells"], street["klass"]
+    state = {"labels": {}, "apply_to": APPLY_ALL}
 
     def to_page(local: np.ndarray) -> np.ndarray:
         """Page pixels of local points (the camera reports its render size, which may differ
@@ -224,14 +245,25 @@ def run_session(view: Page, api, survey_id: int, street: dict) -> Tally:
         scale = np.array([box["width"] / screen.width, box["height"] / screen.height])
         return px * scale + [box["x"], box["y"]]
 
+    canvas_lo = np.array([box["x"] + 6, box["y"] + 6])
+    canvas_hi = np.array([box["x"] + box["width"] * PANEL_X, box["y"] + box["height"] - 6])
+
     def on_canvas(p: np.ndarray) -> bool:
-        return bool(box["x"] + 5 < p[0] < box["x"] + box["width"] * PANEL_X
-                    and box["y"] + 5 < p[1] < box["y"] + box["height"] - 5)  # fmt: skip
+        return bool((p > canvas_lo).all() and (p < canvas_hi).all())
+
+    def labelled_count() -> int:
+        state["labels"] = labelled(api, survey_id, cells)
+        return len(state["labels"])
+
+    def current() -> np.ndarray:
+        """Each street pillar's human label now (-1: none)."""
+        return np.array([state["labels"].get(c, -1) for c in cells.tolist()], dtype=np.int64)
 
     def act(tool: str, inputs, commit) -> None:
         """Inputs, then the committing input; timed to the colours drawn."""
         view.settle()  # the previous interaction's colours all in, outside the timing
-        before = labelled_count()
+        labelled_count()
+        before = dict(state["labels"])
         mark = len(view.colours)
         started = time.perf_counter()
         inputs()
@@ -245,22 +277,69 @@ def run_session(view: Page, api, survey_id: int, street: dict) -> Tally:
             answered = view.colours_after(mark, shown, preview_ok=True)
         done = time.perf_counter()
         latency = None if answered is None else (answered[0] - committed, answered[1])
-        gained = labelled_count() - before
+        labelled_count()
+        gained = sum(1 for c, v in state["labels"].items() if before.get(c) != v)
         tally.add(tool, done - started, gained, latency)
-        print(f"{tally.seconds:7.1f} s  {tool:9s} +{gained:6d} pillars "
+        now = current()
+        if tally.complete_at is None and (now[klass != 0] >= 0).all():
+            given = now >= 0
+            tally.complete_at = tally.seconds, float((now[given] == klass[given]).mean())
+        print(f"{tally.seconds:7.1f} s  {tool:12s} {gained:6d} pillars labelled "
               f"({'no answer' if latency is None else f'{latency[0] * 1000:.0f} ms'})",
               flush=True)  # fmt: skip
 
-    cells, klass = street["cells"], street["klass"]
-    state = {"labels": {}}
+    def apply_to(choice: str) -> None:
+        """The "Apply to" lock (its clicks are counted in the next interaction's time only
+        when they happen inside it: here they are not timed, as a hotkey would not be)."""
+        if state["apply_to"] == choice:
+            return
+        page.locator(f"input:not([type=hidden])[value='{state['apply_to']}']").click()
+        page.get_by_role("option", name=choice, exact=True).click()
+        page.evaluate("document.activeElement && document.activeElement.blur()")
+        state["apply_to"] = choice
 
-    def labelled_count() -> int:
-        state["labels"] = labelled(api, survey_id, cells)
-        return len(state["labels"])
+    def rectangle(tool: str, lo: np.ndarray, hi: np.ndarray) -> None:
+        def drag() -> None:
+            page.keyboard.down("Shift")
+            page.mouse.move(*lo)
+            page.mouse.down()
+            page.mouse.move(*hi, steps=4)
 
-    def unlabelled(mask: np.ndarray) -> np.ndarray:
-        have = np.isin(cells, np.fromiter(state["labels"], dtype=np.int64))
-        return np.flatnonzero(mask & ~have)
+        def release() -> None:
+            page.mouse.up()
+            page.keyboard.up("Shift")
+
+        act(tool, drag, release)
+
+    def outline(group: np.ndarray) -> None:
+        """A group of pillars by a rectangle where it fills most of its box, else a polygon
+        round its convex hull (8 vertices at most)."""
+        corners = to_page(street["local"][group])
+        lo, hi = corners.min(axis=0) - 2, corners.max(axis=0) + 2
+        hull = ConvexHull(corners) if len(corners) >= 3 else None
+        if hull is None or hull.volume >= RECT_FILL * float(np.prod(hi - lo)):
+            rectangle("rectangle", lo, hi)
+            return
+        vertices = corners[hull.vertices]
+        vertices = vertices[np.linspace(0, len(vertices) - 1, min(len(vertices), 8)).astype(int)]
+
+        def clicks() -> None:
+            page.keyboard.press("p")
+            for n, v in enumerate(vertices, start=1):  # each vertex taken before the next
+                page.mouse.click(*v, delay=20)
+                page.get_by_text(f"Polygon: {n} vertices").wait_for(timeout=5000)
+
+        act("polygon", clicks, lambda: page.keyboard.press("Enter"))
+
+    def fits(group: np.ndarray) -> bool:
+        corners = to_page(street["local"][group])
+        return on_canvas(corners.min(axis=0)) and on_canvas(corners.max(axis=0))
+
+    def whole_street() -> tuple[np.ndarray, np.ndarray]:
+        corners = to_page(street["local"])
+        return np.maximum(corners.min(axis=0), canvas_lo), np.minimum(
+            corners.max(axis=0), canvas_hi
+        )
 
     # 1. fill: the road from the ground pillar near the middle pose with the most ground round it
     ground = np.flatnonzero(klass == 0)
@@ -269,53 +348,51 @@ def run_session(view: Page, api, survey_id: int, street: dict) -> Tally:
     tree = cKDTree(xy)
     crowd = np.array([len(n) for n in tree.query_ball_point(street["local"][close, :2], 1.0)])
     seed = close[int(np.argmax(crowd))]
-    page.keyboard.press("1")
+    page.keyboard.press(CLASS_KEYS[0])
     page.keyboard.press("g")
     p = to_page(street["local"][seed])[0]
     act("fill", lambda: None, lambda: page.mouse.click(*p))
+    labelled_count()
 
-    # 2. groups of one class: rectangle or polygon, only unlabelled pillars
-    page.locator("input:not([type=hidden])[value='All pillars']").click()
-    page.get_by_role("option", name="Unlabelled only", exact=True).click()
-    page.evaluate("document.activeElement && document.activeElement.blur()")
-    for k, group in groups(cells, klass, unlabelled(klass != 0)):
+    # 2. the minority classes' objects, one by one (unlabelled only: the fill's road is kept)
+    counts = np.bincount(klass[klass != 0], minlength=4)
+    major = int(np.argmax(counts))
+    apply_to(APPLY_UNLABELLED)
+    minority = np.flatnonzero((klass != 0) & (klass != major) & (current() < 0))
+    for k, group in groups(cells, klass, minority, GROUP_MIN):
         if tally.seconds > BUDGET_S:
             break
-        corners = to_page(street["local"][group])
-        if not all(on_canvas(c) for c in (corners.min(axis=0), corners.max(axis=0))):
-            continue
-        page.keyboard.press(CLASS_KEYS[k])
-        lo, hi = corners.min(axis=0) - 2, corners.max(axis=0) + 2
-        box_area = float(np.prod(hi - lo))
-        hull = ConvexHull(corners) if len(corners) >= 3 else None
-        if hull is None or hull.volume >= RECT_FILL * box_area:
+        if fits(group):
+            page.keyboard.press(CLASS_KEYS[k])
+            outline(group)
 
-            def drag(lo=lo, hi=hi) -> None:
-                page.keyboard.down("Shift")
-                page.mouse.move(*lo)
-                page.mouse.down()
-                page.mouse.move(*hi, steps=4)
+    # 3. the majority class: one rectangle over the street with the points near the ground
+    #    hidden by the height slice (unlabelled only), then the slice back and one rectangle
+    #    of ground for the road the fill did not reach
+    if tally.seconds <= BUDGET_S:
+        height_slice(view, SLICE_LOW, tally)
+        page.keyboard.press(CLASS_KEYS[major])
+        rectangle("rectangle", *whole_street())
+        height_slice(view, HEIGHT_SLICE[0], tally)
+    if tally.seconds <= BUDGET_S:
+        page.keyboard.press(CLASS_KEYS[0])
+        rectangle("rectangle", *whole_street())
 
-            def release() -> None:
-                page.mouse.up()
-                page.keyboard.up("Shift")
-
-            act("rectangle", drag, release)
-        else:
-            vertices = corners[hull.vertices]
-            vertices = vertices[
-                np.linspace(0, len(vertices) - 1, min(len(vertices), 8)).astype(int)
-            ]
-
-            def clicks(vertices=vertices) -> None:
-                page.keyboard.press("p")
-                for n, v in enumerate(vertices, start=1):  # each vertex taken before the next
-                    page.mouse.click(*v, delay=20)
-                    page.get_by_text(f"Polygon: {n} vertices").wait_for(timeout=5000)
-
-            act("polygon", clicks, lambda: page.keyboard.press("Enter"))
-
-    # 3. the brush on what is left
+    # 4. corrections, as the colours show them: groups of pillars of one wrong label that
+    #    should be one class, with "Apply to" locked to the wrong label (the neighbours keep
+    #    theirs); small groups with the brush
+    labelled_count()
+    now = current()
+    wrong = (now != klass) & ((klass != 0) | (now >= 0))
+    for k, was, group in wrong_groups(cells, klass, now, np.flatnonzero(wrong)):
+        if tally.seconds > BUDGET_S:
+            break
+        if len(group) >= CORRECT_MIN and fits(group):
+            apply_to(APPLY_UNLABELLED if was < 0 else APPLY_TO[2 + was])
+            page.keyboard.press(CLASS_KEYS[k])
+            outline(group)
+    labelled_count()
+    now = current()
     radius = page.locator(
         'xpath=//label[normalize-space(.)="Brush radius (m)"]'
         '/ancestor::div[contains(@class,"mantine-Flex-root")][1]//input[not(@type="hidden")]'
@@ -324,23 +401,73 @@ def run_session(view: Page, api, survey_id: int, street: dict) -> Tally:
     radius.press("Enter")
     page.evaluate("document.activeElement && document.activeElement.blur()")
     page.keyboard.press("b")
-    for i in unlabelled(klass != 0):
+    for i in np.flatnonzero((now != klass) & ((klass != 0) | (now >= 0))):
         if tally.seconds > BUDGET_S:
             break
-        if cells[i] in state["labels"]:
+        was = int(current_label(state, cells[i]))
+        if was == klass[i]:
             continue
         p = to_page(street["local"][i])[0]
         if not on_canvas(p):
             continue
+        apply_to(APPLY_UNLABELLED if was < 0 else APPLY_TO[2 + was])
         page.keyboard.press(CLASS_KEYS[int(klass[i])])
         act("brush", lambda: None, lambda p=p: page.mouse.click(*p))
     labelled_count()
     return tally
 
 
-def groups(cells: np.ndarray, klass: np.ndarray, todo: np.ndarray):
+def current_label(state: dict, cell: int) -> int:
+    return int(state["labels"].get(int(cell), -1))
+
+
+def height_slice(view: Page, low: float, tally: Tally) -> None:
+    """Drag the height slice's lower end to `low` metres above the ground (the Display folder
+    opened first), timed until the redrawn points arrive."""
+    page = view.page
+    track = page.locator(
+        'xpath=//label[normalize-space(.)="Height slice (m)"]'
+        '/ancestor::div[contains(@class,"mantine-Flex-root")][1]'
+        '//div[contains(@class,"multi-slider-track-container")]'
+    ).first
+    if not track.is_visible():
+        page.get_by_text("Display", exact=True).click()
+        track.wait_for(state="visible", timeout=5000)
+    view.settle()
+    started = time.perf_counter()
+    clouds = len(view.clouds)
+    lane = track.bounding_box()
+    thumb = track.locator(".multi-slider-thumb").first.bounding_box()
+    lo, hi = HEIGHT_SLICE
+    x = lane["x"] + lane["width"] * (low - lo) / (hi - lo)
+    page.mouse.move(thumb["x"] + thumb["width"] / 2, thumb["y"] + thumb["height"] / 2)
+    page.mouse.down()
+    page.mouse.move(x, thumb["y"] + thumb["height"] / 2, steps=2)
+    page.mouse.up()
+    deadline = time.perf_counter() + ANSWER_TIMEOUT_S
+    while len(view.clouds) == clouds and time.perf_counter() < deadline:
+        page.wait_for_timeout(40)
+    page.evaluate(AFTER_DRAWING)
+    tally.add("height slice", time.perf_counter() - started, 0, None)
+    print(f"{tally.seconds:7.1f} s  height slice from {low:g} m", flush=True)
+
+
+def wrong_groups(cells: np.ndarray, klass: np.ndarray, now: np.ndarray, wrong: np.ndarray):
+    """(right class, wrong label, indices) of connected groups of wrongly labelled pillars
+    sharing both, largest first."""
+    pair = klass[wrong] * 8 + (now[wrong] + 1)  # one code per (right, wrong) pair
+    found = [
+        (len(g), int(code) // 8, int(code) % 8 - 1, g)
+        for code in np.unique(pair).tolist()
+        for _, g in groups(cells, np.zeros(len(cells), np.int64), wrong[pair == code], 1)
+    ]
+    for _, k, was, g in sorted(found, key=lambda f: -f[0]):
+        yield k, was, g
+
+
+def groups(cells: np.ndarray, klass: np.ndarray, todo: np.ndarray, least: int):
     """(class, indices) of connected groups (8-neighbours) of `todo` pillars of one class,
-    GROUP_MIN or more, largest first: each class's pillars rasterised and labelled."""
+    `least` or more, largest first: each class's pillars rasterised and labelled."""
     ix, iy = (np.asarray(a, dtype=np.int64) for a in STORE_GRID.decode(cells[todo]))
     ix, iy = ix - ix.min(), iy - iy.min()
     found = []
@@ -351,7 +478,7 @@ def groups(cells: np.ndarray, klass: np.ndarray, todo: np.ndarray):
         component, _ = ndimage.label(raster, structure=np.ones((3, 3)))
         ids = component[ix[mine], iy[mine]]
         sizes = np.bincount(ids)
-        for c in np.flatnonzero(sizes >= GROUP_MIN):
+        for c in np.flatnonzero(sizes >= least):
             if c:
                 found.append((int(sizes[c]), k, todo[mine][ids == c]))
     for _, k, members in sorted(found, key=lambda g: -g[0]):
@@ -459,13 +586,19 @@ def main(argv: list[str] | None = None) -> int:
     s50, s90 = percentiles_ms(tally.server)
     slow = sum(1 for s in tally.server if s > 0.2)
     share = 100.0 * result["non_ground_labelled"] / max(result["non_ground"], 1)
+    complete = (
+        "Not every non-ground pillar was labelled."
+        if tally.complete_at is None
+        else f"Every non-ground pillar held a label after {tally.complete_at[0]:.0f} s "
+        f"(accuracy then {100.0 * tally.complete_at[1]:.1f} %)."
+    )
     summary = (
         f"Street (SemanticKITTI {args.sequence}, real, 100 m x 30 m): {result['pillars']:,} "
         f"pillars with points, {result['non_ground']:,} non-ground; labelled "
         f"{result['non_ground_labelled']:,} of them ({share:.1f} %) "
         f"in {tally.seconds / 60.0:.1f} min of interaction; class accuracy of the labels "
-        f"{100.0 * result['accuracy']:.1f} %. Latency from the committing input (click or "
-        f"key) to the colours received: p50 {p50:.0f} ms, p90 {p90:.0f} ms; of which the "
+        f"{100.0 * result['accuracy']:.1f} %. {complete} Latency from the committing input "
+        f"(click or key) to the colours received: p50 {p50:.0f} ms, p90 {p90:.0f} ms; of which the "
         f"server's (from the page's message to the colours): p50 {s50:.0f} ms, p90 {s90:.0f} ms, "
         f"{slow} of {len(tally.server)} interactions over 200 ms. Page errors: "
         f"{len(result['errors'])}."
