@@ -50,6 +50,7 @@ from types import SimpleNamespace
 
 import msgspec
 import numpy as np
+from playwright.sync_api import TimeoutError as PlaywrightTimeout
 from scipy import ndimage
 from scipy.spatial import ConvexHull, cKDTree
 
@@ -69,6 +70,7 @@ STREET_ALONG, STREET_ACROSS = 50.0, 15.0  # metres each way from the middle pose
 CAMERA_HEIGHT = 80.0  # metres above the street, top view
 BUDGET_S = 600.0  # seconds of interaction
 GROUP_MIN = 30  # pillars: smaller objects of the minority classes are left to the corrections
+VERTEX_WAIT_MS = 15_000  # the longest wait for a polygon vertex to be taken
 CORRECT_MIN = 8  # pillars: a wrong group this large is outlined, smaller ones are brushed
 SLICE_LOW = 0.5  # metres above the ground: the height slice's lower end for the majority class
 APPLY_ALL, APPLY_UNLABELLED = APPLY_TO[:2]
@@ -266,7 +268,11 @@ def run_session(view: Page, api, survey_id: int, street: dict) -> Tally:
         before = dict(state["labels"])
         mark = len(view.colours)
         started = time.perf_counter()
-        inputs()
+        if inputs() is False:  # the page did not take the inputs: nothing to commit
+            page.keyboard.press("Escape")
+            tally.add(tool, time.perf_counter() - started, 0, None)
+            print(f"{tally.seconds:7.1f} s  {tool:12s} dropped (an input was not taken)")
+            return
         shown = view.texts()
         committed = time.perf_counter()
         commit()
@@ -276,6 +282,8 @@ def run_session(view: Page, api, survey_id: int, street: dict) -> Tally:
             committed = time.perf_counter()
             answered = view.colours_after(mark, shown, preview_ok=True)
         done = time.perf_counter()
+        if answered is None:
+            print("    no colours; the page said:", " / ".join(sorted(view.texts() - shown)))
         latency = None if answered is None else (answered[0] - committed, answered[1])
         labelled_count()
         gained = sum(1 for c, v in state["labels"].items() if before.get(c) != v)
@@ -323,11 +331,15 @@ def run_session(view: Page, api, survey_id: int, street: dict) -> Tally:
         vertices = corners[hull.vertices]
         vertices = vertices[np.linspace(0, len(vertices) - 1, min(len(vertices), 8)).astype(int)]
 
-        def clicks() -> None:
+        def clicks() -> bool:
             page.keyboard.press("p")
             for n, v in enumerate(vertices, start=1):  # each vertex taken before the next
                 page.mouse.click(*v, delay=20)
-                page.get_by_text(f"Polygon: {n} vertices").wait_for(timeout=5000)
+                try:
+                    page.get_by_text(f"Polygon: {n} vertices").wait_for(timeout=VERTEX_WAIT_MS)
+                except PlaywrightTimeout:
+                    return False
+            return True
 
         act("polygon", clicks, lambda: page.keyboard.press("Enter"))
 

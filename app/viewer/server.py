@@ -87,9 +87,14 @@ class ViewerServer:
         return f"ws://{LOOPBACK}:{self.port}/"
 
     def issue_ticket(
-        self, user_id: int, username: str, survey_id: int | None, mode: str | None = None
+        self,
+        user_id: int,
+        username: str,
+        survey_id: int | None,
+        mode: str | None = None,
+        area_id: int | None = None,
     ) -> str:
-        return self.tickets.issue(Ticket(user_id, username, survey_id, mode))
+        return self.tickets.issue(Ticket(user_id, username, survey_id, mode, area_id))
 
     def labels_written(self) -> None:
         """Someone wrote pillar labels or review decisions (clutter, guardrail slices and

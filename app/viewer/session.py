@@ -33,6 +33,7 @@ from app.store import pillar_labels
 from app.store.models import Role, User
 from app.store.surveys import list_surveys, survey_trajectory
 from app.store.users import has_role
+from app.store.work_areas import get_area
 from app.viewer.drive import DriveControls
 from app.viewer.modes import MODES
 from app.viewer.modes.base import Mode
@@ -57,6 +58,7 @@ class ViewerSession:
         self.username = ticket.username
         self.requested_survey = ticket.survey_id
         self.requested_mode = ticket.mode
+        self.requested_area = ticket.area_id  # looked at once, when its survey first opens
         self.view: SurveyView | None = None
         self.mode: Mode | None = None
         self.mode_folder: Any = None
@@ -172,6 +174,9 @@ class ViewerSession:
             loading.remove()
         self.view.subscribe(self._labels_changed)
         self._place_camera()
+        if self.requested_area is not None and survey_id == self.requested_survey:
+            self._look_at_area(self.requested_area)
+            self.requested_area = None
         self._add_drive()
         self.switch_mode(mode_name)
 
@@ -207,6 +212,28 @@ class ViewerSession:
         distance = float(np.clip(0.9 * float(np.max(hi[:2] - lo[:2])), *CAMERA_DISTANCE))
         offset = CAMERA_OFFSET / np.linalg.norm(CAMERA_OFFSET) * distance
         self.move_camera(look_at, offset)
+
+    def _look_at_area(self, area_id: int) -> None:
+        """Look down at a work area (a dashboard's link): its pillars' box whole in view."""
+        with self.db() as session:
+            try:
+                area = get_area(session, self.view.survey_id, area_id)
+            except NotFoundError as exc:
+                self.notify("Work area", f"{exc.message}: showing the whole survey.", error=True)
+                return
+        survey_map = self.view.map
+        lo = np.array([area.x_min, area.y_min]) - survey_map.origin[:2]
+        hi = np.array([area.x_max, area.y_max]) - survey_map.origin[:2]
+        centre = (lo + hi) / 2.0
+        ground = float(survey_map.ground.height(centre[None])[0]) if len(survey_map) else 0.0
+        distance = float(np.clip(0.9 * float(np.max(hi - lo)), *CAMERA_DISTANCE))
+        offset = CAMERA_OFFSET / np.linalg.norm(CAMERA_OFFSET) * distance
+        self.move_camera(np.array([centre[0], centre[1], ground]), offset)
+        self.notify(
+            f"Work area {area.area_index}",
+            f"{area.station_start:.0f}-{area.station_end:.0f} m along the drive, "
+            f"{area.state.value.replace('_', ' ')}.",
+        )
 
     def move_camera(self, look_at: np.ndarray, offset: np.ndarray) -> None:
         if self._hold_camera:  # a mode reloading itself: the user's view stays

@@ -25,6 +25,7 @@ class Ticket:
     username: str
     survey_id: int | None  # None: the viewer picks the first survey
     mode: str | None = None  # a Mode.key to open first (the dashboard's links); None: the first
+    area_id: int | None = None  # a work area of the survey to look at first (its id)
 
 
 class TicketRegistry:

@@ -124,10 +124,10 @@ export function workAreasBlock(ctx, survey, { onChange } = {}) {
   }
 
   function row(a) {
-    // the viewer cannot open at an area yet: open it on the survey and say where (its Drive slider is in metres)
+    // the viewer opens looking down at the area (its pillars' box), in the labelling mode
     const viewer = h(
       "a",
-      { href: `/viewer?${new URLSearchParams({ survey: survey.id, mode: "pillars" })}`, target: "_blank", rel: "noopener", "data-viewer-area": String(a.area_index), title: `In the viewer, set the Drive slider to ${num(a.station_start, 0)} m` },
+      { href: `/viewer?${new URLSearchParams({ survey: survey.id, mode: "pillars", area: a.id })}`, target: "_blank", rel: "noopener", "data-viewer-area": String(a.area_index), title: `Open the viewer at ${num(a.station_start, 0)}-${num(a.station_end, 0)} m along the drive` },
       "viewer",
     );
     const state = [statusBadge(a.state)];
@@ -153,7 +153,7 @@ export function workAreasBlock(ctx, survey, { onChange } = {}) {
     const parts = [
       note(
         areas.length
-          ? `${areas.length} areas along the drive, ${signed} signed off. The viewer link opens the survey: set its Drive slider to the area's start.`
+          ? `${areas.length} areas along the drive, ${signed} signed off. The viewer link opens the survey looking down at the area.`
           : "No work areas yet: cut the survey's drive into areas to assign them.",
       ),
     ];

@@ -606,9 +606,15 @@ def test_work_areas_are_assigned_labelled_signed_off_and_exports_warn(
     assert rows.count() == 3
     first = page.locator("#areas-table tr[data-area='0']")
     assert "0 – 20 m" in first.inner_text()
-    assert first.locator("[data-viewer-area='0']").get_attribute("href") == (
-        f"/viewer?survey={survey['id']}&mode=pillars"
-    )
+    with dashboard_server.client() as admin:
+        area_id = admin.get(f"/surveys/{survey['id']}/areas").json()[0]["id"]
+    href = first.locator("[data-viewer-area='0']").get_attribute("href")
+    assert href == f"/viewer?survey={survey['id']}&mode=pillars&area={area_id}"
+    viewer = page.context.new_page()  # the link opens the viewer looking at the area
+    viewer.goto(href if href.startswith("http") else page.url.split("/#")[0] + href)
+    viewer.get_by_text("Work area 0", exact=True).wait_for(timeout=180_000)
+    assert viewer.get_by_text("0-20 m along the drive, open.").count() == 1
+    viewer.close()
     warning = page.locator("#export-warning")
     warning.wait_for()
     assert "3 of 3 work areas not signed off (0, 1, 2)" in warning.inner_text()

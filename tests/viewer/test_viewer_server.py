@@ -366,3 +366,48 @@ def test_the_drive_controls_take_the_camera_along_the_drive(viewer_server: Serve
         await client.close()
 
     run_coroutine(session())
+
+
+def test_a_work_area_link_opens_the_viewer_looking_at_the_area(viewer_server: Server) -> None:
+    """The work areas table's viewer link (`/viewer?survey=1&mode=pillars&area=ID`) rides to
+    the relay and the session looks down at the area's box; an area of no survey, or without
+    a survey, is refused with the field named (issue 20: areas assigned to annotators)."""
+    token = login_token(viewer_server)
+    admin = viewer_server.client()
+    cut = admin.post("/surveys/1/areas", json={"length_m": 20.0, "replace": True})
+    assert cut.status_code == 201, cut.text
+    area = cut.json()[-1]  # the last of three: far from the middle the survey opens at
+    origin = np.array(admin.get("/surveys/1").json()["origin"])
+    centre = np.array([area["x_min"] + area["x_max"], area["y_min"] + area["y_max"]]) / 2.0
+    with httpx.Client(base_url=viewer_server.url, cookies={"mmsclean_token": token}) as client:
+        params = {"survey": 1, "mode": "pillars", "area": area["id"]}
+        first = client.get("/viewer", params=params)
+        assert first.status_code == 303
+        assert unquote(first.headers["location"]).endswith(
+            f"/viewer/ws?survey=1&mode=pillars&area={area['id']}"
+        )
+        assert client.get(first.headers["location"]).status_code == 200
+        missing = client.get("/viewer", params={"survey": 1, "area": 99_999})
+        assert missing.status_code == 404 and "work area 99999" in missing.json()["detail"]
+        page = client.get(
+            "/viewer", params={"survey": 1, "area": 99_999}, headers={"Accept": "text/html"}
+        )
+        assert page.status_code == 404 and "Survey 1 has no work area 99999." in page.text
+        alone = client.get("/viewer", params={"area": area["id"]})
+        assert alone.status_code == 422 and alone.json()["detail"].startswith("area:")
+
+    def looked_at(message: dict) -> bool:
+        return message.get("type") == "SetCameraLookAtMessage"
+
+    async def session() -> None:
+        query = f"?survey=1&mode=pillars&area={area['id']}"
+        client = await WireClient.open(ws_url(viewer_server, query), token)
+        await client.hello()
+        await client.wait_for(is_point_cloud, SCENE_TIMEOUT)
+        looks = [m for _, m in client.received if looked_at(m)]
+        assert looks, "the camera was never placed"
+        at = np.asarray(looks[-1]["look_at"][:2], dtype=np.float64)
+        assert np.hypot(*(at - (centre - origin[:2]))) < 0.01
+        await client.close()
+
+    run_coroutine(session())

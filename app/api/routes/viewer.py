@@ -41,6 +41,7 @@ from app.core.limits import INT64_MAX
 from app.store.sessions import live_session, touch
 from app.store.surveys import get_survey, survey_exists
 from app.store.users import get_user
+from app.store.work_areas import get_area
 from app.viewer.modes import MODES
 from app.viewer.relay import relay
 
@@ -59,19 +60,22 @@ def client_page() -> bytes:
     return (Path(viser.__file__).parent / "client" / "build" / "index.html").read_bytes()
 
 
-def relay_url(request: Request, survey: int | None, mode: str | None = None) -> str:
-    """ws(s)://<the host the browser used>/viewer/ws[?survey=N][&mode=KEY]."""
+def relay_url(
+    request: Request, survey: int | None, mode: str | None = None, area: int | None = None
+) -> str:
+    """ws(s)://<the host the browser used>/viewer/ws[?survey=N][&mode=KEY][&area=ID]."""
     scheme = "wss" if request.url.scheme == "https" else "ws"
     host = request.headers.get("host") or request.url.netloc
-    params = {"survey": survey, "mode": mode}
+    params = {"survey": survey, "mode": mode, "area": area}
     query = urlencode({k: v for k, v in params.items() if v is not None})
     return f"{scheme}://{host}{WS_PATH}{'?' + query if query else ''}"
 
 
-def _relay_params(websocket_url: str) -> tuple[int | None, str | None]:
-    """(survey, mode) of a relay URL the page was pointed at."""
+def _relay_params(websocket_url: str) -> tuple[int | None, str | None, int | None]:
+    """(survey, mode, area) of a relay URL the page was pointed at."""
     query = parse_qs(urlsplit(websocket_url).query)
-    return survey_number(query.get("survey", [""])[0]), query.get("mode", [None])[0]
+    survey, area = (survey_number(query.get(k, [""])[0]) for k in ("survey", "area"))
+    return survey, query.get("mode", [None])[0], area
 
 
 def survey_number(text: str | None) -> int | None:
@@ -93,6 +97,7 @@ def viewer_page(
     session: SessionDep,
     survey: Annotated[Id | None, Query(description="survey to open")] = None,
     mode: Annotated[str | None, Query(description="mode to open first: " + MODE_LIST)] = None,
+    area: Annotated[Id | None, Query(description="work area (its id) to look at first")] = None,
     websocket: Annotated[str | None, Query(description="set by the redirect")] = None,
 ) -> Response:
     """The 3D viewer (viser's client page) for the logged-in user; it connects to
@@ -108,8 +113,8 @@ def viewer_page(
             detail="not logged in: log in on the dashboard first",
             headers={"WWW-Authenticate": "Bearer"},
         )
-    if websocket is not None and survey is None and mode is None:
-        survey, mode = _relay_params(websocket)
+    if websocket is not None and survey is None and mode is None and area is None:
+        survey, mode, area = _relay_params(websocket)
         mode = mode if mode in MODE_KEYS else None
     browser = "text/html" in request.headers.get("accept", "")
     if mode is not None and mode not in MODE_KEYS:
@@ -121,7 +126,21 @@ def viewer_page(
         if browser:
             return _error_page(status.HTTP_404_NOT_FOUND, f"Survey {survey} does not exist.")
         get_survey(session, survey)  # the API's 404
-    expected = relay_url(request, survey, mode)
+    if area is not None and survey is None:
+        message = "a work area is opened on its survey: give survey too"
+        if browser:
+            return _error_page(status.HTTP_422_UNPROCESSABLE_ENTITY, f"area: {message}")
+        raise ConfigError("area", message)
+    if area is not None:
+        try:
+            get_area(session, survey, area)
+        except NotFoundError:
+            if not browser:
+                raise  # the API's 404
+            return _error_page(
+                status.HTTP_404_NOT_FOUND, f"Survey {survey} has no work area {area}."
+            )
+    expected = relay_url(request, survey, mode, area)
     if websocket != expected:  # only ever point the page at our own relay
         return RedirectResponse(
             f"/viewer?websocket={quote(expected, safe='')}", status.HTTP_303_SEE_OTHER
@@ -214,8 +233,13 @@ async def viewer_socket(websocket: WebSocket, token: str | None = None) -> None:
     user = login.user
     survey = websocket.query_params.get("survey")
     mode = websocket.query_params.get("mode")
+    area = survey_number(websocket.query_params.get("area")) if survey else None
     nonce = viewer.issue_ticket(
-        user.id, user.username, int(survey) if survey else None, mode if mode in MODE_KEYS else None
+        user.id,
+        user.username,
+        int(survey) if survey else None,
+        mode if mode in MODE_KEYS else None,
+        area,
     )
     try:
         upstream = f"{viewer.upstream_url}?session={nonce}"
