@@ -19,13 +19,16 @@ colours show wrong):
    more, largest first) a rectangle (shift-drag round its box) where the group fills most of
    its box, else a polygon (P, clicks round its convex hull, Enter); Enter again where the
    selection is previewed.
-3. The majority class in one rectangle over the whole street, with the height slice's lower
-   end dragged to 0.5 m above the ground (so the road the fill did not reach is not shown and
-   not selected); the slice back; one more rectangle, of ground, over the street (unlabelled
-   only): the road the fill did not reach.
-4. Corrections: per connected group of pillars with one wrong label that should be one class,
-   "Apply to" locked to the wrong label (its neighbours keep theirs) and the group outlined as
-   in 2 (8 pillars or more); the brush (B, radius 0.4 m) on each wrong pillar left.
+3. The majority class in one rectangle over the whole street (unlabelled only), with the
+   height slice's lower end dragged to 0.5 m above the ground (so the road the fill did not
+   reach is not shown and not selected); then the slice back.
+4. Corrections: per connected group of pillars with one wrong label (or none) that should be
+   one class, unlabelled groups first, then the largest: "Apply to" locked to the wrong label
+   (its neighbours keep theirs) and the group outlined as in 2 (8 pillars or more); the brush
+   (B, radius 0.4 m) on each wrong pillar left.
+
+A polygon's vertices are clicked at a person's pace (0.3 s apart), Enter once the page shows
+them all.
 
 It stops when the corrections are done or after 10 minutes of interaction (the height slice's
 drags count). Per tool: interactions, pillars labelled (given a label or another one), seconds
@@ -70,7 +73,8 @@ STREET_ALONG, STREET_ACROSS = 50.0, 15.0  # metres each way from the middle pose
 CAMERA_HEIGHT = 80.0  # metres above the street, top view
 BUDGET_S = 600.0  # seconds of interaction
 GROUP_MIN = 30  # pillars: smaller objects of the minority classes are left to the corrections
-VERTEX_WAIT_MS = 15_000  # the longest wait for a polygon vertex to be taken
+VERTEX_PAUSE_MS = 300  # between a polygon's vertex clicks
+VERTEX_WAIT_MS = 15_000  # the longest wait for a polygon's vertices to be shown
 CORRECT_MIN = 8  # pillars: a wrong group this large is outlined, smaller ones are brushed
 SLICE_LOW = 0.5  # metres above the ground: the height slice's lower end for the majority class
 APPLY_ALL, APPLY_UNLABELLED = APPLY_TO[:2]
@@ -332,13 +336,16 @@ def run_session(view: Page, api, survey_id: int, street: dict) -> Tally:
         vertices = vertices[np.linspace(0, len(vertices) - 1, min(len(vertices), 8)).astype(int)]
 
         def clicks() -> bool:
+            """The vertices at a person's pace, then Enter once the page shows them all."""
             page.keyboard.press("p")
-            for n, v in enumerate(vertices, start=1):  # each vertex taken before the next
+            for v in vertices:
                 page.mouse.click(*v, delay=20)
-                try:
-                    page.get_by_text(f"Polygon: {n} vertices").wait_for(timeout=VERTEX_WAIT_MS)
-                except PlaywrightTimeout:
-                    return False
+                page.wait_for_timeout(VERTEX_PAUSE_MS)
+            try:
+                text = f"Polygon: {len(vertices)} vertices"
+                page.get_by_text(text).wait_for(timeout=VERTEX_WAIT_MS)
+            except PlaywrightTimeout:
+                return False
             return True
 
         act("polygon", clicks, lambda: page.keyboard.press("Enter"))
@@ -379,16 +386,12 @@ def run_session(view: Page, api, survey_id: int, street: dict) -> Tally:
             outline(group)
 
     # 3. the majority class: one rectangle over the street with the points near the ground
-    #    hidden by the height slice (unlabelled only), then the slice back and one rectangle
-    #    of ground for the road the fill did not reach
+    #    hidden by the height slice (unlabelled only), then the slice back
     if tally.seconds <= BUDGET_S:
         height_slice(view, SLICE_LOW, tally)
         page.keyboard.press(CLASS_KEYS[major])
         rectangle("rectangle", *whole_street())
         height_slice(view, HEIGHT_SLICE[0], tally)
-    if tally.seconds <= BUDGET_S:
-        page.keyboard.press(CLASS_KEYS[0])
-        rectangle("rectangle", *whole_street())
 
     # 4. corrections, as the colours show them: groups of pillars of one wrong label that
     #    should be one class, with "Apply to" locked to the wrong label (the neighbours keep
@@ -466,14 +469,14 @@ def height_slice(view: Page, low: float, tally: Tally) -> None:
 
 def wrong_groups(cells: np.ndarray, klass: np.ndarray, now: np.ndarray, wrong: np.ndarray):
     """(right class, wrong label, indices) of connected groups of wrongly labelled pillars
-    sharing both, largest first."""
+    sharing both: unlabelled ones first (the street complete first), then largest first."""
     pair = klass[wrong] * 8 + (now[wrong] + 1)  # one code per (right, wrong) pair
     found = [
         (len(g), int(code) // 8, int(code) % 8 - 1, g)
         for code in np.unique(pair).tolist()
         for _, g in groups(cells, np.zeros(len(cells), np.int64), wrong[pair == code], 1)
     ]
-    for _, k, was, g in sorted(found, key=lambda f: -f[0]):
+    for _, k, was, g in sorted(found, key=lambda f: (f[2] >= 0, -f[0])):
         yield k, was, g
 
 

@@ -150,12 +150,8 @@ class SurveyView:
         with self.lock:
             return self.rgb[k]
 
-    def point_confidence(self, points: np.ndarray) -> np.ndarray:
-        """(n,) float32 model confidence of the pillars of map points `points` (NaN: no model
-        pre-label)."""
-        return self.pillar_confidence(self.map.cell[points])
-
     def pillar_confidence(self, k: np.ndarray) -> np.ndarray:
+        """(n,) float32 model confidence of pillars `cells[k]` (NaN: no model pre-label)."""
         with self.lock:
             return np.where(self.model[k] >= 0, self.confidence[k], np.nan)
 

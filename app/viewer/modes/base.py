@@ -17,7 +17,8 @@ How the session drives a mode:
 - `on_camera(camera)`: the client's camera moved (at most one pending call: later moves
   coalesce into one call with the newest camera).
 - `on_labels_changed(changed)`: pillar labels of the open survey changed (by anyone): `changed`
-  indexes `session.view.map.cells`; recolour with `session.view.point_colors`.
+  indexes `session.view.map.cells`; recolour with `session.view.point_colors` (or
+  `pillar_rgb` of the pillars of points already gathered, `app.viewer.shown_points`).
 - `on_review_changed(actions)`: review writes on the open survey (by anyone, this user's own
   included, so applying one must be idempotent): `actions` is the set of audit actions seen
   since the last call (`app.viewer.label_feed.REVIEW_ACTIONS`: clutter decisions and runs,
