@@ -31,3 +31,9 @@ def is_target_red(rgb: np.ndarray) -> np.ndarray:
     pillars (225, 20, 140) nor any orange."""
     r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
     return (r > 110) & (r > 3 * g) & (r > 2 * b)
+
+
+def is_selected_magenta(rgb: np.ndarray) -> np.ndarray:
+    """The clutter mode's selected instance (255, 0, 255): red and blue high, green low."""
+    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
+    return (r > 150) & (b > 150) & (g < 80)

@@ -18,6 +18,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 import trimesh
 
@@ -31,7 +32,7 @@ from tests.e2e.conftest import (
     save_screenshot,
     wait_until,
 )
-from tests.e2e.pixels import count_pixels, is_target_red
+from tests.e2e.pixels import canvas_pixels, count_pixels, is_selected_magenta, is_target_red
 
 PASSWORD = "password-123"
 JOB_TIMEOUT_S = 600.0  # two pipeline runs on two shared cores
@@ -168,6 +169,54 @@ def test_approve_a_clutter_instance(open_viewer, viewer_server: Server, street, 
     close_notifications(page)
     page.wait_for_timeout(2000)  # software WebGL draws the new colours
     save_screenshot(page, artefacts, "clutter", docs="viewer_clutter.png")
+
+
+@pytest.mark.e2e
+def test_shift_drag_takes_points_out_of_a_clutter_instance(
+    open_viewer, viewer_server: Server, street
+) -> None:
+    """Correcting an instance's extent in Chromium (issue 20: "an instance's extent can be
+    corrected"): the selected instance is drawn magenta; a shift-drag over the upper half of
+    the magenta pixels takes those points out of it, a versioned write by this reviewer."""
+    reviewer = viewer_server.add_user("extentrev", "reviewer", PASSWORD)
+    frames = reviewer.get(f"/surveys/{street}/clutter/frames").json()
+    index, frame = next((i, f) for i, f in enumerate(frames) if f["pending"])
+    items = reviewer.get(
+        f"/surveys/{street}/clutter/instances", params={"frame_id": frame["frame_id"]}
+    ).json()["items"]
+    target = max((s for s in items if s["decision"] == "pending"), key=lambda s: s["point_count"])
+    name = f"#{target['instance_index']} {target['class_name']}"
+
+    page = open_viewer("extentrev", PASSWORD, survey_id=street)
+    switch_mode(page, "Clutter review")
+    page.get_by_text(f"Frame {index + 1} / {len(frames)}").wait_for(timeout=60_000)
+    row_button(page, f"{name}, {target['point_count']:,} pts: pending", "Select").click()
+    page.get_by_text(f"▶ {name}").wait_for()
+    close_notifications(page)
+
+    def magenta() -> tuple[int, int, int, int] | None:
+        """(row0, col0, row1, col1) of the magenta pixels on the canvas, once there are some."""
+        found = np.argwhere(is_selected_magenta(canvas_pixels(page).astype(np.int32)))
+        if len(found) < 20:
+            return None
+        return (*found.min(axis=0).tolist(), *found.max(axis=0).tolist())
+
+    r0, c0, r1, c1 = wait_until("the selected instance drawn magenta", magenta)
+    box = page.locator("canvas").first.bounding_box()
+    scale = box["width"] / canvas_pixels(page).shape[1]
+    lo = (box["x"] + (c0 - 4) * scale, box["y"] + (r0 - 4) * scale)
+    hi = (box["x"] + (c1 + 4) * scale, box["y"] + (r0 + r1) / 2 * scale)
+    page.keyboard.down("Shift")
+    page.mouse.move(*lo)
+    page.mouse.down()
+    page.mouse.move(*hi, steps=6)
+    page.mouse.up()
+    page.keyboard.up("Shift")
+    page.get_by_text(re.compile(rf"point\(s\) taken out of #{target['instance_index']}")).wait_for(
+        timeout=60_000
+    )
+    now = reviewer.get(f"/surveys/{street}/clutter/instances/{target['id']}").json()
+    assert now["version"] == target["version"] + 1
 
 
 def slices(api: httpx.Client) -> dict[int, tuple[int, int, int | None]]:
