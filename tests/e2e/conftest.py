@@ -78,6 +78,16 @@ def save_screenshot(page, artefacts: Path, name: str, docs: str | None = None) -
 WAIT_S = 30.0
 
 
+def shift_drag(page, start: tuple[float, float], end: tuple[float, float]) -> None:
+    """A shift-drag across the canvas (the viewer's rectangle), in small mouse steps."""
+    page.keyboard.down("Shift")
+    page.mouse.move(*start)
+    page.mouse.down()
+    page.mouse.move(*end, steps=12)
+    page.mouse.up()
+    page.keyboard.up("Shift")
+
+
 def wait_until(what: str, check, timeout: float = WAIT_S):
     """check()'s first truthy value, polled every 0.2 s; AssertionError naming `what` after
     `timeout` seconds."""

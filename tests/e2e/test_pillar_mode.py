@@ -11,7 +11,7 @@ import httpx
 import pytest
 
 from tests.api.server import Server
-from tests.e2e.conftest import close_notifications, save_screenshot, wait_until
+from tests.e2e.conftest import close_notifications, save_screenshot, shift_drag, wait_until
 from tests.e2e.pixels import count_pixels, is_selection_green
 
 PASSWORD = "password-123"
@@ -60,12 +60,7 @@ def test_label_pillars_with_brush_and_rectangle_then_undo(
     page.get_by_text("pillars: High object (brush").wait_for()
 
     # rectangle: shift-drag beside the stroke
-    page.keyboard.down("Shift")
-    page.mouse.move(cx - 160, cy - 90)
-    page.mouse.down()
-    page.mouse.move(cx - 60, cy + 60, steps=12)
-    page.mouse.up()
-    page.keyboard.up("Shift")
+    shift_drag(page, (cx - 160, cy - 90), (cx - 60, cy + 60))
     if wait_until("the rectangle's answer", lambda: _rectangle_answer(page)) == "preview":
         page.keyboard.press("Enter")  # a large selection waits for Enter
     both = wait_until(
@@ -104,15 +99,6 @@ def _rectangle_answer(page) -> str | None:
     if page.get_by_text("pillars selected").count():
         return "preview"
     return None
-
-
-def shift_drag(page, start: tuple[float, float], end: tuple[float, float]) -> None:
-    page.keyboard.down("Shift")
-    page.mouse.move(*start)
-    page.mouse.down()
-    page.mouse.move(*end, steps=12)
-    page.mouse.up()
-    page.keyboard.up("Shift")
 
 
 def selected_count(page) -> int:

@@ -30,6 +30,7 @@ from tests.e2e.conftest import (
     VIEWER_TILE_POINTS,
     close_notifications,
     save_screenshot,
+    shift_drag,
     wait_until,
 )
 from tests.e2e.pixels import canvas_pixels, count_pixels, is_selected_magenta, is_target_red
@@ -206,12 +207,7 @@ def test_shift_drag_takes_points_out_of_a_clutter_instance(
     scale = box["width"] / canvas_pixels(page).shape[1]
     lo = (box["x"] + (c0 - 4) * scale, box["y"] + (r0 - 4) * scale)
     hi = (box["x"] + (c1 + 4) * scale, box["y"] + (r0 + r1) / 2 * scale)
-    page.keyboard.down("Shift")
-    page.mouse.move(*lo)
-    page.mouse.down()
-    page.mouse.move(*hi, steps=6)
-    page.mouse.up()
-    page.keyboard.up("Shift")
+    shift_drag(page, lo, hi)
     page.get_by_text(re.compile(rf"point\(s\) taken out of #{target['instance_index']}")).wait_for(
         timeout=60_000
     )
