@@ -27,7 +27,6 @@ from app.core.errors import (
     MmscleanError,
     NotFoundError,
     PermissionDeniedError,
-    StaleWriteError,
 )
 from app.store import pillar_labels
 from app.store.models import Role, User
@@ -362,19 +361,31 @@ class ViewerSession:
     ) -> pillar_labels.LabelWrite:
         """One labelling action (store cell ids; NO_LABEL erases) as one undoable batch,
         checked against the label versions the view shows: a pillar someone else labelled
-        since raises `StaleWriteError`, nothing is written and the view shows their label."""
+        since raises `StaleWriteError`, nothing is written and the view shows their label.
+        The new colours go out before the store's write (tens of thousands of pillars take
+        SQLite half a second); a refused or failed write puts the store's labels back."""
         view = self.view
         expected = view.human_versions(cell_ids)
+        shown = view.show_labels(cell_ids, labels)
+        if len(shown) and self.mode is not None:
+            self.mode.on_labels_changed(shown)
+            self.client.flush()
         try:
             with self.db() as session:
                 self._check_user(session)
                 result = pillar_labels.write_labels(
                     session, view.survey_id, self.user_id, cell_ids, labels, expected
                 )
-        except StaleWriteError as exc:
-            view.refresh_human(np.array([c["cell_id"] for c in exc.current], dtype=np.int64))
+        except BaseException:
+            view.refresh_human(np.asarray(cell_ids, dtype=np.int64))  # the store's, announced
             raise
-        return self._written(result)
+        changed = view.take_written(
+            result.cell_ids, labels, result.versions, shown, self._labels_changed
+        )
+        if len(changed) and self.mode is not None:
+            self.mode.on_labels_changed(changed)
+        self.viewer.labels_written()
+        return result
 
     def undo_pillars(self) -> pillar_labels.LabelWrite:
         with self.db() as session:

@@ -9,6 +9,11 @@ now look different, so each client resends colours, never positions.
 The view also keeps the version of each human label it shows: a client's label write passes
 them as the versions it saw, so a label someone else wrote after this view last read it is
 never overwritten unseen (the store refuses the batch and the view re-reads those pillars).
+
+A client's own write is shown before the store has it (`show_labels`: the writer's colours go
+out while SQLite writes, a large batch's half second), its versions unchanged until the write
+is done (`take_written`, which tells the other listeners); a refused or failed write puts the
+store's labels back (`refresh_human`).
 """
 
 from __future__ import annotations
@@ -63,11 +68,11 @@ class SurveyView:
             if listener in self._listeners:
                 self._listeners.remove(listener)
 
-    def _announce(self, changed: np.ndarray) -> None:
+    def _announce(self, changed: np.ndarray, skip: Listener | None = None) -> None:
         if not len(changed):
             return
         with self.lock:
-            listeners = tuple(self._listeners)
+            listeners = tuple(x for x in self._listeners if x != skip)
         for listener in listeners:
             try:
                 listener(changed)
@@ -117,6 +122,31 @@ class SurveyView:
                 self.version[k] = versions
                 changed = self._recolor(k)
         self._announce(changed)
+        return changed
+
+    def show_labels(self, cell_ids: np.ndarray, labels: np.ndarray) -> np.ndarray:
+        """Show the human labels a client is writing (store cell ids; NO_LABEL (-1) erases)
+        before the store has them, versions unchanged; returns the pillars that now look
+        different, told to no listener yet (`take_written` does, or `refresh_human` puts the
+        store's labels back)."""
+        k, found = self.map.cell_index(np.asarray(cell_ids, dtype=np.int64))
+        with self.lock:
+            self.human[k[found]] = np.asarray(labels, dtype=np.int64)[found]
+            return self._recolor(k[found])
+
+    def take_written(
+        self, cell_ids: np.ndarray, labels: np.ndarray, versions: np.ndarray,
+        shown: np.ndarray, writer: Listener,
+    ) -> np.ndarray:  # fmt: skip
+        """A client's write is in the store: its labels and their new versions (request order)
+        are the view's; the pillars `show_labels` changed (`shown`) and any that change now
+        are told to every listener but the writer's. Returns those that changed now."""
+        k, found = self.map.cell_index(np.asarray(cell_ids, dtype=np.int64))
+        with self.lock:
+            self.human[k[found]] = np.asarray(labels, dtype=np.int64)[found]
+            self.version[k[found]] = np.asarray(versions, dtype=np.int64)[found]
+            changed = self._recolor(k[found])
+        self._announce(np.union1d(shown, changed), skip=writer)
         return changed
 
     def human_versions(self, cell_ids: np.ndarray) -> list[int | None]:

@@ -178,8 +178,9 @@ def test_a_client_never_overwrites_a_label_it_has_not_seen(
     with Session(engine) as session:
         stored = current_human(session, ply_survey.id, cells[:10])
     assert [stored[c][0] for c in cells[:10].tolist()] == [1, 1, 1, 3, 3, 3, 3, 3, 2, 2]
-    # nothing written, and her view now shows bob's labels: a second try is her own choice
-    assert (view.human[k[3:8]] == 3).all()
+    # nothing written, and her view now shows bob's labels: a second try is her own choice;
+    # the labels her refused write showed before the store answered are taken back
+    assert view.human[k[:10]].tolist() == [1, 1, 1, 3, 3, 3, 3, 3, 2, 2]
     assert view.human_versions(cells[3:8]) == bobs.versions.tolist()
     alice.write_pillar_labels(cells[:10], np.full(10, 0))
     with Session(engine) as session:
@@ -218,4 +219,38 @@ def test_an_erased_label_shows_as_none_with_the_version_of_its_erase(
     alice = ViewerSession(ViewerStandIn(engine), SimpleNamespace(client_id=1), ticket)
     alice.view = view
     assert alice.write_pillar_labels(cells, np.full(4, 1)).versions.tolist() == [3, 3, 2, 2]
+    views.release(view)
+
+
+def test_a_write_is_shown_before_the_store_has_it_and_told_to_the_others_after(
+    engine: Engine, ply_survey: Survey, tmp_path: Path
+) -> None:
+    """The writer's colours go out before SQLite's write (a large batch's half second): the
+    view shows the labels with the stored versions, tells nobody, then takes the written
+    versions and tells every listener but the writer; a refused write is taken back."""
+    views, view = open_view(engine, ply_survey, tmp_path)
+    heard: list[np.ndarray] = []
+    view.subscribe(heard.append)
+
+    def writer(changed: np.ndarray) -> None:
+        raise AssertionError("the writer was told of its own write")
+
+    view.subscribe(writer)
+    cells = box_cells(view)
+    labels = np.full(len(cells), 1)
+    k, _ = view.map.cell_index(cells)
+    shown = view.show_labels(cells, labels)
+    assert sorted(shown.tolist()) == sorted(k.tolist()) and (view.human[k] == 1).all()
+    assert heard == [] and view.human_versions(cells) == [0] * len(cells)
+    with Session(engine) as session:
+        result = write_labels(session, ply_survey.id, user_id(engine, "carol"), cells, labels)
+    changed = view.take_written(result.cell_ids, labels, result.versions, shown, writer)
+    assert len(changed) == 0 and len(heard) == 1
+    assert sorted(heard[0].tolist()) == sorted(shown.tolist())
+    assert view.human_versions(cells) == result.versions.tolist()
+    # shown, then refused: the store's labels come back (and are told)
+    view.show_labels(cells[:3], np.full(3, 3))
+    view.unsubscribe(writer)
+    view.refresh_human(cells[:3])
+    assert (view.human[k[:3]] == 1).all() and len(heard) == 2
     views.release(view)

@@ -252,7 +252,10 @@ def test_client_gets_the_scene_labels_as_its_user_sees_api_writes_and_undoes(
         await client.wait_for(colors_with(PALETTE[0]), 30)  # ground, full colour
         world = origin[:2] + np.array([30.0, 0.0])
         box = (world[0] - 2, world[1] - 2, world[0] + 2, world[1] + 2)
-        painted = human_labels(admin, box)
+        # the colours go out before the store's write (`ViewerSession.write_pillar_labels`)
+        deadline = time.monotonic() + 10.0
+        while not (painted := human_labels(admin, box)) and time.monotonic() < deadline:
+            await asyncio.sleep(0.05)
         assert 50 <= len(painted) <= 85  # pi * 1 m^2 / 0.04 m^2 ~ 79 pillars, those with points
         assert {v for v in painted.values()} == {(0, painter_id)}  # ground, by the painter
         centres = STORE_GRID.cell_center(*STORE_GRID.decode(np.array(list(painted))))
