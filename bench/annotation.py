@@ -23,9 +23,10 @@ colours show wrong):
    height slice's lower end dragged to 0.5 m above the ground (so the road the fill did not
    reach is not shown and not selected); then the slice back.
 4. Corrections: per connected group of pillars with one wrong label (or none) that should be
-   one class, unlabelled groups first, then the largest: "Apply to" locked to the wrong label
+   one class, unlabelled groups first (what no selection saw, under a canopy: outlined with
+   "select hidden points too" ticked), then the largest: "Apply to" locked to the wrong label
    (its neighbours keep theirs) and the group outlined as in 2 (8 pillars or more); the brush
-   (B, radius 0.4 m) on each wrong pillar left.
+   (B, radius 0.4 m) on each wrong pillar left, unlabelled ones first.
 
 A polygon's vertices are clicked at a person's pace (0.3 s apart), Enter once the page shows
 them all.
@@ -55,7 +56,7 @@ import msgspec
 import numpy as np
 from playwright.sync_api import TimeoutError as PlaywrightTimeout
 from scipy import ndimage
-from scipy.spatial import ConvexHull, cKDTree
+from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from app.io import open_survey
 from app.io.accumulate import accumulate
@@ -285,6 +286,10 @@ def run_session(view: Page, api, survey_id: int, street: dict) -> Tally:
             page.keyboard.press("Enter")  # a large selection is previewed: apply it
             committed = time.perf_counter()
             answered = view.colours_after(mark, shown, preview_ok=True)
+        if answered is not None:  # the colours come before the store's write: wait for it
+            deadline = time.perf_counter() + ANSWER_TIMEOUT_S
+            while time.perf_counter() < deadline and "batch" not in " ".join(view.texts() - shown):
+                page.wait_for_timeout(20)
         done = time.perf_counter()
         if answered is None:
             print("    no colours; the page said:", " / ".join(sorted(view.texts() - shown)))
@@ -328,7 +333,10 @@ def run_session(view: Page, api, survey_id: int, street: dict) -> Tally:
         round its convex hull (8 vertices at most)."""
         corners = to_page(street["local"][group])
         lo, hi = corners.min(axis=0) - 2, corners.max(axis=0) + 2
-        hull = ConvexHull(corners) if len(corners) >= 3 else None
+        try:
+            hull = ConvexHull(corners) if len(corners) >= 3 else None
+        except QhullError:  # the pillars in a line
+            hull = None
         if hull is None or hull.volume >= RECT_FILL * float(np.prod(hi - lo)):
             rectangle("rectangle", lo, hi)
             return
@@ -396,16 +404,21 @@ def run_session(view: Page, api, survey_id: int, street: dict) -> Tally:
     # 4. corrections, as the colours show them: groups of pillars of one wrong label that
     #    should be one class, with "Apply to" locked to the wrong label (the neighbours keep
     #    theirs); small groups with the brush
+    #    unlabelled pillars left are those no selection saw (under a canopy): "select hidden
+    #    points too" while they are outlined (the lock keeps the labelled ones)
     labelled_count()
     now = current()
     wrong = (now != klass) & ((klass != 0) | (now >= 0))
+    hidden_too(page, True)
     for k, was, group in wrong_groups(cells, klass, now, np.flatnonzero(wrong)):
         if tally.seconds > BUDGET_S:
             break
+        hidden_too(page, was < 0)
         if len(group) >= CORRECT_MIN and fits(group):
             apply_to(APPLY_UNLABELLED if was < 0 else APPLY_TO[2 + was])
             page.keyboard.press(CLASS_KEYS[k])
             outline(group)
+    hidden_too(page, False)
     labelled_count()
     now = current()
     radius = page.locator(
@@ -416,7 +429,8 @@ def run_session(view: Page, api, survey_id: int, street: dict) -> Tally:
     radius.press("Enter")
     page.evaluate("document.activeElement && document.activeElement.blur()")
     page.keyboard.press("b")
-    for i in np.flatnonzero((now != klass) & ((klass != 0) | (now >= 0))):
+    left = np.flatnonzero((now != klass) & ((klass != 0) | (now >= 0)))
+    for i in left[np.argsort(now[left] >= 0, kind="stable")]:  # unlabelled ones first
         if tally.seconds > BUDGET_S:
             break
         was = int(current_label(state, cells[i]))
@@ -430,6 +444,18 @@ def run_session(view: Page, api, survey_id: int, street: dict) -> Tally:
         act("brush", lambda: None, lambda p=p: page.mouse.click(*p))
     labelled_count()
     return tally
+
+
+def hidden_too(page, on: bool) -> None:
+    """Tick or untick "Select hidden points too" (the Rectangle folder opened first); not
+    timed, as a setting is not an interaction."""
+    box = page.get_by_label("Select hidden points too")
+    if not box.is_visible():
+        page.get_by_text("Rectangle", exact=True).click()
+        box.wait_for(state="visible", timeout=5000)
+    if box.is_checked() != on:
+        box.set_checked(on)
+        page.evaluate("document.activeElement && document.activeElement.blur()")
 
 
 def current_label(state: dict, cell: int) -> int:
