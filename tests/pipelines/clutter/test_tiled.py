@@ -3,6 +3,7 @@ tiles, and a rerun keeps the finished tiles (synthetic streets)."""
 
 from __future__ import annotations
 
+import shutil
 from dataclasses import replace
 from pathlib import Path
 
@@ -35,17 +36,28 @@ def street(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
+@pytest.fixture(scope="module")
+def tiled(street: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict, object]:
+    """The street in 15 m tiles (review units too), run once for the tests that read it: the
+    folder, the report and the run (the rerun test copies the folder)."""
+    out = tmp_path_factory.mktemp("clutter-tiled")
+    report, run = run_clutter_report(
+        open_survey(street, "sim"), out, CONFIG, tile_length=15.0, review=True
+    )
+    return out, report, run
+
+
 def _labels(out: Path, survey) -> np.ndarray:
     return np.concatenate([np.load(out / "labels" / f"{f.frame_id}.npy") for f in survey.frames])
 
 
-def test_tiled_clutter_agrees_with_the_whole_drive(street: Path, tmp_path: Path) -> None:
+def test_tiled_clutter_agrees_with_the_whole_drive(street: Path, tiled) -> None:
     """40 m in 15 m tiles with the pipeline's halo (half the reach): the labels those of the
     untiled run (issue: >= 99.9 %), the tracks joined into as many as one run finds, the maps
     holding every point once, the scores those of the labels written."""
     survey = open_survey(street, "sim")
     whole = ClutterPipeline(CONFIG).run(survey)
-    report, run = run_clutter_report(survey, tmp_path, CONFIG, tile_length=15.0, review=True)
+    tmp_path, report, run = tiled
     assert run.tiles.count == 3 and run.tiles_run == 3
     assert report["tiles"]["halo_m"] == clutter_halo(CONFIG) == 20.0
     assert all(len(run.tiles.frames[t]) < len(survey.frames) for t in (0, 2))  # context, not all
@@ -75,17 +87,19 @@ def test_tiled_clutter_agrees_with_the_whole_drive(street: Path, tmp_path: Path)
     assert all((tmp_path / "instances" / f"{f.frame_id}.npz").is_file() for f in survey.frames)
 
 
-def test_a_rerun_keeps_the_finished_clutter_tiles(street: Path, tmp_path: Path) -> None:
+def test_a_rerun_keeps_the_finished_clutter_tiles(street: Path, tiled, tmp_path: Path) -> None:
     """Only the tile whose summary is missing runs again: the other tiles' frames keep their
     label files as they were, and the run's labels and counts come out as before (to 0.1 %:
-    DUFOMap with several threads need not repeat itself bit for bit)."""
+    DUFOMap with several threads need not repeat itself bit for bit). The first run is the
+    module's (`tiled`), copied."""
     survey = open_survey(street, "sim")
-    first, run = run_clutter_report(survey, tmp_path, CONFIG, tile_length=15.0)
+    shutil.copytree(tiled[0], tmp_path, dirs_exist_ok=True)
+    first, run = tiled[1], tiled[2]
     kept = [survey.frames[k].frame_id for t in (0, 2) for k in run.tiles.own(t)]
     before = {f: np.load(tmp_path / "labels" / f"{f}.npy") for f in kept}
     labels = _labels(tmp_path, survey)
     (tmp_path / TILES / "00001.json").unlink()
-    again, run = run_clutter_report(survey, tmp_path, CONFIG, tile_length=15.0)
+    again, run = run_clutter_report(survey, tmp_path, CONFIG, tile_length=15.0, review=True)
     assert run.tiles_run == 1 and again["tiles"]["kept_from_earlier_attempt"] == 2
     assert all(np.array_equal(np.load(tmp_path / "labels" / f"{f}.npy"), before[f]) for f in kept)
     assert (_labels(tmp_path, survey) == labels).mean() >= 0.999
