@@ -5,6 +5,7 @@ previewed and written only on Enter."""
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -129,8 +130,13 @@ def test_height_slice_hides_the_canopy_and_top_side_views_follow(opened) -> None
     assert not np.array_equal(mode.top_image.image, top_before)  # ... nor in the top view
     connection.send(gui_set(slider, (-2.0, 40.0)))
     connection.send(gui_set(menu, "Label"))
-    connection.call(lambda: None)
-    assert mode.height_slice == (-2.0, 40.0)
+    # viser hands GUI updates to the session's thread from its own: wait for both (the later
+    # tests share this view), not for a no-op that may be queued before them
+    deadline = time.monotonic() + 30.0
+    while (mode.height_slice, mode.colour_by) != ((-2.0, 40.0), "Label"):
+        assert time.monotonic() < deadline, (mode.height_slice, mode.colour_by)
+        time.sleep(0.05)
+    connection.call(lambda: None)  # the redraw queued with them done
 
 
 def test_standard_views_swing_the_camera_around_its_focus(opened) -> None:
