@@ -206,11 +206,16 @@ class ViewerSession:
         if len(survey_map.overview):
             xy = np.asarray(survey_map.xyz[survey_map.overview, :2], dtype=np.float64)
             centre = xy[int(np.argmin(((xy - centre) ** 2).sum(axis=1)))]
+        self._look_down_at(centre, float(np.max(hi[:2] - lo[:2])))
+
+    def _look_down_at(self, centre: np.ndarray, extent: float) -> None:
+        """Look at the ground under local `centre` (x, y) from above, a little behind-left,
+        from a distance that shows `extent` metres."""
+        survey_map = self.view.map
         ground = float(survey_map.ground.height(centre[None])[0]) if len(survey_map) else 0.0
-        look_at = np.array([centre[0], centre[1], ground])
-        distance = float(np.clip(0.9 * float(np.max(hi[:2] - lo[:2])), *CAMERA_DISTANCE))
+        distance = float(np.clip(0.9 * extent, *CAMERA_DISTANCE))
         offset = CAMERA_OFFSET / np.linalg.norm(CAMERA_OFFSET) * distance
-        self.move_camera(look_at, offset)
+        self.move_camera(np.array([centre[0], centre[1], ground]), offset)
 
     def _look_at_area(self, area_id: int) -> None:
         """Look down at a work area (a dashboard's link): its pillars' box whole in view."""
@@ -220,14 +225,10 @@ class ViewerSession:
             except NotFoundError as exc:
                 self.notify("Work area", f"{exc.message}: showing the whole survey.", error=True)
                 return
-        survey_map = self.view.map
-        lo = np.array([area.x_min, area.y_min]) - survey_map.origin[:2]
-        hi = np.array([area.x_max, area.y_max]) - survey_map.origin[:2]
-        centre = (lo + hi) / 2.0
-        ground = float(survey_map.ground.height(centre[None])[0]) if len(survey_map) else 0.0
-        distance = float(np.clip(0.9 * float(np.max(hi - lo)), *CAMERA_DISTANCE))
-        offset = CAMERA_OFFSET / np.linalg.norm(CAMERA_OFFSET) * distance
-        self.move_camera(np.array([centre[0], centre[1], ground]), offset)
+        origin = self.view.map.origin[:2]
+        lo = np.array([area.x_min, area.y_min]) - origin
+        hi = np.array([area.x_max, area.y_max]) - origin
+        self._look_down_at((lo + hi) / 2.0, float(np.max(hi - lo)))
         self.notify(
             f"Work area {area.area_index}",
             f"{area.station_start:.0f}-{area.station_end:.0f} m along the drive, "

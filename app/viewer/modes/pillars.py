@@ -402,19 +402,18 @@ class PillarMode(Mode):
         shown = self._shown()
         heading = heading_at(self.session.trajectory, focus[:2])
         near = shown.take(within_square(shown.xyz, focus, HALF_WIDTH * 1.5))
-        xyz = near.xyz.astype(np.float64)
         rgb = self._colors(near)
-        self.top_image.image = top_view(xyz, rgb, focus, heading)
+        self.top_image.image = top_view(near.xyz, rgb, focus, heading)
         if self.section is None:
             self.side_image.label = SIDE_LABEL
-            self.side_image.image = side_view(xyz, rgb, focus, heading)
+            self.side_image.image = side_view(near.xyz, rgb, focus, heading)
             return
         a, b = self.section
         middle, half = (a + b) / 2.0, min(float(np.hypot(*(b - a)[:2])) / 2.0 + 1.0, SECTION_MAX)
         cut = shown.take(within_square(shown.xyz, middle, half + SLAB))
         self.side_image.label = f"Section along the measured line ({2 * half:.0f} m)"
         self.side_image.image = side_view(
-            cut.xyz.astype(np.float64), self._colors(cut), middle, b - a, half_width=half
+            cut.xyz, self._colors(cut), middle, b - a, half_width=half
         )
 
     def on_labels_changed(self, changed: np.ndarray) -> None:
