@@ -1,9 +1,9 @@
 """Tiles on Dask distributed: the engine that spreads a survey's tiles over processes or hosts.
 
 Embedded by default: a `LocalCluster` of `settings.workers` processes (one thread each,
-`tile_worker_memory_mb` each, bound to loopback). The server's worker pool starts one when it
-starts and hands its address to the job workers (`embedded_cluster`), so the jobs of a server
-share one set of tile workers; the command line starts one on first use. With
+`tile_worker_memory_mb` each, bound to loopback). The server's worker pool starts one with its
+job workers, for the first queued job, and hands its address to them (`embedded_cluster`), so
+the jobs of a server share one set of tile workers; the command line starts one on first use. With
 `MMSCLEAN_DASK_SCHEDULER=tcp://host:8786` the tiles go to that cluster instead; its workers must
 read the survey's files and write the job folders at the same paths (a shared volume) and run
 this package.

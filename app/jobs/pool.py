@@ -14,6 +14,11 @@ restart it, so a runaway job could outlive any number of cancels.
 The pool also owns the tile workers (`app.jobs.cluster`): unless a Dask scheduler is configured,
 it starts one local cluster of `settings.workers` processes and gives its address to the job
 workers, so every job's tiles share them; it closes the cluster when it stops.
+
+Both start on demand: when the supervisor first sees a queued job, not with the server. Each
+process imports torch and the pipelines (about 4 s of CPU); a server that serves labels, review
+and exports without running a job never pays for them (and starts in half the time), and the
+first job waits those seconds in `queued`. Once started they stay.
 """
 
 from __future__ import annotations
@@ -34,7 +39,7 @@ from app.core.settings import Settings
 from app.jobs.cluster import close_cluster, embedded_cluster
 from app.jobs.worker import discard_outputs, worker_main
 from app.store.db import make_engine
-from app.store.jobs import cancel_requests, finish, mark_interrupted
+from app.store.jobs import any_queued, cancel_requests, finish, mark_interrupted
 from app.store.models import JobStatus
 
 log = logging.getLogger(__name__)
@@ -67,6 +72,9 @@ class WorkerPool:
         self._cancel_seen: dict[int, float] = {}  # job id -> when the supervisor first saw it
         self._cluster: LocalCluster | None = None  # the embedded tile workers
         self._worker_settings = settings  # what job workers get: with the cluster's address
+        self._staffed = False  # the workers were started (for the first queued job)
+        self._staff_after = 0.0  # monotonic time of the next try after a failed start
+        self._staff_backoff = 0.0
 
     @property
     def engine(self) -> Engine:
@@ -80,14 +88,28 @@ class WorkerPool:
         with self._lock:
             return [s.process.pid for s in self._slots if s.process and s.process.is_alive()]
 
-    def start(self) -> WorkerPool:
-        """Jobs left running by a previous server -> interrupted; then start the workers."""
+    def start(self, on_demand: bool = True) -> WorkerPool:
+        """Jobs left running by a previous server -> interrupted; then the supervisor, which
+        starts the workers (and the local tile cluster) for the first queued job, or now when
+        not `on_demand`."""
         if self._thread is not None:
             raise RuntimeError("the worker pool is already started")
         interrupted = mark_interrupted(self.engine)
         if interrupted:
             log.warning("%d job(s) were running when the server stopped: interrupted", interrupted)
         self.settings.jobs_dir.mkdir(parents=True, exist_ok=True)
+        self._stopping.clear()
+        if not on_demand:
+            with self._lock:
+                self._staff()
+        self._thread = threading.Thread(
+            target=self._supervise, name="mmsclean-job-supervisor", daemon=True
+        )
+        self._thread.start()
+        return self
+
+    def _staff(self) -> None:
+        """Start the tile cluster (unless a scheduler is configured) and the job workers."""
         if self.settings.dask_scheduler is None:
             self._cluster = embedded_cluster(self.settings)
             address = self._cluster.scheduler_address
@@ -96,17 +118,11 @@ class WorkerPool:
                 "tile workers: %d local processes at %s, Dask dashboard %s (loopback only)",
                 self.settings.workers, address, self._cluster.dashboard_link,
             )  # fmt: skip
-        self._stopping.clear()
-        with self._lock:
-            self._slots = [_Slot() for _ in range(self.settings.workers)]
-            for slot in self._slots:
-                self._spawn(slot)
-        self._thread = threading.Thread(
-            target=self._supervise, name="mmsclean-job-supervisor", daemon=True
-        )
-        self._thread.start()
+        self._slots = [_Slot() for _ in range(self.settings.workers)]
+        for slot in self._slots:
+            self._spawn(slot)
+        self._staffed = True
         log.info("started %d job worker(s)", self.settings.workers)
-        return self
 
     def stop(self, timeout: float = STOP_TIMEOUT_S) -> None:
         """Stop the workers; the jobs they were running become interrupted (resumable)."""
@@ -116,7 +132,7 @@ class WorkerPool:
             self._thread = None
         with self._lock:
             processes = [s.process for s in self._slots if s.process is not None]
-            self._slots = []
+            self._slots, self._staffed = [], False
         for process in processes:
             if process.is_alive():
                 process.terminate()
@@ -158,10 +174,30 @@ class WorkerPool:
                 with self._lock:
                     if self._stopping.is_set():
                         return
+                    if not self._staffed:
+                        self._staff_when_queued()
+                        continue
                     self._replace_dead_workers()
                 self._enforce_cancels()
             except Exception:  # the supervisor must outlive a locked database or the like
                 log.exception("job supervisor")
+
+    def _staff_when_queued(self) -> None:
+        """The workers for the first queued job; a failed start (a cluster that did not come
+        up) is logged and tried again with back-off, the job waiting in `queued`."""
+        now = time.monotonic()
+        if now < self._staff_after or not any_queued(self.engine):
+            return
+        try:
+            self._staff()
+        except Exception:
+            self._staff_backoff = min(max(2 * self._staff_backoff, 1.0), MAX_BACKOFF_S)
+            self._staff_after = now + self._staff_backoff
+            log.exception("could not start the job workers; trying again in %.0f s",
+                          self._staff_backoff)  # fmt: skip
+            if self._cluster is not None:
+                close_cluster(self._cluster)
+                self._cluster, self._worker_settings = None, self.settings
 
     def _replace_dead_workers(self) -> None:
         now = time.monotonic()

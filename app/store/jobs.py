@@ -93,6 +93,13 @@ def claim_next(engine: Engine, worker_pid: int) -> Job | None:
         return session.get(Job, job_id)
 
 
+def any_queued(engine: Engine) -> bool:
+    """Whether a job waits for a worker (the pool starts its workers for the first one)."""
+    waiting = sa.select(Job.id).where(Job.status == JobStatus.queued).limit(1)
+    with engine.connect() as conn:
+        return conn.execute(waiting).first() is not None
+
+
 def set_workdir(engine: Engine, job_id: int, log_path: str, result_path: str) -> None:
     with engine.begin() as conn:
         conn.execute(_update(Job.id == job_id).values(log_path=log_path, result_path=result_path))

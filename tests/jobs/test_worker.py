@@ -253,6 +253,29 @@ def _alive(pid: int) -> bool:
     return state not in ("Z", "X")  # a zombie is dead, only not yet reaped
 
 
+def test_workers_start_for_the_first_queued_job(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A pool without work holds no processes; the first queued job starts them (and the
+    local tile cluster), and they stay for the next one."""
+    monkeypatch.setenv(EXTRA_TASK_MODULES_ENV, SAMPLE_TASKS)
+    settings = make_settings(tmp_path / "var", 1)
+    engine = make_engine(settings.database_url)
+    init_db(engine)
+    pool = WorkerPool(settings, engine).start()
+    try:
+        time.sleep(4 * pool_module.SUPERVISE_S)
+        assert pool.pids == [] and pool._cluster is None
+        first = wait_for(engine, submit(engine, "test:steps", {"steps": 2}), ended)
+        assert first.status == JobStatus.succeeded and pool.pids == [first.worker_pid]
+        assert pool._cluster is not None  # the tile workers came with the job workers
+        second = wait_for(engine, submit(engine, "test:steps", {"steps": 2}), ended)
+        assert second.worker_pid == first.worker_pid
+    finally:
+        pool.stop()
+    assert pool.pids == [] and pool._cluster is None
+
+
 def test_workers_die_with_a_killed_server(tmp_path: Path) -> None:
     """kill -9 of the process that owns the pool takes its workers with it."""
     script = textwrap.dedent(
@@ -264,7 +287,7 @@ def test_workers_die_with_a_killed_server(tmp_path: Path) -> None:
         settings = Settings(data_dir={str(tmp_path / "var")!r}, sample_dir=None, workers=2)
         engine = make_engine(settings.database_url)
         init_db(engine)
-        pool = WorkerPool(settings, engine).start()
+        pool = WorkerPool(settings, engine).start(on_demand=False)
         print(*pool.pids, flush=True)
         time.sleep(600)
         """
