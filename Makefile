@@ -36,9 +36,12 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff format --check app tests bench
 	$(VENV)/bin/lint-imports --no-cache
 
-# pytest exits 5 when it collected no tests: that is a failure here, never a pass.
+# pytest exits 5 when it collected no tests: that is a failure here, never a pass. The tests run
+# in PYTEST_WORKERS processes (pytest-xdist, a test file per process at a time): servers, browsers
+# and sleeps leave a core idle that the other file's pipeline uses.
+PYTEST_WORKERS ?= 2
 test: system-deps $(STAMP) lint
-	@$(PY) -m pytest -q; rc=$$?; \
+	@$(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing"; exit 1; fi; exit $$rc
 
 run: system-deps $(STAMP)

@@ -198,7 +198,7 @@ def test_stop_interrupts_and_a_new_pool_resumes(
     init_db(engine)
     pool = WorkerPool(settings, engine).start()
     try:
-        job_id = submit(engine, "test:steps", {"steps": 300, "delay": 0.05})
+        job_id = submit(engine, "test:steps", {"steps": 100, "delay": 0.05})
         wait_for(engine, job_id, lambda j: j.status == JobStatus.running and j.progress > 0)
     finally:
         pool.stop()

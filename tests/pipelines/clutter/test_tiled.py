@@ -32,7 +32,9 @@ CONFIG = ClutterConfig(mode="dynamic", use_camera=False, max_range=40.0, threads
 @pytest.fixture(scope="module")
 def street(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("clutter-tiles") / "sim"
-    simulate(SimulationConfig(scene="urban", length=40.0, seed=3, scanner="hdl64"), out)
+    simulate(
+        SimulationConfig(scene="urban", length=40.0, seed=3, scanner="hdl64", camera=False), out
+    )
     return out
 
 
