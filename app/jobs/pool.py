@@ -118,10 +118,17 @@ class WorkerPool:
                 "tile workers: %d local processes at %s, Dask dashboard %s (loopback only)",
                 self.settings.workers, address, self._cluster.dashboard_link,
             )  # fmt: skip
-        self._slots = [_Slot() for _ in range(self.settings.workers)]
-        for slot in self._slots:
-            self._spawn(slot)
-        self._staffed = True
+        slots = [_Slot() for _ in range(self.settings.workers)]
+        try:
+            for slot in slots:
+                self._spawn(slot)
+        except Exception:  # no half-staffed pool: the next try starts them all again
+            for slot in slots:
+                if slot.process is not None and slot.process.is_alive():
+                    slot.process.kill()
+                    slot.process.join()
+            raise
+        self._slots, self._staffed = slots, True
         log.info("started %d job worker(s)", self.settings.workers)
 
     def stop(self, timeout: float = STOP_TIMEOUT_S) -> None:

@@ -82,6 +82,8 @@ def test_shown_points_hold_what_the_clouds_show(opened) -> None:
     the memory-mapped map) are the map's, point for point, in the order the client got them."""
     connection, _, _ = opened
     mode = connection.mode
+    # the tile is drawn when the client's first camera reaches the session, after the overview
+    connection.wait(lambda m: is_point_cloud(m) and m.get("name") == f"/{mode.key}/tile")
     for name in ("overview", "tile"):
         shown = mode.shown[name]
         assert len(shown) and shown.xyz.dtype == np.float32 and shown.xyz.flags.c_contiguous
