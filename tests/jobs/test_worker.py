@@ -189,13 +189,19 @@ def test_a_dead_worker_interrupts_its_job_and_is_replaced(
     assert after.status == JobStatus.succeeded
 
 
-def test_stop_interrupts_and_a_new_pool_resumes(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def one_worker_database(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> tuple[Settings, Engine]:
+    """Settings of one worker and their new database, the sample tasks registered."""
     monkeypatch.setenv(EXTRA_TASK_MODULES_ENV, SAMPLE_TASKS)
     settings = make_settings(tmp_path / "var", 1)
     engine = make_engine(settings.database_url)
     init_db(engine)
+    return settings, engine
+
+
+def test_stop_interrupts_and_a_new_pool_resumes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    settings, engine = one_worker_database(tmp_path, monkeypatch)
     pool = WorkerPool(settings, engine).start()
     try:
         job_id = submit(engine, "test:steps", {"steps": 100, "delay": 0.05})
@@ -258,10 +264,7 @@ def test_workers_start_for_the_first_queued_job(
 ) -> None:
     """A pool without work holds no processes; the first queued job starts them (and the
     local tile cluster), and they stay for the next one."""
-    monkeypatch.setenv(EXTRA_TASK_MODULES_ENV, SAMPLE_TASKS)
-    settings = make_settings(tmp_path / "var", 1)
-    engine = make_engine(settings.database_url)
-    init_db(engine)
+    settings, engine = one_worker_database(tmp_path, monkeypatch)
     pool = WorkerPool(settings, engine).start()
     try:
         time.sleep(4 * pool_module.SUPERVISE_S)
