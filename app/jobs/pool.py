@@ -109,7 +109,8 @@ class WorkerPool:
         return self
 
     def _staff(self) -> None:
-        """Start the tile cluster (unless a scheduler is configured) and the job workers."""
+        """Start the tile cluster (unless a scheduler is configured) and the job workers; on a
+        failure, nothing of them is left running."""
         if self.settings.dask_scheduler is None:
             self._cluster = embedded_cluster(self.settings)
             address = self._cluster.scheduler_address
@@ -127,9 +128,16 @@ class WorkerPool:
                 if slot.process is not None and slot.process.is_alive():
                     slot.process.kill()
                     slot.process.join()
+            self._close_cluster()
             raise
         self._slots, self._staffed = slots, True
         log.info("started %d job worker(s)", self.settings.workers)
+
+    def _close_cluster(self) -> None:
+        """Close the embedded tile cluster, if one runs; job workers get the plain settings."""
+        if self._cluster is not None:
+            close_cluster(self._cluster)
+            self._cluster, self._worker_settings = None, self.settings
 
     def stop(self, timeout: float = STOP_TIMEOUT_S) -> None:
         """Stop the workers; the jobs they were running become interrupted (resumable)."""
@@ -157,9 +165,7 @@ class WorkerPool:
             )
             if stopped:
                 log.warning("%d running job(s) interrupted by the shutdown", stopped)
-        if self._cluster is not None:
-            close_cluster(self._cluster)
-            self._cluster, self._worker_settings = None, self.settings
+        self._close_cluster()
         if self._own_engine and self._engine is not None:
             self._engine.dispose()
             self._engine = None
@@ -202,9 +208,6 @@ class WorkerPool:
             self._staff_after = now + self._staff_backoff
             log.exception("could not start the job workers; trying again in %.0f s",
                           self._staff_backoff)  # fmt: skip
-            if self._cluster is not None:
-                close_cluster(self._cluster)
-                self._cluster, self._worker_settings = None, self.settings
 
     def _replace_dead_workers(self) -> None:
         now = time.monotonic()
