@@ -213,40 +213,66 @@ def train_clutter_shapes(
     sim_seeds: Annotated[str, typer.Option(help="training simulator seeds")] = "301-328",
     validation_seeds: Annotated[str, typer.Option(help="validation seeds")] = "329-335",
     epochs: Annotated[int, typer.Option(help="epochs of the classifier")] = 30,
+    scenes: Annotated[
+        str | None,
+        typer.Option(help="the simulated scenes a seed cycles through (seed % count), by commas"),
+    ] = None,
+    semantickitti: Annotated[
+        list[Path] | None,
+        typer.Option(help="labelled SemanticKITTI sequence folder to learn from too (repeatable)"),
+    ] = None,
+    real_weight: Annotated[
+        float,
+        typer.Option(min=1.0, max=1000.0, help="weight of a real cluster beside a simulated"),
+    ] = 10.0,
 ) -> None:
     """Train the clutter pipeline's vehicle shape classifier (rotating scanners) on simulated
-    streets: object-sized clusters labelled vehicle or other by the simulator, 3D only."""
+    streets (object-sized clusters labelled vehicle or other by the simulator, 3D only) and on
+    the clusters of labelled real sequences, if given."""
+    from app.core.errors import ConfigError
+    from app.io import open_survey
     from app.pipelines.clutter.shapes import ROTATING_MODEL
     from app.pipelines.clutter.training.shapes import (
         LENGTH,
         SCENES,
         THRESHOLD,
+        labelled_samples,
         samples,
+        scene_cycle,
         scores,
         train_shapes,
+        with_real,
     )
 
     seeds = seed_list("--sim-seeds", sim_seeds)
     validation = seed_list("--validation-seeds", validation_seeds)
     if set(seeds) & set(validation):
-        from app.core.errors import ConfigError
-
         raise ConfigError("--validation-seeds", "the validation seeds overlap the training seeds")
+    for folder in semantickitti or []:
+        if not (folder / "velodyne").is_dir() or not (folder / "labels").is_dir():
+            raise ConfigError(
+                "--semantickitti", f"{folder} is not a labelled SemanticKITTI sequence"
+            )
+    cycle = scene_cycle(scenes) if scenes else SCENES
     out = out or ROTATING_MODEL
     with stage_progress("training") as progress:
         progress("simulated streets", 0.0)
-        inputs, y = samples(seeds)
-        valid_inputs, vy = samples(validation)
+        simulated = samples(seeds, scenes=cycle)
+        valid_inputs, vy, _ = samples(validation, scenes=cycle)
+        real = labelled_samples([open_survey(f, "semantickitti") for f in semantickitti or []])
+        inputs, y, weight = with_real(simulated, real, real_weight)
         progress("training", 0.5)
         card = {
             "sensor_kind": "rotating",
-            "simulation": {"scanner": "hdl64", "vary_scanner": True, "seeds": seed_list(
-                "--sim-seeds", sim_seeds), "validation_seeds": validation, "scenes": list(SCENES),
-                "length_m": LENGTH},
+            "simulation": {"scanner": "hdl64", "vary_scanner": True, "seeds": seeds,
+                "validation_seeds": validation, "scenes": list(cycle), "length_m": LENGTH},
+            "real": {"sequences": [f.name for f in semantickitti or []],
+                "clusters": int(len(real[1])), "vehicles": int(real[1].sum()),
+                "weight": real_weight},
             "threshold": THRESHOLD,
             "epochs": epochs,
         }  # fmt: skip
-        model = train_shapes(inputs, y, epochs, card=card)
+        model = train_shapes(inputs, y, epochs, card=card, weight=weight)
         model.card["training"] = scores(model, inputs, y, THRESHOLD)
         model.card["validation"] = scores(model, valid_inputs, vy, THRESHOLD)
         model.save(out)
