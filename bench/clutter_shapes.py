@@ -96,6 +96,7 @@ def main() -> int:
     parser.add_argument("--sequences", default="04,05,08")
     parser.add_argument("--loso", default="", help="simulated seeds of the LOSO networks")
     parser.add_argument("--scenes", default=",".join(SCENES), help="the scene cycle of both")
+    parser.add_argument("--vegetation", action="store_true", help="both with hedges, bushes")
     parser.add_argument("--real-weight", type=float, default=10.0)
     parser.add_argument("--epochs", type=int, default=30)
     parser.add_argument("--no-record", action="store_true")
@@ -105,7 +106,12 @@ def main() -> int:
     sets: list[tuple[str, ShapeInputs, np.ndarray, np.ndarray]] = []
     seeds = seed_list("--sim-seeds", args.sim_seeds)
     if seeds:
-        sets.append((f"simulated, seeds {args.sim_seeds}", *samples(seeds, scenes=scenes)))
+        sets.append(
+            (
+                f"simulated, seeds {args.sim_seeds}",
+                *samples(seeds, scenes=scenes, vegetation=args.vegetation),
+            )
+        )
     real = os.environ.get("MMSCLEAN_REAL_DATA")
     names = [s.strip() for s in args.sequences.split(",") if s.strip()]
     if names and not real:
@@ -129,7 +135,9 @@ def main() -> int:
         for name, inputs, y, classes in sets:
             rows.append(row(Path(path).name, name, model.probability(inputs), y, classes))
     if args.loso:
-        simulated = samples(seed_list("--loso", args.loso), scenes=scenes)
+        simulated = samples(
+            seed_list("--loso", args.loso), scenes=scenes, vegetation=args.vegetation
+        )
         for name, inputs, y, classes in sets[len(sets) - len(surveys) :]:
             held_out = name.rsplit(" ", 1)[1]
             others = [n for n in surveys if n != held_out]

@@ -149,3 +149,36 @@ def test_train_phantom_options_are_bounded(tmp_path: Path) -> None:
     )
     assert_one_line_error(result, "--per-class: Input should be less than or equal to 1000000")
     assert not (tmp_path / "m.pt").exists()
+
+
+def test_train_clutter_shapes_learns_from_simulated_and_real_streets(
+    tmp_path: Path, real_data: Path
+) -> None:
+    """One simulated street per set, with hedges and bushes, and a real labelled sequence: the
+    checkpoint's card says what it learnt from."""
+    out = tmp_path / "shapes.pt"
+    sequence = real_data / "semantickitti" / "sequences" / "05"
+    result = mmsclean(
+        "train", "clutter-shapes", "--out", str(out), "--sim-seeds", "1", "--validation-seeds",
+        "2", "--epochs", "1", "--scenes", "urban", "--vegetation", "--semantickitti",
+        str(sequence), "--real-weight", "5",
+        env={"MMSCLEAN_DATA_DIR": str(tmp_path / "data")},
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    card = json.loads(out.with_suffix(".json").read_text())
+    assert card["simulation"]["scenes"] == ["urban"] and card["simulation"]["vegetation"]
+    assert card["real"]["sequences"] == ["05"] and card["real"]["weight"] == 5.0
+    assert card["real"]["vehicles"] > 0 and card["validation"]["samples"] > 0
+
+
+def test_train_clutter_shapes_names_a_bad_option(tmp_path: Path) -> None:
+    out = str(tmp_path / "shapes.pt")
+    not_a_sequence = tmp_path / "nothing"
+    not_a_sequence.mkdir()
+    result = mmsclean(
+        "train", "clutter-shapes", "--out", out, "--semantickitti", str(not_a_sequence)
+    )
+    assert_one_line_error(result, "--semantickitti", "is not a labelled SemanticKITTI sequence")
+    result = mmsclean("train", "clutter-shapes", "--out", out, "--scenes", "urban,forest")
+    assert_one_line_error(result, "--scenes", "forest")
+    assert not (tmp_path / "shapes.pt").exists()

@@ -217,6 +217,9 @@ def train_clutter_shapes(
         str | None,
         typer.Option(help="the simulated scenes a seed cycles through (seed % count), by commas"),
     ] = None,
+    vegetation: Annotated[
+        bool, typer.Option(help="simulated streets with hedges and bushes (leaves, not shells)")
+    ] = False,
     semantickitti: Annotated[
         list[Path] | None,
         typer.Option(help="labelled SemanticKITTI sequence folder to learn from too (repeatable)"),
@@ -257,15 +260,16 @@ def train_clutter_shapes(
     out = out or ROTATING_MODEL
     with stage_progress("training") as progress:
         progress("simulated streets", 0.0)
-        simulated = samples(seeds, scenes=cycle)
-        valid_inputs, vy, _ = samples(validation, scenes=cycle)
+        simulated = samples(seeds, scenes=cycle, vegetation=vegetation)
+        valid_inputs, vy, _ = samples(validation, scenes=cycle, vegetation=vegetation)
         real = labelled_samples([open_survey(f, "semantickitti") for f in semantickitti or []])
         inputs, y, weight = with_real(simulated, real, real_weight)
         progress("training", 0.5)
         card = {
             "sensor_kind": "rotating",
             "simulation": {"scanner": "hdl64", "vary_scanner": True, "seeds": seeds,
-                "validation_seeds": validation, "scenes": list(cycle), "length_m": LENGTH},
+                "validation_seeds": validation, "scenes": list(cycle), "length_m": LENGTH,
+                "vegetation": vegetation},
             "real": {"sequences": [f.name for f in semantickitti or []],
                 "clusters": int(len(real[1])), "vehicles": int(real[1].sum()),
                 "weight": real_weight},

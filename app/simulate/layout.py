@@ -225,6 +225,33 @@ def street_furniture(
             )
 
 
+def roadside_vegetation(b: SceneBuilder, cs: CrossSection, s0: float, s1: float, dz: float) -> None:
+    """Hedges and bushes in front of the buildings on both sides, with gaps, and now and then a
+    bush on the verge between the trees: the scattered, car-sized leaf masses that real streets
+    have and a smooth crown does not show (`objects.bush`, `objects.hedge`)."""
+    for side in (1.0, -1.0):
+        s = s0 + b.rng.uniform(0.0, 6.0)
+        while s < s1:
+            if b.rng.random() < 0.5:
+                length = b.rng.uniform(2.0, 8.0)
+                plant = objects.hedge(b.rng, length)
+            else:
+                plant = objects.bush(b.rng)
+                length = plant.size[0]
+            depth = plant.size[1]
+            lateral = side * (cs.sidewalk_edge - 0.5 * depth - b.rng.uniform(0.1, 0.4))
+            station = s + 0.5 * length
+            yaw = b.rng.uniform(-0.2, 0.2) if plant.kind == "bush" else 0.0
+            placed = b.place(plant.meshes["foliage"], station, lateral, yaw, dz)
+            b.thing(plant.kind, [(placed, Semantic.VEGETATION)])
+            s += length + b.rng.uniform(1.0, 10.0)
+        for s in b.rng.uniform(s0, s1, size=int(b.rng.integers(1, 4))):
+            plant = objects.bush(b.rng)
+            lateral = side * (cs.outer_edge + 0.3 * (cs.sidewalk_edge - cs.outer_edge))
+            placed = b.place(plant.meshes["foliage"], s, lateral, 0.0, dz)
+            b.thing("bush", [(placed, Semantic.VEGETATION)])
+
+
 def parked_vehicles(
     b: SceneBuilder, lateral: float, s0: float, s1: float, facing: float, fill: float = 0.75
 ) -> None:
@@ -480,11 +507,16 @@ def interchange(b: SceneBuilder, cs: CrossSection, s0: float, s1: float, length:
 
 
 def build_scene(
-    preset: str, length: float, rng: np.random.Generator, drive_speed: float | None = None
+    preset: str,
+    length: float,
+    rng: np.random.Generator,
+    drive_speed: float | None = None,
+    vegetation: bool = False,
 ) -> Scene:
     """The street of `preset`, `length` metres, drawn from `rng`. The survey vehicle's speed
     is drawn too; `drive_speed` replaces the drawn value (drawn all the same, so that the rest
-    of the street is the seed's)."""
+    of the street is the seed's). `vegetation` adds hedges and bushes along a town street,
+    drawn after everything else (the rest of the street stays the seed's)."""
     if preset not in PRESETS:
         raise ValueError(f"unknown scene preset {preset!r}: {', '.join(PRESETS)}")
     highway = preset in ("highway", "interchange")
@@ -533,6 +565,8 @@ def build_scene(
             light = mixed_traffic(b, drive, cs, length)
         else:
             urban_traffic(b, drive, cs, length)
+        if vegetation:
+            roadside_vegetation(b, cs, s0, s1, dz=CURB_HEIGHT)
     return Scene(
         name=f"{preset}-{length:g}m",
         seed=-1,  # set by the caller that knows the seed (survey.rebuild_scene)

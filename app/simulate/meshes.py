@@ -302,3 +302,29 @@ def ellipsoid(
         )
         V = np.concatenate([V, mids])
     return Mesh(V * np.asarray(radii, dtype=np.float64) + np.asarray(center, dtype=np.float64), F)
+
+
+def foliage(
+    radii: np.ndarray | tuple[float, float, float],
+    rng: np.random.Generator,
+    roundness: float = 2.0,
+    leaf: float = 0.08,
+    leaves_per_m3: float = 2000.0,
+) -> Mesh:
+    """Leaves: small triangles of random orientation filling a lumpy volume about the origin,
+    so a laser ray goes some way in before one stops it (a bush's scattered returns, not a
+    smooth shell). The volume is |x/a|^p + |y/b|^p + |z/c|^p <= 1 with p = `roundness` (2 an
+    ellipsoid, 4 a trimmed hedge), its boundary pushed in and out by a few random waves."""
+    radii = np.asarray(radii, dtype=np.float64)
+    volume = 8.0 * float(np.prod(radii))
+    drawn = rng.uniform(-1.0, 1.0, (int(leaves_per_m3 * volume * 0.6) + 1, 3))
+    waves = rng.normal(size=(4, 3))
+    phase = rng.uniform(0.0, 2.0 * np.pi, 4)
+    lump = 1.0 + 0.08 * np.cos(drawn @ waves.T * np.pi + phase).sum(axis=1)
+    inside = (np.abs(drawn) ** roundness).sum(axis=1) <= lump**roundness
+    centres = drawn[inside] * radii
+    n = len(centres)
+    a = unit_rows(rng.normal(size=(n, 3)))
+    b = unit_rows(np.cross(a, rng.normal(size=(n, 3))))
+    vertices = np.stack([centres, centres + leaf * a, centres + leaf * b], axis=1)
+    return Mesh(vertices.reshape(-1, 3), np.arange(3 * n, dtype=np.int32).reshape(n, 3))

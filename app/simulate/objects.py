@@ -18,7 +18,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from app.simulate.meshes import box, cylinder, ellipsoid, extrude_polygon, sweep_profile, tube
+from app.simulate.meshes import (
+    box,
+    cylinder,
+    ellipsoid,
+    extrude_polygon,
+    foliage,
+    sweep_profile,
+    tube,
+)
 from app.simulate.scene import Mesh
 
 
@@ -420,6 +428,23 @@ def tree(rng: np.random.Generator) -> StreetObject:
     crown = ellipsoid((0.0, 0.0, h_t + 0.85 * Rv), (R, R * rng.uniform(0.9, 1.1), Rv), 2)
     params = {"trunk_radius": r_t, "trunk_height": h_t, "crown_radius": R, "crown_height": Rv}
     return _finish("tree", {"trunk": trunk, "crown": crown}, params)
+
+
+def bush(rng: np.random.Generator) -> StreetObject:
+    """A free-grown bush: a round mass of leaves 0.8-2.5 m across, 0.6-1.8 m tall
+    (`meshes.foliage`), standing on the ground."""
+    width, height = rng.uniform(0.8, 2.5), rng.uniform(0.6, 1.8)
+    radii = (0.5 * width * rng.uniform(0.8, 1.4), 0.5 * width, 0.5 * height)
+    leaves = foliage(radii, rng, roundness=2.0)
+    return _finish("bush", {"foliage": leaves}, {"width": width, "height": height})
+
+
+def hedge(rng: np.random.Generator, length: float) -> StreetObject:
+    """A trimmed hedge `length` long (local x), 0.5-1.2 m deep, 0.8-2.0 m tall: leaves in a
+    boxy volume (`meshes.foliage`, roundness 4)."""
+    depth, height = rng.uniform(0.5, 1.2), rng.uniform(0.8, 2.0)
+    leaves = foliage((0.5 * length, 0.5 * depth, 0.5 * height), rng, roundness=4.0)
+    return _finish("hedge", {"foliage": leaves}, {"depth": depth, "height": height})
 
 
 def pole(rng: np.random.Generator, arm: bool | None = None) -> StreetObject:

@@ -43,6 +43,7 @@ from app.simulate.layout import (
     ground_strips,
     lane_markings,
     parked_vehicles,
+    roadside_vegetation,
     street_furniture,
     survey_drive,
 )
@@ -57,9 +58,14 @@ DEEP_SHADOW = 0.1  # camera brightness of a vehicle in deep shadow
 
 
 def build_situation(
-    situation: str, length: float, rng: np.random.Generator, drive_speed: float | None = None
+    situation: str,
+    length: float,
+    rng: np.random.Generator,
+    drive_speed: float | None = None,
+    vegetation: bool = False,
 ) -> Scene:
-    """The street of `situation` (module doc), `length` metres driven, drawn from `rng`."""
+    """The street of `situation` (module doc), `length` metres driven, drawn from `rng`;
+    `vegetation` adds hedges and bushes, drawn last (`layout.roadside_vegetation`)."""
     if situation not in SITUATIONS:
         raise ValueError(f"unknown situation {situation!r}: {', '.join(SITUATIONS)}")
     profile = RoadProfile(length, curves=(), grade=rng.uniform(-0.02, 0.02), hill=0.0)
@@ -79,6 +85,8 @@ def build_situation(
     speed = rng.uniform(8.0, 11.0) if drive_speed is None else drive_speed
     drive, vehicle = survey_drive(b, cs.lane_centres[0], speed, length)
     ACTORS[situation](b, drive, cs, length)
+    if vegetation:
+        roadside_vegetation(b, cs, s0, s1, dz=CURB_HEIGHT)
     return Scene(
         name=f"{situation}-{length:g}m",
         seed=-1,

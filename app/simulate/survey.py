@@ -61,6 +61,11 @@ class SimulationConfig(BaseModel):
         description="the survey vehicle's speed (m/s); default: drawn from the seed (8-11 in "
         "town, 20-25 on a highway). Fixed, surveys of several lengths differ only in length",
     )
+    vegetation: bool = Field(
+        False,
+        description="town streets: hedges and bushes in front of the buildings and on the "
+        "verge, leaves a laser ray reaches into (the rest of the street stays the seed's)",
+    )
     vary_scanner: bool = Field(
         False,
         description="hdl64: draw the rotating scanner from the seed (32 / 64 beams, azimuth "
@@ -161,7 +166,7 @@ def rebuild_scene(config: SimulationConfig) -> Scene:
     """The exact scene a simulation with this config used (tests, evaluation)."""
     rng = np.random.default_rng(_seeds(config)[0])
     build = build_situation if config.scene in SITUATIONS else build_scene
-    scene = build(config.scene, config.length, rng, config.drive_speed)
+    scene = build(config.scene, config.length, rng, config.drive_speed, config.vegetation)
     scene.seed = config.seed
     return scene
 

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from app.core.errors import InputError
+from app.core.errors import ConfigError, InputError
+from app.io import open_survey
 from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.fusion import fuse
 from app.pipelines.clutter.shapes import (
@@ -21,7 +22,14 @@ from app.pipelines.clutter.shapes import (
     shape_inputs,
 )
 from app.pipelines.clutter.tracking import Observation, track_clusters
-from app.pipelines.clutter.training.shapes import scores, street_samples, train_shapes
+from app.pipelines.clutter.training.shapes import (
+    labelled_samples,
+    scene_cycle,
+    scores,
+    street_samples,
+    train_shapes,
+    with_real,
+)
 from app.simulate.survey import SimulationConfig, simulate
 from tests.pipelines.clutter.test_steps import box_surface, one_point_per_cluster
 
@@ -103,3 +111,28 @@ def test_clutter_mode_takes_a_vehicle_shaped_track_the_camera_never_named() -> N
     off = fuse(evidence, tracks, ClutterConfig(mode="clutter", vehicle_shapes=False))
     dynamic = fuse(evidence, tracks, ClutterConfig(mode="dynamic"))
     assert not any(r.any() for r in off) and not any(r.any() for r in dynamic)
+
+
+def test_real_labelled_clusters_join_the_simulated_ones_with_their_weight(real_data: Path) -> None:
+    """Real SemanticKITTI: its trackable clusters, labelled by the reference (vehicle or other)
+    with the class most of their points hold, join simulated samples with a larger weight."""
+    survey = open_survey(real_data / "semantickitti" / "sequences" / "05", "semantickitti")
+    x, y, classes = labelled_samples([survey])
+    assert len(y) == len(classes) == len(x.features) == len(x.points) > 100
+    assert set(np.unique(classes[y == 1])) <= {10, 13, 16, 18, 20, 252, 256, 257, 258, 259}
+    assert 70 in classes[y == 0] and y.sum() > 10  # vegetation among the others, some vehicles
+    simulated = (
+        ShapeInputs(np.zeros((5, len(FEATURES)), np.float32), np.zeros((5, SHAPE_POINTS, 3))),
+        np.ones(5, np.int8),
+        np.full(5, 10, np.uint16),
+    )
+    inputs, both, weight = with_real(simulated, (x, y, classes), 10.0)
+    assert len(both) == len(weight) == len(inputs.features) == 5 + len(y)
+    assert weight[:5].tolist() == [1.0] * 5 and (weight[5:] == 10.0).all()
+    assert np.array_equal(both[5:], y)
+
+
+def test_a_scene_cycle_names_known_scenes_only() -> None:
+    assert scene_cycle("urban, shadow,parked_rows") == ("urban", "shadow", "parked_rows")
+    with pytest.raises(ConfigError, match="--scenes.*'forest'"):
+        scene_cycle("urban,forest")

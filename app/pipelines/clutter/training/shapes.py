@@ -64,19 +64,22 @@ def scene_cycle(text: str) -> tuple[str, ...]:
 
 
 def simulated_street(
-    seed: int, cache: Path | None = None, scenes: tuple[str, ...] = SCENES
+    seed: int,
+    cache: Path | None = None,
+    scenes: tuple[str, ...] = SCENES,
+    vegetation: bool = False,
 ) -> Path:
     """A cached simulated street of `seed`, its scene `scenes[seed % len(scenes)]`, no camera
-    (shapes need none)."""
+    (shapes need none), with hedges and bushes where `vegetation`."""
     from app.simulate.survey import SimulationConfig, simulate
 
     cache = cache or get_settings().cache_dir / "clutter-shapes"
     scene = scenes[seed % len(scenes)]
-    folder = cache / f"{scene}-{LENGTH:g}m-seed{seed}"
+    folder = cache / f"{scene}-{LENGTH:g}m-seed{seed}{'-vegetation' if vegetation else ''}"
     if not folder.is_dir():
         config = SimulationConfig(
             scene=scene, length=LENGTH, seed=seed, scanner="hdl64", camera=False,
-            vary_scanner=True, write_map=False,
+            vary_scanner=True, write_map=False, vegetation=vegetation,
         )  # fmt: skip
         simulate(config, folder)
     return folder
@@ -120,13 +123,8 @@ def street_samples(
         clouds.append(inputs.points[keep])
         labels.append((share[keep] >= PURE).astype(np.int8))
         classes.append(_majority_class(clusters.label[scored], semantic[scored], count)[keep])
-    if not features:
-        empty = ShapeInputs(
-            np.zeros((0, len(FEATURES)), np.float32), np.zeros((0, SHAPE_POINTS, 3), np.float32)
-        )
-        return empty, np.zeros(0, np.int8), np.zeros(0, np.uint16)
-    inputs = ShapeInputs(np.concatenate(features), np.concatenate(clouds))
-    return inputs, np.concatenate(labels), np.concatenate(classes)
+    frames = zip(features, clouds, labels, classes, strict=True)
+    return _joined([(ShapeInputs(f, c), y, k) for f, c, y, k in frames])
 
 
 def _majority_class(label: np.ndarray, semantic: np.ndarray, count: int) -> np.ndarray:
@@ -145,14 +143,17 @@ def _majority_class(label: np.ndarray, semantic: np.ndarray, count: int) -> np.n
 
 
 def samples(
-    seeds: list[int], cache: Path | None = None, scenes: tuple[str, ...] = SCENES
+    seeds: list[int],
+    cache: Path | None = None,
+    scenes: tuple[str, ...] = SCENES,
+    vegetation: bool = False,
 ) -> tuple[ShapeInputs, np.ndarray, np.ndarray]:
     """The samples of several streets (each cached next to its street): inputs, labels,
     classes as `street_samples`."""
     cache = cache or get_settings().cache_dir / "clutter-shapes"
     xs, ps, ys, cs = [], [], [], []
     for seed in seeds:
-        street = simulated_street(seed, cache, scenes)
+        street = simulated_street(seed, cache, scenes, vegetation)
         target = street.with_name(street.name + SAMPLES_SUFFIX)
         if not target.is_file():
             inputs, y, classes = street_samples(street)
@@ -174,7 +175,18 @@ def samples(
 def labelled_samples(surveys: list[Survey]) -> tuple[ShapeInputs, np.ndarray, np.ndarray]:
     """The samples of real surveys with SemanticKITTI reference labels (every frame: a real
     sequence is short and every view of an object is worth having)."""
-    parts = [street_samples(survey, step=1) for survey in surveys]
+    return _joined([street_samples(survey, step=1) for survey in surveys])
+
+
+def _joined(
+    parts: list[tuple[ShapeInputs, np.ndarray, np.ndarray]],
+) -> tuple[ShapeInputs, np.ndarray, np.ndarray]:
+    """Sample sets as one; none gives an empty set."""
+    if not parts:
+        empty = ShapeInputs(
+            np.zeros((0, len(FEATURES)), np.float32), np.zeros((0, SHAPE_POINTS, 3), np.float32)
+        )
+        return empty, np.zeros(0, np.int8), np.zeros(0, np.uint16)
     inputs = ShapeInputs(
         np.concatenate([p[0].features for p in parts]), np.concatenate([p[0].points for p in parts])
     )
