@@ -34,6 +34,7 @@ from app.pipelines.clutter.masking import mask_points
 from app.pipelines.clutter.motion import object_shape, register_many
 from app.pipelines.clutter.pipeline import ClutterPipeline, ClutterResult
 from app.pipelines.clutter.segmenter import ESPNetv2Segmenter, segmented_class_maps
+from app.pipelines.clutter.shapes import VehicleShapes
 from bench.common import append_results, markdown_table
 
 COMMAND = (
@@ -101,8 +102,10 @@ def score(seq: Sequence, removed: list[np.ndarray], in_view: list[np.ndarray]) -
     return removal_metrics(seq.semantic, np.concatenate(removed), np.concatenate(in_view))
 
 
-def run(seq: Sequence, config: ClutterConfig) -> ClutterResult:
-    return ClutterPipeline(config, seq.class_maps).run(seq.survey)
+def run(
+    seq: Sequence, config: ClutterConfig, shape_model: VehicleShapes | None = None
+) -> ClutterResult:
+    return ClutterPipeline(config, seq.class_maps, shape_model).run(seq.survey)
 
 
 def fused_grid(seqs: list[Sequence], mode: str) -> dict[tuple, dict[str, dict]]:

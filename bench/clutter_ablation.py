@@ -6,7 +6,11 @@ same run: the difference is that change's effect on streets the rules were devel
 is not the leave-one-sequence-out evaluation (bench/clutter.py chooses the grid's thresholds on
 the other sequences); it runs the shipped defaults as they are.
 
-Usage: python -m bench.clutter_ablation [--sequences 04,05,08] [--no-record]
+`--shape-models a.pt,b.pt` adds clutter-mode rows of the defaults with another vehicle shape
+classifier than the shipped one (a candidate, `mmsclean train clutter-shapes --out`).
+
+Usage: python -m bench.clutter_ablation [--sequences 04,05,08] [--shape-models a.pt,b.pt]
+[--no-record]
 Needs MMSCLEAN_REAL_DATA and MMSCLEAN_WEIGHTS_DIR.
 """
 
@@ -18,7 +22,9 @@ import sys
 from pathlib import Path
 
 from app.pipelines.clutter.config import ClutterConfig
+from app.pipelines.clutter.shapes import load_vehicle_shapes
 from bench.clutter import load, run, score
+from bench.clutter_shapes import trained_on
 from bench.clutter_situations import BEFORE, CHANGES
 from bench.common import append_results, markdown_table
 
@@ -40,6 +46,7 @@ HEADER = ["mode", "pipeline", "sequence", "SA 360", "DA 360", "AA 360", "OA view
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sequences", default="04,05,08")
+    parser.add_argument("--shape-models", default="", help="candidate shape checkpoints")
     parser.add_argument("--no-record", action="store_true")
     args = parser.parse_args()
     real = os.environ.get("MMSCLEAN_REAL_DATA")
@@ -47,21 +54,25 @@ def main() -> int:
         print("MMSCLEAN_REAL_DATA is not set", file=sys.stderr)
         return 2
     seqs = [load(Path(real), n.strip()) for n in args.sequences.split(",") if n.strip()]
+    candidates = {Path(p).name: Path(p) for p in args.shape_models.split(",") if p.strip()}
+    runs = [(mode, variant, changes, None) for mode in ("dynamic", "clutter")
+            for variant, changes in VARIANTS.items()]  # fmt: skip
+    runs += [("clutter", f"defaults, shapes {name}", {}, load_vehicle_shapes(path))
+             for name, path in candidates.items()]  # fmt: skip
     rows = []
-    for mode in ("dynamic", "clutter"):
-        for variant, changes in VARIANTS.items():
-            for seq in seqs:
-                result = run(seq, ClutterConfig(mode=mode, **changes))
-                m = score(seq, result.removed, result.in_view)
-                d = m["full"]["dynamic"]["scores"]
-                e = m["in_view"]["clutter"]["error_matrix"]
-                f = m["full"]["clutter"]["error_matrix"]
-                rows.append([mode, variant, seq.name, f"{d['SA']:.2f}", f"{d['DA']:.2f}",
-                             f"{d['AA']:.2f}", f"{e['overall_accuracy']:.2f}",
-                             f"{e['clutter_omission']:.2f}", f"{e['map_omission']:.2f}",
-                             f"{e['map_commission']:.3f}", f"{f['clutter_omission']:.2f}",
-                             f"{f['map_omission']:.2f}"])  # fmt: skip
-                print(" | ".join(rows[-1]), flush=True)
+    for mode, variant, changes, shape_model in runs:
+        for seq in seqs:
+            result = run(seq, ClutterConfig(mode=mode, **changes), shape_model)
+            m = score(seq, result.removed, result.in_view)
+            d = m["full"]["dynamic"]["scores"]
+            e = m["in_view"]["clutter"]["error_matrix"]
+            f = m["full"]["clutter"]["error_matrix"]
+            rows.append([mode, variant, seq.name, f"{d['SA']:.2f}", f"{d['DA']:.2f}",
+                         f"{d['AA']:.2f}", f"{e['overall_accuracy']:.2f}",
+                         f"{e['clutter_omission']:.2f}", f"{e['map_omission']:.2f}",
+                         f"{e['map_commission']:.3f}", f"{f['clutter_omission']:.2f}",
+                         f"{f['map_omission']:.2f}"])  # fmt: skip
+            print(" | ".join(rows[-1]), flush=True)
     table = markdown_table(HEADER, rows)
     notes = (
         "Real data, SemanticKITTI 04 / 05 / 08 (10 frames each), ESPNetv2 Cityscapes masks. "
@@ -73,11 +84,16 @@ def main() -> int:
         "(clutter and map omission). "
         "The shipped defaults, not leave-one-sequence-out: the thresholds were developed on "
         "these sequences."
-    )
+        + "".join(f" 'shapes {name}': the defaults with the vehicle shape classifier {path} "
+                  f"(its card: {trained_on(path)})." for name, path in candidates.items())
+    )  # fmt: skip
     print(f"\n{table}\n{notes}")
     if not args.no_record:
         append_results(
-            "Clutter: issue 19's changes one by one on SemanticKITTI", COMMAND, table, notes
+            "Clutter: issue 19's changes one by one on SemanticKITTI",
+            COMMAND + (f" --shape-models {args.shape_models}" if candidates else ""),
+            table,
+            notes,
         )
     return 0
 

@@ -91,9 +91,15 @@ def camera_sees_scans(survey: Survey, camera: Camera) -> bool:
 
 
 class ClutterPipeline:
-    def __init__(self, config: ClutterConfig | None = None, class_maps: ClassMaps | None = None):
+    def __init__(
+        self,
+        config: ClutterConfig | None = None,
+        class_maps: ClassMaps | None = None,
+        shape_model: VehicleShapes | None = None,
+    ):
         self.config = config or ClutterConfig()
         self.class_maps = class_maps
+        self.shape_model = shape_model  # instead of the shipped classifier (a benchmark's)
         self.shapes: VehicleShapes | None = None
         # the survey and camera name `camera` last answered for, and its answer (it samples
         # frames: a tile asks before segmenting and `run` asks again)
@@ -108,7 +114,7 @@ class ClutterPipeline:
             return None
         if detect_sensor_kind(survey).kind is not SensorKind.ROTATING:
             return None
-        return load_vehicle_shapes()
+        return self.shape_model or load_vehicle_shapes()
 
     def camera(self, survey: Survey) -> Camera | None:
         """The camera whose images are segmented; None when the survey has none, none of its
