@@ -182,3 +182,14 @@ def test_train_clutter_shapes_names_a_bad_option(tmp_path: Path) -> None:
     result = mmsclean("train", "clutter-shapes", "--out", out, "--scenes", "urban,forest")
     assert_one_line_error(result, "--scenes", "forest")
     assert not (tmp_path / "shapes.pt").exists()
+
+
+def test_simulate_a_street_with_hedges_and_bushes(tmp_path: Path) -> None:
+    out = tmp_path / "street"
+    result = mmsclean(
+        "simulate", "--out", str(out), "--length", "10", "--seed", "1", "--no-camera",
+        "--vegetation",
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    objects = json.loads((out / "ground_truth" / "scene.json").read_text())["objects"]
+    assert {"hedge", "bush"} & {o["name"] for o in objects}

@@ -67,6 +67,9 @@ def simulate(
     drive_speed: Annotated[
         float | None, typer.Option(help="the survey vehicle's speed, m/s (default: the seed's)")
     ] = None,
+    vegetation: Annotated[
+        bool, typer.Option(help="town streets: hedges and bushes along the sidewalks")
+    ] = False,
     overwrite: Annotated[bool, typer.Option(help="replace OUT if it exists")] = False,
 ) -> None:
     """Simulate a mobile-mapping survey with complete ground truth."""
@@ -87,6 +90,7 @@ def simulate(
         write_map=write_map,
         compressed=compressed,
         drive_speed=drive_speed,
+        vegetation=vegetation,
     )
     with Progress(console=err_console, transient=True) as bar:
         task = bar.add_task(f"simulating {config.scene} ({config.scanner})", total=None)
