@@ -41,6 +41,10 @@ HIDDEN = 32
 SHAPE_POINTS = 128  # points per cluster the point branch sees (drawn with repeats when fewer)
 POINT_WIDTHS = (32, 64, 128)  # the shared per-point MLP
 BATCH = 1024  # clusters per forward pass
+# metres: a vehicle seen from any side spans at least its width (>= 1.4 m for the narrowest
+# car) along one of its axes; a narrower cluster (a pole, a sign, a trunk) is none, whatever the
+# network says (on real scans it has called such clusters vehicles)
+MIN_VEHICLE_SPAN = 1.2
 # the four mirror images of a cluster's own frame (its long axis has no front, no left)
 MIRRORS = ((1.0, 1.0), (-1.0, 1.0), (1.0, -1.0), (-1.0, -1.0))
 
@@ -164,10 +168,12 @@ class VehicleShapes:
 
     def probability(self, inputs: ShapeInputs) -> np.ndarray:
         """(C,) P(vehicle) per cluster, the mean logit of its four mirror images; clusters
-        without inputs (NaN rows) give 0."""
+        without inputs (NaN rows) or narrower than `MIN_VEHICLE_SPAN` give 0."""
         features, points = inputs.features, inputs.points
         out = np.zeros(len(features), dtype=np.float32)
         ok = np.isfinite(features).all(axis=1) & np.isfinite(points).all(axis=(1, 2))
+        span = np.fmax(features[:, FEATURES.index("length")], features[:, FEATURES.index("width")])
+        ok &= span >= MIN_VEHICLE_SPAN
         if not ok.any():
             return out
         x = torch.from_numpy(((features[ok] - self.mean) / self.std).astype(np.float32))
