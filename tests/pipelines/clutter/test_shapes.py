@@ -15,9 +15,12 @@ from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.fusion import fuse
 from app.pipelines.clutter.shapes import (
     FEATURES,
+    MIN_VEHICLE_SPAN,
     ROTATING_MODEL,
     SHAPE_POINTS,
     ShapeInputs,
+    ShapeNet,
+    VehicleShapes,
     load_vehicle_shapes,
     shape_inputs,
 )
@@ -62,6 +65,7 @@ def test_a_trained_classifier_round_trips_and_a_bad_file_is_one_line(tmp_path: P
     rng = np.random.default_rng(0)
     features = rng.normal(size=(400, len(FEATURES))).astype(np.float32)
     y = (features[:, 2] > 0).astype(np.int8)  # "long ones are vehicles"
+    features[:, FEATURES.index("width")] = 2.0  # all as wide as a vehicle (MIN_VEHICLE_SPAN)
     # ... and their points reach far along their axis
     points = rng.uniform(-0.5, 0.5, (400, SHAPE_POINTS, 3)).astype(np.float32)
     points[:, :, 0] *= np.where(y == 1, 4.0, 1.0)[:, None]
@@ -136,3 +140,25 @@ def test_a_scene_cycle_names_known_scenes_only() -> None:
     assert scene_cycle("urban, shadow,parked_rows") == ("urban", "shadow", "parked_rows")
     with pytest.raises(ConfigError, match="--scenes.*'forest'"):
         scene_cycle("urban,forest")
+
+
+def test_a_cluster_narrower_than_any_vehicle_is_none_whatever_the_network_says() -> None:
+    """A network sure that everything is a vehicle still gives a pole or a sign plate 0: a
+    vehicle spans at least MIN_VEHICLE_SPAN along one of its axes, seen from any side."""
+    car = box_surface((12, 3, 0.9), (4.4, 1.8, 1.4), step=0.1)
+    car_end = box_surface((12, -6, 0.9), (0.3, 1.6, 1.4), step=0.05)  # a car seen from behind
+    pole = box_surface((8, -4, 1.5), (0.2, 0.2, 3.0), step=0.05)
+    xyz = np.r_[car, car_end, pole]
+    label = np.repeat([0, 1, 2], [len(car), len(car_end), len(pole)]).astype(np.int32)
+    inputs = shape_inputs(xyz, label, xyz[:, 2].copy(), np.ones(3, bool))
+    net = ShapeNet(len(FEATURES))
+    with torch.no_grad():
+        for parameter in net.parameters():
+            parameter.zero_()
+        net.head[-1].bias.fill_(10.0)  # every cluster a vehicle
+    sure = VehicleShapes(
+        net, np.zeros(len(FEATURES), np.float32), np.ones(len(FEATURES), np.float32), {}
+    )
+    p = sure.probability(inputs)
+    assert p[0] > 0.99 and p[1] > 0.99 and p[2] == 0.0
+    assert MIN_VEHICLE_SPAN < 1.4  # the narrowest car's width
