@@ -74,7 +74,9 @@ def trained_on(path: Path) -> str:
     real = (card.get("real") or {}).get("sequences") or []
     return (
         f"{path.name}: simulated seeds {min(seeds)}-{max(seeds)}, scenes "
-        f"{', '.join(sim.get('scenes', []))}" + (f", real {'+'.join(real)}" if real else "")
+        f"{', '.join(sim.get('scenes', []))}"
+        + (" with hedges and bushes" if sim.get("vegetation") else "")
+        + (f", real {'+'.join(real)}" if real else "")
     )
 
 
