@@ -44,7 +44,7 @@ PURE = 0.7
 LENGTH = 40.0  # metres per simulated street
 FRAME_STEP = 2  # every second frame: neighbouring frames see the same objects
 THRESHOLD = 0.5  # P(vehicle) the validation scores are given at
-SAMPLES_SUFFIX = ".shape-samples.npz"  # beside each cached street (summary and points)
+SAMPLES_SUFFIX = ".shape-samples-v2.npz"  # beside each cached street (summary, points, classes)
 JITTER = 0.02  # metres of noise added to the training points
 
 
