@@ -170,6 +170,7 @@ def main() -> int:
         command = (
             f"{COMMAND} --models {args.models} --sim-seeds {args.sim_seeds} --scenes "
             f"{args.scenes} --sequences {args.sequences}"
+            + (" --vegetation" if args.vegetation else "")
             + (f" --loso {args.loso} --real-weight {args.real_weight:g}" if args.loso else "")
         )
         append_results("Clutter: vehicle shapes per cluster", command, table, notes)
