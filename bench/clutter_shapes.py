@@ -9,12 +9,13 @@ per kind: cars (10, 252) apart from the other vehicles (trucks, buses, trailers,
 caravans: 13, 16, 18, 20, 256-259). Several checkpoints side by side in one run.
 
 With `--loso SEEDS`, each real sequence is also scored by a network trained here on the
-simulated streets of SEEDS and the *other* real sequences (leave-one-sequence-out, as
-`mmsclean train clutter-shapes --semantickitti` trains the shipped one on all of them), so a
-real row never scores a network that saw its sequence.
+simulated streets of SEEDS and the *other* real sequences (leave-one-sequence-out; `mmsclean
+train clutter-shapes --semantickitti` would train on all of them), so a real row never scores a
+network that saw its sequence.
 
 Usage: python -m bench.clutter_shapes [--models a.pt,b.pt] [--sim-seeds 336-349]
-[--sequences 04,05,08] [--loso 401-470] [--no-record]. Real rows need MMSCLEAN_REAL_DATA.
+[--scenes a,b,...] [--vegetation] [--sequences 04,05,08] [--loso 401-470] [--no-record].
+Real rows need MMSCLEAN_REAL_DATA.
 """
 
 from __future__ import annotations
