@@ -309,15 +309,16 @@ def foliage(
     rng: np.random.Generator,
     roundness: float = 2.0,
     leaf: float = 0.08,
-    leaves_per_m3: float = 2000.0,
+    leaves_per_m3: float = 1200.0,
 ) -> Mesh:
     """Leaves: small triangles of random orientation filling a lumpy volume about the origin,
     so a laser ray goes some way in before one stops it (a bush's scattered returns, not a
     smooth shell). The volume is |x/a|^p + |y/b|^p + |z/c|^p <= 1 with p = `roundness` (2 an
-    ellipsoid, 4 a trimmed hedge), its boundary pushed in and out by a few random waves."""
+    ellipsoid, 4 a trimmed hedge), its boundary pushed in and out by a few random waves; leaves
+    are drawn `leaves_per_m3` per cubic metre of its bounding box and kept inside it."""
     radii = np.asarray(radii, dtype=np.float64)
-    volume = 8.0 * float(np.prod(radii))
-    drawn = rng.uniform(-1.0, 1.0, (int(leaves_per_m3 * volume * 0.6) + 1, 3))
+    box_volume = 8.0 * float(np.prod(radii))
+    drawn = rng.uniform(-1.0, 1.0, (int(leaves_per_m3 * box_volume) + 1, 3))
     waves = rng.normal(size=(4, 3))
     phase = rng.uniform(0.0, 2.0 * np.pi, 4)
     lump = 1.0 + 0.08 * np.cos(drawn @ waves.T * np.pi + phase).sum(axis=1)

@@ -51,9 +51,10 @@ JITTER = 0.02  # metres of noise added to the training points
 def scene_cycle(text: str) -> tuple[str, ...]:
     """ "urban,shadow,parked_rows" -> the scenes; ConfigError naming `--scenes` for an unknown
     one."""
-    from app.simulate.survey import SimulationConfig
+    from app.simulate.layout import PRESETS
+    from app.simulate.situations import SITUATIONS
 
-    known = SimulationConfig.model_fields["scene"].annotation.__args__
+    known = (*PRESETS, *SITUATIONS)
     cycle = tuple(name.strip() for name in text.split(",") if name.strip())
     unknown = [name for name in cycle if name not in known]
     if not cycle or unknown:
@@ -200,12 +201,9 @@ def with_real(
 ) -> tuple[ShapeInputs, np.ndarray, np.ndarray]:
     """Simulated and real samples as one training set: (inputs, labels, each sample's weight,
     1 for a simulated cluster and `real_weight` for a real one)."""
-    inputs = ShapeInputs(
-        np.concatenate([simulated[0].features, real[0].features]),
-        np.concatenate([simulated[0].points, real[0].points]),
-    )
+    inputs, y, _ = _joined([simulated, real])
     weight = np.r_[np.ones(len(simulated[1])), np.full(len(real[1]), real_weight)]
-    return inputs, np.concatenate([simulated[1], real[1]]), weight.astype(np.float32)
+    return inputs, y, weight.astype(np.float32)
 
 
 def train_shapes(
