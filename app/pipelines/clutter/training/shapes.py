@@ -51,10 +51,9 @@ JITTER = 0.02  # metres of noise added to the training points
 def scene_cycle(text: str) -> tuple[str, ...]:
     """ "urban,shadow,parked_rows" -> the scenes; ConfigError naming `--scenes` for an unknown
     one."""
-    from app.simulate.layout import PRESETS
-    from app.simulate.situations import SITUATIONS
+    from app.simulate.survey import SimulationConfig
 
-    known = (*PRESETS, *SITUATIONS)
+    known = SimulationConfig.model_fields["scene"].annotation.__args__
     cycle = tuple(name.strip() for name in text.split(",") if name.strip())
     unknown = [name for name in cycle if name not in known]
     if not cycle or unknown:
