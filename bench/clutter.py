@@ -93,7 +93,8 @@ class Sequence:
 def load(real: Path, name: str) -> Sequence:
     survey = open_survey(real / "semantickitti" / "sequences" / name, "semantickitti")
     camera = next(iter(survey.cameras))
-    class_maps, _ = segmented_class_maps(survey, camera)
+    segmenter = ESPNetv2Segmenter(gamma=ClutterConfig().image_gamma)  # the shipped default's
+    class_maps, _ = segmented_class_maps(survey, camera, segmenter)
     semantic = np.concatenate([f.reference_labels()["semantic"] for f in survey.frames])
     return Sequence(name, survey, semantic, class_maps)
 

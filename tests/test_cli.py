@@ -127,6 +127,7 @@ def test_info_real_kitti_raw(real_data: Path) -> None:
         ("--padding", "1000000000", "less than or equal to 200"),
         ("--threads", "1000000", "less than or equal to 256"),
         ("--voxel-dedup", "inf", "finite number"),
+        ("--image-gamma", "5", "less than or equal to 2"),
     ],
 )
 def test_run_clutter_options_are_bounded(

@@ -92,6 +92,13 @@ def run_clutter(
         str, typer.Option(help="cluster: 3D expansion (mmsclean); pad: padded masks (the paper)")
     ] = "cluster",
     camera: Annotated[bool, typer.Option(help="use the camera masks")] = True,
+    image_gamma: Annotated[
+        float | None,
+        typer.Option(
+            help="gamma on the camera image before segmentation (0.2-2, below 1 "
+            "lifts dark tones; default ClutterConfig's)"
+        ),
+    ] = None,
     free_space: Annotated[bool, typer.Option(help="use DUFOMap free-space evidence")] = True,
     tracking: Annotated[bool, typer.Option(help="link objects across frames")] = True,
     voxel_dedup: Annotated[
@@ -122,6 +129,7 @@ def run_clutter(
         mask_padding_px=padding,
         expansion=expansion,
         use_camera=camera,
+        **({} if image_gamma is None else {"image_gamma": image_gamma}),
         use_free_space=free_space,
         use_tracking=tracking,
         voxel_dedup=voxel_dedup,

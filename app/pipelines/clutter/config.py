@@ -48,6 +48,14 @@ class ClutterConfig(BaseModel):
         None, max_length=64, description="camera to segment; None = the survey's first"
     )
     mask_padding_px: Pixels = Field(30, description="the paper's mask buffer, pixels")
+    image_gamma: float = Field(
+        0.9,
+        ge=0.2,
+        le=2.0,
+        allow_inf_nan=False,
+        description="gamma applied to the camera image before segmentation: below 1 lifts "
+        "its dark tones (objects in shadow); bench/clutter_brightening.py chose it",
+    )
     expansion: Expansion = Field(
         "cluster",
         description="cluster: grow masked instances to their 3D cluster (mmsclean); "

@@ -62,7 +62,7 @@ def run_clutter_report(
     camera = ClutterPipeline(config).camera(survey)
     segmenter = None
     if camera is not None:
-        cached = cached_segmentation(cache_dir, weights_dir)
+        cached = cached_segmentation(cache_dir, weights_dir, config.image_gamma)
         segmenter = {"name": cached.name, **run.segmentation}
         if overlays:
             files.update(_write_overlays(out, survey, camera.name, cached, overlays))

@@ -60,7 +60,7 @@ IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 STRIDE = 16  # the encoder's total down-sampling: inputs are padded to a multiple of it
 PREPROCESS_VERSION = (
-    "fit-down-reflect16-v1"  # part of the cache key: bump when preprocessing changes
+    "fit-down-reflect16-gamma-v2"  # part of the cache key: bump when preprocessing changes
 )
 
 
@@ -93,6 +93,11 @@ def _network_size(width: int, height: int, max_size: tuple[int, int]) -> tuple[i
     return max(1, round(width * scale)), max(1, round(height * scale))
 
 
+def brightening_lut(gamma: float) -> np.ndarray:
+    """uint8 -> uint8 table of v' = 255 (v / 255) ** gamma (gamma < 1 lifts the dark tones)."""
+    return np.round(255.0 * (np.arange(256) / 255.0) ** gamma).astype(np.uint8)
+
+
 def _ceil_to(n: int, multiple: int) -> int:
     return -(-n // multiple) * multiple
 
@@ -117,6 +122,7 @@ class ESPNetv2Segmenter:
         device: str = "cpu",
         batch_size: int = 4,
         input_size: tuple[int, int] = (1248, 384),
+        gamma: float = 1.0,
     ):
         if weights_dir is None:
             from app.core.settings import get_settings
@@ -136,9 +142,13 @@ class ESPNetv2Segmenter:
             )
         if batch_size < 1:
             raise ConfigError("batch_size", f"must be at least 1 (got {batch_size})")
+        if not 0.1 <= gamma <= 3.0:
+            raise ConfigError("gamma", f"must be within 0.1-3.0 (got {gamma})")
         self.device = device
         self.batch_size = batch_size
         self.input_size = (width, height)
+        self.gamma = float(gamma)
+        self._lut = brightening_lut(self.gamma)
         self._model: torch.nn.Module | None = None
         self._fingerprint: str | None = None
 
@@ -149,7 +159,7 @@ class ESPNetv2Segmenter:
             data = self.weights_path.read_bytes()
             sha = hashlib.sha256(data).hexdigest()[:16]
             w, h = self.input_size
-            self._fingerprint = f"{sha}-{len(data)}-{w}x{h}-{PREPROCESS_VERSION}"
+            self._fingerprint = f"{sha}-{len(data)}-{w}x{h}-g{self.gamma:g}-{PREPROCESS_VERSION}"
         return self._fingerprint
 
     @property
@@ -202,7 +212,7 @@ class ESPNetv2Segmenter:
         pad_w, pad_h = _ceil_to(w, STRIDE) - w, _ceil_to(h, STRIDE) - h
         batch = []
         for image in images:
-            x = image
+            x = self._lut[image]
             if (x.shape[1], x.shape[0]) != (w, h):
                 x = cv2.resize(x, (w, h), interpolation=cv2.INTER_AREA)
             if pad_w or pad_h:

@@ -102,11 +102,11 @@ class ClutterTileSpec:
 
 
 @lru_cache(maxsize=2)
-def _worker_segmenter(weights_dir: str | None) -> Segmenter:
+def _worker_segmenter(weights_dir: str | None, gamma: float) -> Segmenter:
     """One segmentation network per worker process (the tiles of a run share it)."""
     from app.pipelines.clutter.segmenter import ESPNetv2Segmenter
 
-    return ESPNetv2Segmenter(None if weights_dir is None else Path(weights_dir))
+    return ESPNetv2Segmenter(None if weights_dir is None else Path(weights_dir), gamma=gamma)
 
 
 def clutter_tile(
@@ -130,7 +130,7 @@ def clutter_tile(
     if camera is not None:
         reads = tiles.tile_survey(survey, tile)
         cache = None if spec.cache_dir is None else Path(spec.cache_dir)
-        segmenter = _worker_segmenter(spec.weights_dir)
+        segmenter = _worker_segmenter(spec.weights_dir, config.image_gamma)
         pipeline.class_maps, cached = segmented_class_maps(
             reads, camera.name, segmenter, progress, cache
         )
@@ -228,9 +228,11 @@ def _write_tracks(out: Path, tile: int, result: ClutterResult | None, keep: np.n
     )
 
 
-def cached_segmentation(cache_dir: Path | None, weights_dir: Path | None) -> CachedSegmenter:
+def cached_segmentation(
+    cache_dir: Path | None, weights_dir: Path | None, gamma: float
+) -> CachedSegmenter:
     """The run's segmentation cache, for what is drawn after the tiles (overlays)."""
-    segmenter = _worker_segmenter(None if weights_dir is None else str(weights_dir))
+    segmenter = _worker_segmenter(None if weights_dir is None else str(weights_dir), gamma)
     return CachedSegmenter(segmenter, cache_dir)
 
 

@@ -9,10 +9,12 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from pydantic import ValidationError
 
-from app.core.errors import DependencyMissingError
+from app.core.errors import ConfigError, DependencyMissingError
 from app.geometry.projection import pixel_indices, project
 from app.io.registry import open_survey
+from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.espnetv2 import CITYSCAPES_CLASSES, ESPNetv2Seg
 from app.pipelines.clutter.segmenter import (
     CITYSCAPES_TO_CLUTTER,
@@ -21,6 +23,7 @@ from app.pipelines.clutter.segmenter import (
     CachedSegmenter,
     ESPNetv2Segmenter,
     Segmenter,
+    brightening_lut,
     overlay_png,
 )
 
@@ -157,6 +160,35 @@ def test_semantickitti_labelled_cars_and_people_fall_on_their_masks(
     assert (codes[cars] == CAR).mean() > 0.8
     assert np.isin(codes[people], [PERSON, RIDER]).mean() > 0.4
     assert (codes[road] > 0).mean() < 0.05
+
+
+@pytest.mark.real_data
+def test_brightening_lifts_dark_tones_before_the_network_and_keys_the_cache(
+    real_data: Path, weights_dir: Path, espnet: ESPNetv2Segmenter, one_thread: None
+) -> None:
+    """The gamma is applied to the image the network sees (a brightened frame segmented as
+    recorded gives the same map), lifts dark tones only upwards, and is part of the cache key."""
+    identity, lifted = brightening_lut(1.0), brightening_lut(0.7)
+    np.testing.assert_array_equal(identity, np.arange(256))
+    assert lifted[0] == 0 and lifted[255] == 255 and np.all(np.diff(lifted.astype(int)) >= 0)
+    assert np.all(lifted >= identity) and lifted[30] > 1.5 * 30  # shadows gain the most
+    brightened = ESPNetv2Segmenter(weights_dir, gamma=0.7)
+    assert brightened.fingerprint != espnet.fingerprint and "g0.7" in brightened.fingerprint
+
+    survey = open_survey(real_data / "semantickitti" / "sequences" / "08", "semantickitti")
+    image = survey.frame("000005").image("image_2")
+    ours = brightened.segment([image])[0]
+    np.testing.assert_array_equal(ours, espnet.segment([lifted[image]])[0])
+    assert not np.array_equal(ours, espnet.segment([image])[0])
+
+
+@pytest.mark.parametrize("gamma", [0.0, 5.0])
+def test_brightening_gamma_is_bounded(weights_dir: Path, gamma: float) -> None:
+    with pytest.raises(ConfigError, match="gamma") as err:
+        ESPNetv2Segmenter(weights_dir, gamma=gamma)
+    assert "\n" not in str(err.value)
+    with pytest.raises(ValidationError, match="image_gamma"):
+        ClutterConfig(image_gamma=gamma)
 
 
 def test_missing_weights_is_one_clear_line(tmp_path: Path, monkeypatch) -> None:
