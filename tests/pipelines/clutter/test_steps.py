@@ -174,6 +174,34 @@ def test_a_person_merged_with_a_stall_gives_up_its_masked_points() -> None:
     assert not expand_instances(*args, 0.0, 0.1).removed[masked].any()  # unbounded: not chosen
 
 
+def test_a_merged_persons_points_are_found_at_its_densest_spot_not_its_mean() -> None:
+    """A mask bled onto a tree trunk beside the person (the same depth layer) pulls the
+    instance's mean off the person: the person's masked points still go, the trunk's stay."""
+    counter = box((8, 0, 0.55), (3.0, 1.0, 0.7), 800)
+    awning = box((8, -1, 2.4), (3, 2.5, 0.05), 800)
+    person = box((8, -0.75, 0.9), (0.4, 0.4, 1.8), 300)
+    trunk = box((8.0, 0.68, 1.2), (0.25, 0.25, 2.2), 220)  # 1.4 m away, against the counter
+    xyz = np.r_[ground(), counter, awning, person, trunk]
+    clusters = frame_clusters(xyz, 0.3, 1.0, 0.1, 80.0)
+    start, trunk_start = 5600, 5900
+    assert clusters.label[4000] == clusters.label[start] == clusters.label[trunk_start]
+    sizes = cluster_sizes(xyz, clusters)
+    n = len(xyz)
+    instance = np.full(n, -1, np.int32)
+    instance[start : start + 250] = 0
+    bled = np.arange(trunk_start, trunk_start + 180)  # most of the trunk under the bled mask
+    instance[bled] = 0
+    centre = xyz[instance == 0, :2].mean(axis=0)
+    assert np.linalg.norm(centre - [8, -0.75]) > 0.5  # the mean is off the person
+    mask_class = np.where(instance >= 0, 1, 0).astype(np.uint8)
+    args = (xyz, clusters, instance, mask_class, np.ones(n, bool), 0.7, sizes.within(12.0, 4.5))
+    grown = expand_instances(*args, 0.0, 0.1, sizes=sizes)
+    above = clusters.label >= 0
+    masked = np.arange(start, start + 250)
+    assert grown.removed[masked[above[masked]]].all()
+    assert not grown.removed[bled].any() and not grown.removed[4000:5600].any()
+
+
 def _observations(positions: list[np.ndarray], camera_class: int = 3) -> list[Observation]:
     return [
         Observation(
