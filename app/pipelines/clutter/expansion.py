@@ -124,14 +124,15 @@ def expand_instances(
     # only whole objects carry their class on to tracking: a partly covered cluster is background
     cluster_class[whole] = seed_class[whole]
     removed[clustered] = whole[label[clustered]]
+    merged = np.zeros(count, dtype=bool)
     if fits is not None:
-        # a person merged with what it stands at (a stall, an awning's post) gives up its
-        # instance points, however little of the cluster the mask covers
-        merged = (seeds >= max(min_seeds, 1)) & ~fits & ~chosen
-        merged &= seed_class == PERSON
+        # a person merged with what it stands at (a stall, an awning's post) gives up the
+        # instance points where the person is, however little or much of the cluster the mask
+        # covers; the rest of the mask lies on the structure (bled, or seen past the person)
+        merged = (seeds >= max(min_seeds, 1)) & ~fits & (seed_class == PERSON)
         in_merged = clustered & merged[np.where(clustered, label, 0)]
         removed |= _person_core(xyz, clusters.above_ground, instance, in_merged & seed)
-    partial = chosen & ~whole
+    partial = chosen & ~whole & ~merged
     in_partial = clustered & partial[np.where(clustered, label, 0)]
     partial_seeds = in_partial & seed
     removed |= partial_seeds

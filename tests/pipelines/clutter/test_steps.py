@@ -200,6 +200,10 @@ def test_a_merged_persons_points_are_found_at_its_densest_spot_not_its_mean() ->
     masked = np.arange(start, start + 250)
     assert grown.removed[masked[above[masked]]].all()
     assert not grown.removed[bled].any() and not grown.removed[4000:5600].any()
+    # the same where the mask covers enough of the cluster to choose it: still only the person
+    chosen = expand_instances(*args[:5], 0.05, args[6], 0.3, 0.1, sizes=sizes)
+    assert chosen.removed[masked[above[masked]]].all()
+    assert not chosen.removed[bled].any() and not chosen.removed[4000:5600].any()
 
 
 def _observations(positions: list[np.ndarray], camera_class: int = 3) -> list[Observation]:
