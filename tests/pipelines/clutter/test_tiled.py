@@ -135,7 +135,11 @@ def test_tiles_share_the_segmentation_cache(weights_dir: Path, tmp_path: Path) -
     cache = tmp_path / "cache"
     pipeline = ClutterPipeline(config)
     pipeline.class_maps, _ = segmented_class_maps(
-        survey, pipeline.camera(survey).name, ESPNetv2Segmenter(weights_dir), None, cache
+        survey,
+        pipeline.camera(survey).name,
+        ESPNetv2Segmenter(weights_dir, gamma=config.image_gamma),  # as the tiles segment
+        None,
+        cache,
     )
     whole = pipeline.run(survey)
     report, run = run_clutter_report(
