@@ -144,66 +144,70 @@ def test_expansion_takes_no_more_than_an_object_of_the_class_can_be() -> None:
     assert bounded.cluster_class[clusters.label[first_under]] == 0
 
 
+PERSON_START = 5600  # the person's first point in `_stall_with_person`'s points
+
+
+def _stall_with_person(*extra: np.ndarray):
+    """A market stall (counter, awning above head height) with a person at its counter, plus
+    `extra` points: (points, clusters, sizes, the person's masked points as instance 0)."""
+    counter = box((8, 0, 0.55), (3.0, 1.0, 0.7), 800)
+    awning = box((8, -1, 2.4), (3, 2.5, 0.05), 800)  # above the person's head
+    person = box((8, -0.75, 0.9), (0.4, 0.4, 1.8), 300)
+    xyz = np.r_[ground(), counter, awning, person, *extra]
+    clusters = frame_clusters(xyz, 0.3, 1.0, 0.1, 80.0)
+    assert clusters.label[4000] == clusters.label[PERSON_START]  # the person joins the stall
+    instance = np.full(len(xyz), -1, np.int32)
+    instance[PERSON_START : PERSON_START + 250] = 0
+    return xyz, clusters, cluster_sizes(xyz, clusters), instance
+
+
+def _grown(xyz, clusters, sizes, instance, min_mask_fraction: float = 0.7):
+    mask_class = np.where(instance >= 0, 1, 0).astype(np.uint8)
+    args = (xyz, clusters, instance, mask_class, np.ones(len(xyz), bool), min_mask_fraction)
+    return expand_instances(*args, sizes.within(12.0, 4.5), 0.0, 0.1, sizes=sizes)
+
+
 def test_a_person_merged_with_a_stall_gives_up_its_masked_points() -> None:
     """However little of the stall's cluster the person's mask covers (below
     min_mask_fraction), the person's masked points go; those the mask bled onto the awning
     above or the counter's far end stay, as does the rest of the stall."""
-    counter = box((8, 0, 0.55), (3.0, 1.0, 0.7), 800)
-    awning = box((8, -1, 2.4), (3, 2.5, 0.05), 800)  # above the person's head
-    person = box((8, -0.75, 0.9), (0.4, 0.4, 1.8), 300)
-    xyz = np.r_[ground(), counter, awning, person]
-    clusters = frame_clusters(xyz, 0.3, 1.0, 0.1, 80.0)
-    start = 5600
-    assert clusters.label[4000] == clusters.label[start]
-    sizes = cluster_sizes(xyz, clusters)
-    n = len(xyz)
-    instance = np.full(n, -1, np.int32)
-    instance[start : start + 250] = 0
-    awning_bled = 4800 + np.flatnonzero(np.linalg.norm(awning[:, :2] - [8, -0.75], axis=1) < 0.3)
-    counter_end = 4000 + np.flatnonzero(counter[:, 0] > 9.3)[:20]
+    xyz, clusters, sizes, instance = _stall_with_person()
+    awning_bled = 4800 + np.flatnonzero(
+        np.linalg.norm(xyz[4800:5600, :2] - [8, -0.75], axis=1) < 0.3
+    )
+    counter_end = 4000 + np.flatnonzero(xyz[4000:4800, 0] > 9.3)[:20]
     instance[awning_bled] = 0
     instance[counter_end] = 0
-    mask_class = np.where(instance >= 0, 1, 0).astype(np.uint8)
-    args = (xyz, clusters, instance, mask_class, np.ones(n, bool), 0.7, sizes.within(12.0, 4.5))
-    grown = expand_instances(*args, 0.0, 0.1, sizes=sizes)
+    grown = _grown(xyz, clusters, sizes, instance)
     above = clusters.label >= 0
-    masked = np.arange(start, start + 250)
+    masked = np.arange(PERSON_START, PERSON_START + 250)
     assert grown.removed[masked[above[masked]]].all()
     assert not grown.removed[awning_bled].any() and not grown.removed[counter_end].any()
     assert grown.removed[4000:5600].sum() == 0
-    assert not expand_instances(*args, 0.0, 0.1).removed[masked].any()  # unbounded: not chosen
+    mask_class = np.where(instance >= 0, 1, 0).astype(np.uint8)
+    args = (xyz, clusters, instance, mask_class, np.ones(len(xyz), bool), 0.7)
+    unbounded = expand_instances(*args, sizes.within(12.0, 4.5), 0.0, 0.1)
+    assert not unbounded.removed[masked].any()  # unbounded: not chosen
 
 
 def test_a_merged_persons_points_are_found_at_its_densest_spot_not_its_mean() -> None:
     """A mask bled onto a tree trunk beside the person (the same depth layer) pulls the
     instance's mean off the person: the person's masked points still go, the trunk's stay."""
-    counter = box((8, 0, 0.55), (3.0, 1.0, 0.7), 800)
-    awning = box((8, -1, 2.4), (3, 2.5, 0.05), 800)
-    person = box((8, -0.75, 0.9), (0.4, 0.4, 1.8), 300)
     trunk = box((8.0, 0.68, 1.2), (0.25, 0.25, 2.2), 220)  # 1.4 m away, against the counter
-    xyz = np.r_[ground(), counter, awning, person, trunk]
-    clusters = frame_clusters(xyz, 0.3, 1.0, 0.1, 80.0)
-    start, trunk_start = 5600, 5900
-    assert clusters.label[4000] == clusters.label[start] == clusters.label[trunk_start]
-    sizes = cluster_sizes(xyz, clusters)
-    n = len(xyz)
-    instance = np.full(n, -1, np.int32)
-    instance[start : start + 250] = 0
+    xyz, clusters, sizes, instance = _stall_with_person(trunk)
+    trunk_start = 5900
+    assert clusters.label[trunk_start] == clusters.label[PERSON_START]
     bled = np.arange(trunk_start, trunk_start + 180)  # most of the trunk under the bled mask
     instance[bled] = 0
     centre = xyz[instance == 0, :2].mean(axis=0)
     assert np.linalg.norm(centre - [8, -0.75]) > 0.5  # the mean is off the person
-    mask_class = np.where(instance >= 0, 1, 0).astype(np.uint8)
-    args = (xyz, clusters, instance, mask_class, np.ones(n, bool), 0.7, sizes.within(12.0, 4.5))
-    grown = expand_instances(*args, 0.0, 0.1, sizes=sizes)
     above = clusters.label >= 0
-    masked = np.arange(start, start + 250)
-    assert grown.removed[masked[above[masked]]].all()
-    assert not grown.removed[bled].any() and not grown.removed[4000:5600].any()
-    # the same where the mask covers enough of the cluster to choose it: still only the person
-    chosen = expand_instances(*args[:5], 0.05, args[6], 0.3, 0.1, sizes=sizes)
-    assert chosen.removed[masked[above[masked]]].all()
-    assert not chosen.removed[bled].any() and not chosen.removed[4000:5600].any()
+    masked = np.arange(PERSON_START, PERSON_START + 250)
+    # the mask covers little of the cluster (not chosen), then much of it (chosen): the same
+    for min_mask_fraction in (0.7, 0.05):
+        grown = _grown(xyz, clusters, sizes, instance, min_mask_fraction)
+        assert grown.removed[masked[above[masked]]].all()
+        assert not grown.removed[bled].any() and not grown.removed[4000:5600].any()
 
 
 def _observations(positions: list[np.ndarray], camera_class: int = 3) -> list[Observation]:
