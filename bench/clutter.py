@@ -90,11 +90,12 @@ class Sequence:
     class_maps: object
 
 
-def load(real: Path, name: str) -> Sequence:
+def load(real: Path, name: str, gamma: float | None = None) -> Sequence:
+    """A real sequence with its masks, the image brightened by `gamma` (None: as shipped)."""
     survey = open_survey(real / "semantickitti" / "sequences" / name, "semantickitti")
     camera = next(iter(survey.cameras))
-    segmenter = ESPNetv2Segmenter(gamma=ClutterConfig().image_gamma)  # the shipped default's
-    class_maps, _ = segmented_class_maps(survey, camera, segmenter)
+    gamma = ClutterConfig().image_gamma if gamma is None else gamma
+    class_maps, _ = segmented_class_maps(survey, camera, ESPNetv2Segmenter(gamma=gamma))
     semantic = np.concatenate([f.reference_labels()["semantic"] for f in survey.frames])
     return Sequence(name, survey, semantic, class_maps)
 

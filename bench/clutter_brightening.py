@@ -28,12 +28,10 @@ import cv2
 import numpy as np
 
 from app.core.labels import UNSCORED_IDS
-from app.io import open_survey
 from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.evaluation.removal_metrics import reference_masks
 from app.pipelines.clutter.masking import mask_points
-from app.pipelines.clutter.segmenter import ESPNetv2Segmenter, segmented_class_maps
-from bench.clutter import Sequence, best_point, margin, run, score
+from bench.clutter import Sequence, best_point, load, margin, run, score
 from bench.common import append_results, markdown_table
 
 COMMAND = (
@@ -44,9 +42,10 @@ GAMMAS = (1.0, 0.9, 0.8, 0.7, 0.6, 0.5, 0.4)
 DARK_LUMA = 30  # raw image luma below which a pixel counts as dark
 
 
-def mask_counts(seq: Sequence, camera: str) -> np.ndarray:
+def mask_counts(seq: Sequence) -> np.ndarray:
     """[true, missed, false] mask points of the movable classes: all in view, then dark pixels."""
     counts = np.zeros((2, 3), dtype=np.int64)
+    camera = next(iter(seq.survey.cameras))
     cam = seq.survey.cameras[camera]
     for frame in seq.survey.frames:
         xyz = frame.points().xyz
@@ -92,13 +91,9 @@ def main() -> int:
     mask_rows, pipeline_rows = [], []
     grid: dict[tuple, dict[str, dict]] = {}
     for name in names:
-        survey = open_survey(Path(real) / "semantickitti" / "sequences" / name, "semantickitti")
-        camera = next(iter(survey.cameras))
-        semantic = np.concatenate([f.reference_labels()["semantic"] for f in survey.frames])
         for gamma in gammas:
-            class_maps, _ = segmented_class_maps(survey, camera, ESPNetv2Segmenter(gamma=gamma))
-            seq = Sequence(name, survey, semantic, class_maps)
-            counts = mask_counts(seq, camera)
+            seq = load(Path(real), name, gamma)
+            counts = mask_counts(seq)
             mask_rows.append([f"{gamma:g}", name, *mask_scores(*counts[0]),
                               *mask_scores(*counts[1])])  # fmt: skip
             print(" | ".join(mask_rows[-1]), flush=True)

@@ -20,6 +20,7 @@ MAX_RANGE_M = 1000.0  # no mobile-mapping sensor sees farther
 MAX_COUNT = 1_000_000  # frames, points, samples, steps of one run
 MAX_THREADS = 256
 MAX_PIXELS = 200
+GAMMA_RANGE = (0.2, 2.0)  # an image's tone curve: past these, shadows or lights turn flat
 
 # Where a type has a bound, it wins over a field's own bound of the same kind (pydantic merges
 # the annotation last): types here bound one side where fields need their own other side.
@@ -32,6 +33,8 @@ Metres = Annotated[float, Field(le=MAX_RANGE_M, allow_inf_nan=False)]
 ObjectMetres = Annotated[float, Field(le=10.0, allow_inf_nan=False)]
 # pixels of a camera image (mask pads)
 Pixels = Annotated[int, Field(ge=0, le=MAX_PIXELS)]
+# the gamma of an image's tone curve (below 1 lifts the dark tones)
+Gamma = Annotated[float, Field(ge=GAMMA_RANGE[0], le=GAMMA_RANGE[1], allow_inf_nan=False)]
 # a number of things: frames, points, samples, slices (the field sets its lower bound)
 Count = Annotated[int, Field(le=MAX_COUNT)]
 # training epochs (the field sets its lower bound)

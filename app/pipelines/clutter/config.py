@@ -24,6 +24,7 @@ from pydantic import BaseModel, Field
 
 from app.core.bounds import (
     Count,
+    Gamma,
     Metres,
     ObjectMetres,
     Pixels,
@@ -48,11 +49,8 @@ class ClutterConfig(BaseModel):
         None, max_length=64, description="camera to segment; None = the survey's first"
     )
     mask_padding_px: Pixels = Field(30, description="the paper's mask buffer, pixels")
-    image_gamma: float = Field(
+    image_gamma: Gamma = Field(
         0.9,
-        ge=0.2,
-        le=2.0,
-        allow_inf_nan=False,
         description="gamma applied to the camera image before segmentation: below 1 lifts "
         "its dark tones (objects in shadow); bench/clutter_brightening.py chose it",
     )

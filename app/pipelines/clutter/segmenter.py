@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Protocol, runtime_checkable
 import cv2
 import numpy as np
 
+from app.core.bounds import GAMMA_RANGE
 from app.core.errors import ConfigError, DependencyMissingError, InputError
 from app.core.progress import Progress
 from app.io.survey import Frame, Survey
@@ -147,8 +148,9 @@ class ESPNetv2Segmenter:
             )
         if batch_size < 1:
             raise ConfigError("batch_size", f"must be at least 1 (got {batch_size})")
-        if not 0.1 <= gamma <= 3.0:
-            raise ConfigError("gamma", f"must be within 0.1-3.0 (got {gamma})")
+        if not GAMMA_RANGE[0] <= gamma <= GAMMA_RANGE[1]:
+            low, high = GAMMA_RANGE
+            raise ConfigError("gamma", f"must be within {low:g}-{high:g} (got {gamma})")
         self.device = device
         self.batch_size = batch_size
         self.input_size = (width, height)
