@@ -37,6 +37,10 @@ class Settings(BaseSettings):
     viewer_tile_points: int = Field(
         1_000_000, ge=1000, description="most points of the full-resolution tile in focus"
     )
+    viewer_log_slower_ms: float = Field(
+        200, ge=0, le=60_000,
+        description="log each viewer interaction the server answers slower than this (0: all)",
+    )  # fmt: skip
     viewer_session_check_s: float = Field(
         10, ge=0.1, le=300, description="how often an open viewer checks its login is live"
     )

@@ -65,15 +65,19 @@ class ScreenCamera:
         return 0.5 * self.height / float(np.tan(self.fov / 2.0))
 
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """((n, 2) pixel coordinates, (n,) depth along the view axis; <= 0 behind)."""
-        cam = (np.asarray(points, dtype=np.float64) - self.position) @ self.rotation
+        """((n, 2) pixel coordinates, (n,) depth along the view axis; <= 0 behind). Float32
+        points (the shown clouds, sent as the browser draws them) are projected in float32,
+        which rounds no coarser than the points already are, in a fraction of the time: a
+        selection projects every shown point."""
+        points = np.asarray(points)
+        dtype = np.float32 if points.dtype == np.float32 else np.float64
+        cam = (points - self.position.astype(dtype)) @ self.rotation.astype(dtype)
         depth = cam[:, 2]
-        safe = np.where(depth > 1e-6, depth, 1.0)
-        f = self.focal_px
-        px = np.stack(
-            [0.5 * self.width + cam[:, 0] / safe * f, 0.5 * self.height + cam[:, 1] / safe * f],
-            axis=1,
-        )
+        scale = dtype(self.focal_px) / np.where(depth > 1e-6, depth, dtype(1.0))
+        px = np.empty((len(cam), 2), dtype=np.float64)
+        np.multiply(cam[:, 0], scale, out=px[:, 0])
+        np.multiply(cam[:, 1], scale, out=px[:, 1])
+        px += (0.5 * self.width, 0.5 * self.height)
         return px, depth
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any
@@ -44,6 +45,7 @@ if TYPE_CHECKING:
     from app.viewer.survey_view import SurveyView
 
 log = logging.getLogger(__name__)
+timing_log = logging.getLogger("app.viewer.timing")  # interactions answered slowly
 
 CAMERA_OFFSET = np.array([-0.3, -0.4, 1.0])  # initial view: from above, a little behind-left
 CAMERA_DISTANCE = (20.0, 150.0)  # metres, clamped from the map's size
@@ -65,6 +67,7 @@ class ViewerSession:
         self.closed = False
         self._executor = ThreadPoolExecutor(1, thread_name_prefix=f"viewer-{client.client_id}")
         self._camera_pending = threading.Event()
+        self._answered_at: float | None = None  # when the work in hand sent its answer
         self._gui: list[Any] = []
         self._survey_ids: dict[str, int] = {}
         self._hold_camera = False
@@ -77,9 +80,32 @@ class ViewerSession:
         if self.closed:
             return None
         try:
-            return self._executor.submit(self._guarded, fn, *args)
+            return self._executor.submit(self._timed, time.perf_counter(), fn, *args)
         except RuntimeError:  # shut down meanwhile
             return None
+
+    def _timed(self, received: float, fn: Callable[..., Any], *args: Any) -> Any:
+        """Run fn and log how long the server took to answer it, from the moment the message
+        arrived (`submit`) to its answer: the colours of a label write (`answered`), else the
+        end of the work. Logged when slower than the `viewer_log_slower_ms` setting."""
+        self._answered_at = None
+        started = time.perf_counter()
+        try:
+            return self._guarded(fn, *args)
+        finally:
+            answered = self._answered_at or time.perf_counter()
+            ms = 1000.0 * (answered - received)
+            if ms >= self.viewer.settings.viewer_log_slower_ms:
+                timing_log.warning(
+                    "viewer client %s: %s answered in %.0f ms (%.0f ms of it waiting for "
+                    "earlier work)", self.client.client_id, getattr(fn, "__name__", fn), ms,
+                    1000.0 * (started - received),
+                )  # fmt: skip
+
+    def answered(self) -> None:
+        """The work in hand has sent its answer (its first one counts)."""
+        if self._answered_at is None:
+            self._answered_at = time.perf_counter()
 
     def _guarded(self, fn: Callable[..., Any], *args: Any) -> Any:
         if self.closed:
@@ -371,6 +397,7 @@ class ViewerSession:
         if len(shown) and self.mode is not None:
             self.mode.on_labels_changed(shown)
             self.client.flush()
+            self.answered()
         try:
             with self.db() as session:
                 self._check_user(session)

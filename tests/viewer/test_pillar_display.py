@@ -5,6 +5,8 @@ previewed and written only on Enter."""
 
 from __future__ import annotations
 
+import logging
+import re
 import time
 from collections.abc import Iterator
 from typing import Any
@@ -188,6 +190,37 @@ def test_a_large_rectangle_waits_for_enter_and_a_small_one_does_not(opened) -> N
     # a small rectangle is written at once
     connection.call(mode.on_rect_select, rect((0.49, 0.49), (0.51, 0.51)))
     assert mode.pending is None and 0 < human_count() <= CONFIRM_ABOVE
+    connection.call(mode.undo)
+
+
+def test_a_write_logs_its_answer_time_and_the_views_follow_its_colours(
+    opened, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The server logs how long it took to answer an interaction (a label write: until its
+    colours went out), every one with the setting at 0; the top and side views are redrawn
+    after the colours, once the write is done."""
+    connection, _, _ = opened
+    mode: PillarMode = connection.mode
+    session = connection.session
+    connection.call(session.show_preset, "Top")
+    monkeypatch.setattr(session.viewer.settings, "viewer_log_slower_ms", 0.0)
+    event = SceneRectSelectEvent(
+        client=session.client, client_id=session.client.client_id,
+        screen_min=(0.49, 0.49), screen_max=(0.51, 0.51), modifier="shift",
+    )  # fmt: skip
+    mark = connection.mark()
+    with caplog.at_level(logging.WARNING, logger="app.viewer.timing"):
+        future = session.submit(mode.on_rect_select, event)
+        assert future is not None
+        future.result(60)
+        connection.call(lambda: None)  # the views' redraw, queued behind the write, done
+    lines = [r.getMessage() for r in caplog.records if r.name == "app.viewer.timing"]
+    assert any(re.search(r"on_rect_select answered in \d+ ms", line) for line in lines), lines
+    assert not mode.views_due
+    top = uuid_of(connection, "Top (drive up)", "GuiImageMessage")
+    colours = connection.wait(is_color_update, mark)
+    after = mark + next(i for i, m in enumerate(connection.since(mark, bool)) if m is colours)
+    connection.wait(lambda m: m.get("type") == "GuiUpdateMessage" and m["uuid"] == top, after)
     connection.call(mode.undo)
 
 

@@ -44,16 +44,18 @@ def rectangle_points(
     """(n,) bool over `xyz` (the shown points): inside the rectangle, within the depth range
     and, unless `options.through`, visible (`picking.visible`)."""
     screen = ScreenCamera.of(camera)
-    lo = np.minimum(corner_min, corner_max)
-    hi = np.maximum(corner_min, corner_max)
+    size = np.array([screen.width, screen.height], dtype=np.float64)
+    lo = np.minimum(corner_min, corner_max) * size  # pixels
+    hi = np.maximum(corner_min, corner_max) * size
     px, depth = screen.project(xyz)
-    uv = px / np.array([screen.width, screen.height])
     # points just outside the rectangle may hide points inside it: they join the depth buffer
-    margin = MAX_SPLAT_BINS * DEPTH_BIN_PX / np.array([screen.width, screen.height])
-    near_rect = (uv >= lo - margin).all(axis=1) & (uv <= hi + margin).all(axis=1)
+    margin = MAX_SPLAT_BINS * DEPTH_BIN_PX
+    u, v = px[:, 0], px[:, 1]  # one comparison per column: every shown point passes here
+    near_rect = (u >= lo[0] - margin) & (u <= hi[0] + margin)
+    near_rect &= (v >= lo[1] - margin) & (v <= hi[1] + margin)
     near_rect &= (depth > 1e-6) & (depth >= options.near) & (depth <= options.far)
     idx = np.flatnonzero(near_rect)
-    inside = (uv[idx] >= lo).all(axis=1) & (uv[idx] <= hi).all(axis=1)
+    inside = (px[idx] >= lo).all(axis=1) & (px[idx] <= hi).all(axis=1)
     if not options.through:
         inside &= visible(xyz[idx], screen, point_size)
     result = np.zeros(len(xyz), dtype=bool)
