@@ -117,7 +117,7 @@ class Page:
         self.context.add_cookies([{"name": "mmsclean_token", "value": token, "url": server.url}])
         self.page = self.context.new_page()
         self.camera: dict | None = None
-        self.colours: list[float] = []  # arrival of each frame with a colour update
+        self.colours: list[float] = []  # arrival of each frame with new colours (or points)
         self.clouds: list[float] = []  # of each frame with a point cloud
         self.errors: list[str] = []
         self.page.on("pageerror", lambda exc: self.errors.append(str(exc)))
@@ -129,9 +129,10 @@ class Page:
             if not isinstance(payload, bytes):
                 return
             messages = decode_frame(payload)
-            if any(is_color_update(m) for m in messages):
-                self.colours.append(time.perf_counter())
-            if any(is_point_cloud(m) for m in messages):
+            clouds = any(is_point_cloud(m) for m in messages)
+            if clouds or any(is_color_update(m) for m in messages):  # with classes hidden,
+                self.colours.append(time.perf_counter())  # a write resends the cloud whole
+            if clouds:
                 self.clouds.append(time.perf_counter())
 
         def sent(payload) -> None:
@@ -670,17 +671,18 @@ def measure(sequence: Path) -> dict:
             "errors": errors, "answers": answers}  # fmt: skip
 
 
-ANSWER_LINE = re.compile(r"viewer client \S+: (\w+) answered in (\d+) ms")
+ANSWER_LINE = re.compile(r"viewer client \S+: (\w+) answered in (\d+) ms \((\d+) ms of it wait")
 NOT_INTERACTIONS = {"_camera_settled", "_recolor", "_review_changed", "_draw_due_views", "_start"}
 
 
-def server_answers(log: str) -> list[tuple[str, float]]:
-    """(action, seconds) of each interaction the server answered, from its log (every one
-    logged: MMSCLEAN_VIEWER_LOG_SLOWER_MS=0): from its message's arrival to its answer (a
-    label write's colours, else the end of its work). Camera moves and the server's own
-    follow-up work (the label feed, the views' redraw) are not interactions."""
+def server_answers(log: str) -> list[tuple[str, float, float]]:
+    """(action, seconds, of them waiting for earlier work) of each interaction the server
+    answered, from its log (every one logged: MMSCLEAN_VIEWER_LOG_SLOWER_MS=0): from its
+    message's arrival to its answer (a label write's colours, else the end of its work).
+    Camera moves and the server's own follow-up work (the label feed, the views' redraw) are
+    not interactions."""
     return [
-        (m.group(1), int(m.group(2)) / 1000.0)
+        (m.group(1), int(m.group(2)) / 1000.0, int(m.group(3)) / 1000.0)
         for m in ANSWER_LINE.finditer(log)
         if m.group(1) not in NOT_INTERACTIONS
     ]
@@ -746,9 +748,13 @@ def main(argv: list[str] | None = None) -> int:
         ["tool", "interactions", "pillars labelled", "seconds", "pillars / min"], rows
     )
     p50, p90 = percentiles_ms(tally.latency)
-    answers = [seconds for _, seconds in result["answers"]]
+    answers = [seconds for _, seconds, _ in result["answers"]]
     s50, s90 = percentiles_ms(answers)
-    slow = sorted(f"{a} {1000 * t:.0f} ms" for a, t in result["answers"] if t > 0.2)
+    slow = [
+        f"{a} {1000 * t:.0f} ms, {1000 * w:.0f} ms of it waiting"
+        for a, t, w in result["answers"]
+        if t > 0.2
+    ]
     share = 100.0 * result["non_ground_labelled"] / max(result["non_ground"], 1)
     complete = (
         "Not every non-ground pillar was labelled."
@@ -767,7 +773,7 @@ def main(argv: list[str] | None = None) -> int:
         f"sent, or the end of the work), over all {len(answers)} messages of the session "
         f"(vertex clicks, keys, settings too): p50 {s50:.0f} ms, p90 {s90:.0f} ms, max "
         f"{1000 * max(answers, default=0):.0f} ms; over 200 ms: {len(slow)}"
-        f"{' (' + ', '.join(slow) + ')' if slow else ''}. Page errors: {len(result['errors'])}."
+        f"{' (' + '; '.join(slow) + ')' if slow else ''}. Page errors: {len(result['errors'])}."
     )
     wrong = markdown_table(
         ["reference \\ labelled", *(c.name.replace("_", " ") for c in PillarClass), "none"],

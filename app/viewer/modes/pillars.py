@@ -655,9 +655,10 @@ class PillarMode(Mode):
         if self.pending is None:
             return
         shown = self._shown()
-        index = self.map.cell_index(self.pending.cells)[0]
-        picked = np.isin(shown.cell, index)
-        self.pending.draw(shown.xyz[picked], float(self.point_size.value))
+        k, found = self.map.cell_index(self.pending.cells)
+        selected = np.zeros(len(self.map.cells), dtype=bool)  # a lookup per shown point,
+        selected[k[found]] = True  # not a search: a street's fill selects 30,000 pillars
+        self.pending.draw(shown.xyz[selected[shown.cell]], float(self.point_size.value))
 
     def _drop_pending(self) -> None:
         if self.pending is not None:
