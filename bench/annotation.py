@@ -106,6 +106,7 @@ OVERVIEW_POINTS = 500_000  # the default: every pillar of a ten-frame sequence i
 TILE_POINTS = 100_000  # the tile in focus, kept small for software WebGL
 
 
+MAP_CLOUDS = ("/pillars/overview", "/pillars/tile")  # the labelling view's point clouds
 PARAGRAPHS = "() => Array.from(document.querySelectorAll('p'), p => p.innerText)"
 
 
@@ -129,8 +130,9 @@ class Page:
             if not isinstance(payload, bytes):
                 return
             messages = decode_frame(payload)
-            clouds = any(is_point_cloud(m) for m in messages)
-            if clouds or any(is_color_update(m) for m in messages):  # with classes hidden,
+            clouds = [m for m in messages if is_point_cloud(m)]
+            map_clouds = any(m["name"] in MAP_CLOUDS for m in clouds)  # not the preview's
+            if map_clouds or any(is_color_update(m) for m in messages):  # classes hidden:
                 self.colours.append(time.perf_counter())  # a write resends the cloud whole
             if clouds:
                 self.clouds.append(time.perf_counter())
