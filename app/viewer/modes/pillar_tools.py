@@ -29,12 +29,16 @@ NEIGHBOURS = tuple(
 )
 
 
-def pillar_tops(cell_ids: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(sorted unique store cell ids, the highest z of each) of points with pillars `cell_ids`."""
-    cells, inverse = np.unique(cell_ids, return_inverse=True)
+def pillar_tops(
+    cells: np.ndarray, pillar: np.ndarray, z: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(store cell ids, the highest z of each) of the pillars holding points; `pillar`: each
+    point's index into `cells` (the map's sorted pillars), so the tops are gathered in an
+    array over the map's pillars, not by sorting the points (a fill reads 400,000)."""
     top = np.full(len(cells), -np.inf)
-    np.maximum.at(top, inverse.ravel(), z)
-    return cells, top
+    np.maximum.at(top, pillar, z)
+    present = np.flatnonzero(top > -np.inf)
+    return cells[present], top[present]
 
 
 def fill_region(

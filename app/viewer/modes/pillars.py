@@ -534,7 +534,7 @@ class PillarMode(Mode):
         points within FILL_RADIUS), previewed like a large rectangle."""
         shown = self._shown()
         near = shown.take(np.hypot(*(shown.xyz[:, :2] - hit[:2]).T) <= FILL_RADIUS)
-        cells, top = pillar_tops(self.map.cells[near.cell], near.xyz[:, 2].astype(np.float64))
+        cells, top = pillar_tops(self.map.cells, near.cell, near.xyz[:, 2])
         seed = int(STORE_GRID.point_cell_ids((hit[:2] + self.map.origin[:2])[None])[0])
         region = fill_region(cells, top, seed, float(self.fill_step.value))
         if not len(region):
