@@ -15,7 +15,12 @@ from app.viewer.colour_modes import (
     intensity_colors,
 )
 from app.viewer.mini_views import BACKGROUND, HALF_WIDTH, PIXEL, SIDE_ABOVE, side_view, top_view
-from app.viewer.modes.pillar_tools import fill_region, measure_text, points_in_polygon
+from app.viewer.modes.pillar_tools import (
+    fill_region,
+    measure_text,
+    pillar_tops,
+    points_in_polygon,
+)
 from app.viewer.view_presets import heading_at, preset_offset
 
 
@@ -94,6 +99,14 @@ def test_presets_look_down_along_and_across_the_drive() -> None:
     assert np.linalg.norm(preset_offset("Top", heading, 1e6)) == pytest.approx(300.0)
     with pytest.raises(ValueError, match="unknown view"):
         preset_offset("Bottom", heading, 10.0)
+
+
+def test_pillar_tops_are_the_highest_point_of_each_pillar_holding_points() -> None:
+    cells = np.array([10, 20, 30, 40], dtype=np.int64)  # the map's sorted pillars
+    pillar = np.array([3, 1, 3, 3, 1])  # points in pillars 40 and 20; none in 10 or 30
+    z = np.array([0.5, -1.0, 2.0, 1.0, -2.0], dtype=np.float32)
+    found, top = pillar_tops(cells, pillar, z)
+    assert found.tolist() == [20, 40] and top.tolist() == [-1.0, 2.0]
 
 
 def test_fill_takes_the_sloping_road_and_stops_at_the_kerb_and_the_car() -> None:
