@@ -42,9 +42,10 @@ log (`MMSCLEAN_VIEWER_LOG_SLOWER_MS=0` logs every one); the share of non-ground 
 labelled and when all of them were; the class accuracy of the labels against the reference
 and their confusion.
 
-The browser runs at a lower priority (nice 10): its software WebGL takes both cores of this
-machine while it draws, and an operator's browser runs on the operator's machine, not the
-server's.
+The annotator's side (this script, Playwright's driver, the browser) runs at a lower priority
+(nice 10), the server it starts first at the normal one: the browser's software WebGL takes
+both cores of this machine while it draws, this script decodes every colour update it watches,
+and an operator's browser runs on the operator's machine, not the server's.
 
     MMSCLEAN_REAL_DATA=../shared/data .venv/bin/python -m bench.annotation [--sequence 08]
 """
@@ -63,7 +64,6 @@ from types import SimpleNamespace
 
 import msgspec
 import numpy as np
-import psutil
 from playwright.sync_api import TimeoutError as PlaywrightTimeout
 from scipy import ndimage
 from scipy.spatial import ConvexHull, QhullError, cKDTree
@@ -101,7 +101,9 @@ BRUSH_TIMEOUT_S = 3.0  # ... for a brush's (its answer may repeat the status lin
 DEAD_ENDS = ("Nothing to label", "No visible points", "no shown pillar", "met no point")
 CLASS_KEYS = {0: "1", 1: "2", 2: "3", 3: "4"}  # PillarClass -> hotkey
 PASSWORD = "password-123"
-BROWSER_NICE = 10  # the browser's processes yield the cores to the server (yield_to_server)
+CLIENT_NICE = 10  # the annotator's side (this script, the browser) yields the cores to the
+# server: on this 2-core machine the browser's software WebGL takes both while it draws, and
+# an operator's browser runs on the operator's machine, not the server's
 OVERVIEW_POINTS = 500_000  # the default: every pillar of a ten-frame sequence is shown
 TILE_POINTS = 100_000  # the tile in focus, kept small for software WebGL
 
@@ -629,6 +631,7 @@ def measure(sequence: Path) -> dict:
                "MMSCLEAN_VIEWER_TILE_POINTS": str(TILE_POINTS),
                "MMSCLEAN_VIEWER_LOG_SLOWER_MS": "0"}  # fmt: skip
         server = Server(Path(tmp) / "var", env=env).start()
+        os.nice(CLIENT_NICE)  # this script, Playwright's driver and the browser started next
         try:
             admin = server.client()
             record = admin.post(
@@ -646,7 +649,6 @@ def measure(sequence: Path) -> dict:
                     executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_ARGS
                 )
                 view = Page(browser, server, token, survey_id)
-                yield_to_server()
                 view.page.get_by_text("Click: brush. Shift-drag: rectangle.").wait_for(
                     timeout=600_000
                 )
@@ -701,19 +703,6 @@ def confusion(klass: np.ndarray, given: np.ndarray) -> np.ndarray:
 def confusion_rows(table: np.ndarray) -> list[list[str]]:
     names = [c.name.replace("_", " ") for c in PillarClass]
     return [[names[r]] + [f"{v:,}" for v in table[r]] for r in range(len(table))]
-
-
-def yield_to_server() -> None:
-    """Lower the browser's processes' priority (nice 10): on this 2-core machine its software
-    WebGL takes both cores while it draws, and an operator's browser runs on the operator's
-    machine, not the server's. The server's answers are timed as on its own machine; the
-    browser still gets every cycle the server does not use."""
-    for child in psutil.Process().children(recursive=True):
-        try:
-            if "chrom" in child.name():
-                child.nice(BROWSER_NICE)
-        except psutil.Error:  # gone meanwhile
-            continue
 
 
 def percentiles_ms(values: list[float]) -> tuple[float, float]:
