@@ -64,6 +64,7 @@ from types import SimpleNamespace
 
 import msgspec
 import numpy as np
+import psutil
 from playwright.sync_api import TimeoutError as PlaywrightTimeout
 from scipy import ndimage
 from scipy.spatial import ConvexHull, QhullError, cKDTree
@@ -649,6 +650,7 @@ def measure(sequence: Path) -> dict:
                     executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_ARGS
                 )
                 view = Page(browser, server, token, survey_id)
+                browser_yields()
                 view.page.get_by_text("Click: brush. Shift-drag: rectangle.").wait_for(
                     timeout=600_000
                 )
@@ -703,6 +705,17 @@ def confusion(klass: np.ndarray, given: np.ndarray) -> np.ndarray:
 def confusion_rows(table: np.ndarray) -> list[list[str]]:
     names = [c.name.replace("_", " ") for c in PillarClass]
     return [[names[r]] + [f"{v:,}" for v in table[r]] for r in range(len(table))]
+
+
+def browser_yields() -> None:
+    """Chromium sets its own processes' priorities (its GPU process above normal): put them
+    all at CLIENT_NICE with the rest of the annotator's side."""
+    for child in psutil.Process().children(recursive=True):
+        try:
+            if "chrom" in child.name():
+                child.nice(CLIENT_NICE)
+        except psutil.Error:  # gone meanwhile
+            continue
 
 
 def percentiles_ms(values: list[float]) -> tuple[float, float]:
