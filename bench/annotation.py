@@ -109,6 +109,7 @@ OVERVIEW_POINTS = 500_000  # the default: every pillar of a ten-frame sequence i
 TILE_POINTS = 100_000  # the tile in focus, kept small for software WebGL
 
 
+CLASS_LABELS = tuple(DISPLAY_NAMES[int(c)].lower() for c in PillarClass)  # the viewer's names
 MAP_CLOUDS = ("/pillars/overview", "/pillars/tile")  # the labelling view's point clouds
 PARAGRAPHS = "() => Array.from(document.querySelectorAll('p'), p => p.innerText)"
 
@@ -512,8 +513,7 @@ def hide_labelled(view: Page, on: bool, tally: Tally) -> None:
     points are shown (the Display folder opened first; the ground, the most points, hidden
     first and shown last), timed until the redrawn points have come."""
     page = view.page
-    names = [DISPLAY_NAMES[int(c)] for c in PillarClass]
-    boxes = [page.get_by_label(f"Hide {name.lower()}") for name in names]
+    boxes = [page.get_by_label(f"Hide {name}") for name in CLASS_LABELS]
     if not boxes[0].is_visible():
         page.get_by_text("Display", exact=True).click()
         boxes[0].wait_for(state="visible", timeout=5000)
@@ -703,8 +703,7 @@ def confusion(klass: np.ndarray, given: np.ndarray) -> np.ndarray:
 
 
 def confusion_rows(table: np.ndarray) -> list[list[str]]:
-    names = [c.name.replace("_", " ") for c in PillarClass]
-    return [[names[r]] + [f"{v:,}" for v in table[r]] for r in range(len(table))]
+    return [[CLASS_LABELS[r]] + [f"{v:,}" for v in table[r]] for r in range(len(table))]
 
 
 def browser_yields() -> None:
@@ -780,7 +779,7 @@ def main(argv: list[str] | None = None) -> int:
         f"{' (' + '; '.join(slow) + ')' if slow else ''}. Page errors: {len(result['errors'])}."
     )
     wrong = markdown_table(
-        ["reference \\ labelled", *(c.name.replace("_", " ") for c in PillarClass), "none"],
+        ["reference \\ labelled", *CLASS_LABELS, "none"],
         confusion_rows(result["confusion"]),
     )
     table = (

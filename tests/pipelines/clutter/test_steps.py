@@ -161,10 +161,13 @@ def _stall_with_person(*extra: np.ndarray):
     return xyz, clusters, cluster_sizes(xyz, clusters), instance
 
 
-def _grown(xyz, clusters, sizes, instance, min_mask_fraction: float = 0.7):
+def _grown(xyz, clusters, sizes, instance, min_mask_fraction: float = 0.7, bounded: bool = True):
+    """The expansion of the instances, bounded by what an object of the class can be (or not:
+    `sizes` not given)."""
     mask_class = np.where(instance >= 0, 1, 0).astype(np.uint8)
     args = (xyz, clusters, instance, mask_class, np.ones(len(xyz), bool), min_mask_fraction)
-    return expand_instances(*args, sizes.within(12.0, 4.5), 0.0, 0.1, sizes=sizes)
+    bound = {"sizes": sizes} if bounded else {}
+    return expand_instances(*args, sizes.within(12.0, 4.5), 0.0, 0.1, **bound)
 
 
 def test_a_person_merged_with_a_stall_gives_up_its_masked_points() -> None:
@@ -184,9 +187,7 @@ def test_a_person_merged_with_a_stall_gives_up_its_masked_points() -> None:
     assert grown.removed[masked[above[masked]]].all()
     assert not grown.removed[awning_bled].any() and not grown.removed[counter_end].any()
     assert grown.removed[4000:5600].sum() == 0
-    mask_class = np.where(instance >= 0, 1, 0).astype(np.uint8)
-    args = (xyz, clusters, instance, mask_class, np.ones(len(xyz), bool), 0.7)
-    unbounded = expand_instances(*args, sizes.within(12.0, 4.5), 0.0, 0.1)
+    unbounded = _grown(xyz, clusters, sizes, instance, bounded=False)
     assert not unbounded.removed[masked].any()  # unbounded: not chosen
 
 
