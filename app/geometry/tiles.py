@@ -115,6 +115,54 @@ class TileLayout:
             start = end
         return TileLayout(self.stations_of, self.length, self.halo, tuple(edges))
 
+    def balanced(self, station: np.ndarray, cost: np.ndarray, max_length: float) -> TileLayout:
+        """The same trajectory in as many tiles, their edges moved so that each tile's window
+        (the tile and its halo, along the stations) holds about the same `cost`: `cost[k]` lies
+        at `station[k]` (a frame's or a cell's points). Equal lengths leave a built-up tile
+        working while an open-road one is done: on two workers the survey waits for the
+        slower. No tile grows past `max_length`; where that leaves the survey uncovered, the
+        layout is returned as it was."""
+        count = self.count
+        if count < 2:
+            return self
+        order = np.argsort(station, kind="stable")
+        at = np.asarray(station, dtype=np.float64)[order]
+        cumulative = np.r_[0.0, np.cumsum(np.asarray(cost, dtype=np.float64)[order])]
+
+        def start_of(s: float) -> float:  # cost at stations below s
+            return float(cumulative[np.searchsorted(at, s, side="left")])
+
+        def edges_within(most: float) -> tuple[float, ...] | None:
+            """Tiles each as long as their window holds at most `most`; None: more needed."""
+            edges = [0.0]
+            for _ in range(count - 1):
+                start = edges[-1]
+                over = int(np.searchsorted(cumulative, start_of(start - self.halo) + most, "right"))
+                end = min(float(at[over - 1]) - self.halo if over <= len(at) else np.inf,
+                          start + max_length)  # fmt: skip
+                if end <= start:
+                    return None
+                if end >= self.total:
+                    return tuple(edges)  # fewer tiles than asked cover it: not balanced
+                edges.append(end)
+            last = edges[-1]
+            fits = (
+                self.total - last <= max_length
+                and start_of(np.inf) - start_of(last - self.halo) <= most
+            )
+            return tuple(edges) if fits else None
+
+        low, high = 0.0, float(cumulative[-1])
+        if edges_within(high) is None:
+            return self
+        for _ in range(40):  # bisection on the most a window holds
+            middle = 0.5 * (low + high)
+            low, high = (low, middle) if edges_within(middle) is not None else (middle, high)
+        edges = edges_within(high)
+        if edges is None or len(edges) != count:
+            return self
+        return replace(self, edges=edges)
+
     def halved(self, tiles: list[int], min_length: float) -> TileLayout:
         """The same layout with each of `tiles` cut in two halves, where the halves are at least
         `min_length` long (a window that holds more than its stations say, e.g. where the drive

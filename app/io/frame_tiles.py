@@ -22,7 +22,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from app.geometry.tiles import TileLayout
+from app.geometry.tiles import EVEN_STRETCH, TileLayout
 from app.geometry.trajectory import arc_length
 from app.io.survey import Survey
 
@@ -46,6 +46,7 @@ class FrameTiles:
         budget: float | None = None,
         weights: np.ndarray | None = None,
         workers: int | None = None,
+        cost: np.ndarray | None = None,
     ) -> FrameTiles:
         """Tiles of `length` metres; with `budget`, a tile also ends before the frames it reads
         (its own and their halo's, a drive's other passes included) would weigh more than
@@ -54,7 +55,9 @@ class FrameTiles:
         `workers`: the tiles are evened over them (`TileLayout.along`), and where the budget
         then cuts a count that is no multiple of them, the cut is made again from shorter
         equal tiles (0.5 km on two workers: two tiles of 240 m, one cut by the budget, were
-        three, the last running alone)."""
+        three, the last running alone). `cost`: (F,) the work each frame makes (its points);
+        where the budget cut no tile short, the edges are moved so that the tiles' frames
+        (own and context) cost about the same (`TileLayout.balanced`), within the budget."""
         poses = survey.poses()
         if len(poses) == 0:
             raise ValueError(f"{survey.source}: no frames to cut into tiles")
@@ -66,9 +69,22 @@ class FrameTiles:
             weight = np.ones(len(poses)) if weights is None else np.asarray(weights, np.float64)
             if weight.shape != (len(poses),):
                 raise ValueError(f"{len(weight)} frame weights for {len(poses)} frames")
+            evened = layout
             layout = _cut_by_budget(layout, station, near, weight, budget)
             if workers and layout.count > 1 and layout.count % workers:
                 layout = _evened_cut(layout, workers, station, near, weight, budget)
+        tiles = cls._of(layout, station, near)
+        if cost is not None and (budget is None or layout.count == evened.count):
+            # no tile cut short by the budget: the edges are free to even the tiles' work
+            if np.shape(cost) != (len(poses),):
+                raise ValueError(f"{np.shape(cost)} frame costs for {len(poses)} frames")
+            moved = cls._of(layout.balanced(station, cost, length * EVEN_STRETCH), station, near)
+            if budget is None or moved.heaviest(weight) <= max(budget, tiles.heaviest(weight)):
+                tiles = moved
+        return tiles
+
+    @classmethod
+    def _of(cls, layout: TileLayout, station: np.ndarray, near: list) -> FrameTiles:
         owner = layout.owner(station)
         frames = []
         for tile in range(layout.count):
@@ -76,6 +92,10 @@ class FrameTiles:
             reach = np.concatenate([own, *[np.asarray(near[k], dtype=np.int64) for k in own]])
             frames.append(np.unique(reach.astype(np.int64)))
         return cls(layout, owner.astype(np.int64), frames)
+
+    def heaviest(self, weight: np.ndarray) -> float:
+        """The most any tile's frames (own and context) weigh."""
+        return max(float(weight[f].sum()) for f in self.frames)
 
     def reads(self) -> np.ndarray:
         """(T,) frames each tile reads: what its work grows with."""

@@ -69,6 +69,32 @@ def test_tiles_are_evened_over_the_workers() -> None:
     assert TileLayout.along(_bend(), length=50.01, halo=5.0, workers=2).length <= 75.0 + 1e-9
 
 
+def test_balanced_tiles_hold_the_same_work() -> None:
+    """Two tiles of 75 m over a street whose first 60 m cost three times what the rest does
+    (a built-up stretch, then open road): the edge moves back so that both windows (tile and
+    5 m halo) hold the same cost, within a sample's cost; a tile never grows past the longest
+    allowed, and where that cannot cover the trajectory the layout stays as it was."""
+    layout = TileLayout.along(_bend(), length=100.0, halo=5.0, workers=2)
+    assert layout.edges == (0.0, 75.0)
+    station = np.arange(0.0, 150.0, 0.5) + 0.25
+    cost = np.where(station < 60.0, 3.0, 1.0)
+    balanced = layout.balanced(station, cost, max_length=150.0)
+    assert balanced.count == 2 and balanced.halo == layout.halo
+    edge = balanced.edges[1]
+    assert 40.0 < edge < 75.0
+    windows = [(station < edge + 5.0), (station >= edge - 5.0)]
+    held = [cost[w].sum() for w in windows]
+    assert abs(held[0] - held[1]) <= 3.0 + 1e-9
+    assert balanced.owner(np.array([edge - 0.1, edge + 0.1])).tolist() == [0, 1]
+    assert layout.balanced(station, np.ones_like(station), 150.0).edges[1] == pytest.approx(
+        75.0, abs=0.5
+    )  # even cost: the edges stay about where they were
+    assert layout.balanced(station, cost, max_length=80.0).edges[1] >= 70.0  # capped
+    assert layout.balanced(station, cost, max_length=60.0).edges == layout.edges
+    one = TileLayout.along(_bend(), length=200.0, halo=5.0)
+    assert one.balanced(station, cost, 300.0) is one
+
+
 def test_bad_layouts_are_refused() -> None:
     with pytest.raises(ValueError, match="tile length"):
         TileLayout.along(_bend(), length=0.0, halo=1.0)

@@ -87,6 +87,10 @@ def frame_clusters(
     return FrameClusters(label, above)
 
 
+# metres: the grid cells by which `object_hosts` finds the points near its objects' boxes
+NEAR_CELL = 1.0
+
+
 def object_hosts(
     xyz: np.ndarray,
     label: np.ndarray,
@@ -113,18 +117,61 @@ def object_hosts(
     if not anchored.any():
         return host
     anchors = np.flatnonzero(anchored)
-    tree = cKDTree(xyz[anchors])
+    anchors = anchors[np.argsort(label[anchors], kind="stable")]
+    lower, upper = _boxes(xyz[anchors], label[anchors])
+    tree = None
     for loose, radius, angle in (
         (clustered & ~anchored, fragment_radius, 0.0),
         (~clustered & near_ground, ground_radius, ground_angle),
     ):
-        if not loose.any() or max(radius, angle) <= 0:
+        if max(radius, angle) <= 0 or not loose.any():
             continue
         at = np.flatnonzero(loose)
-        reach = np.maximum(radius, angle * np.linalg.norm(xyz[at], axis=1))
-        distance, nearest = tree.query(
-            xyz[at], k=1, distance_upper_bound=float(reach.max()), workers=-1
-        )
+        at = at[_near_boxes(xyz[at], lower, upper, radius, angle)]  # the tree's candidates
+        if not len(at):
+            continue
+        reach = np.full(len(at), radius)
+        if angle > 0:
+            reach = np.maximum(radius, angle * np.linalg.norm(xyz[at], axis=1))
+        tree = cKDTree(xyz[anchors]) if tree is None else tree
+        distance, nearest = tree.query(xyz[at], k=1, distance_upper_bound=float(reach.max()))
         found = distance <= reach
         host[at[found]] = label[anchors[nearest[found]]]
     return host
+
+
+def _boxes(xyz: np.ndarray, label: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(C, 3) lower and upper corners of each cluster's points (`label` sorted, C clusters)."""
+    starts = np.flatnonzero(np.r_[True, label[1:] != label[:-1]])
+    return np.minimum.reduceat(xyz, starts), np.maximum.reduceat(xyz, starts)
+
+
+def _near_boxes(
+    xyz: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    radius: float,
+    angle: float,
+    cell: float = NEAR_CELL,
+) -> np.ndarray:
+    """(N,) bool: the points that may lie within max(`radius`, `angle` x their range) of a
+    box's contents: those in the `cell`-metre grid cells (horizontal) that the boxes, grown
+    by that reach, touch (a superset: cells and boxes, not points). Most of a frame lies far
+    from its few trackable objects; this spares the tree their queries. A point within
+    `angle` x its range r of a box whose farthest corner lies at c has r <= c + angle x r, so
+    its reach there is at most angle x c / (1 - angle)."""
+    if angle >= 1.0:
+        return np.ones(len(xyz), dtype=bool)
+    corner = np.linalg.norm(np.maximum(np.abs(lower), np.abs(upper)), axis=1)
+    margin = np.maximum(radius, angle * corner / (1.0 - angle))[:, None]
+    first = np.floor((lower[:, :2] - margin) / cell).astype(np.int64)
+    last = np.floor((upper[:, :2] + margin) / cell).astype(np.int64)
+    origin = first.min(axis=0)
+    touched = np.zeros(last.max(axis=0) - origin + 1, dtype=bool)
+    for (i0, j0), (i1, j1) in zip(first - origin, last - origin, strict=True):  # per box
+        touched[i0 : i1 + 1, j0 : j1 + 1] = True
+    ij = np.floor(xyz[:, :2] / cell).astype(np.int64) - origin
+    on = np.flatnonzero(((ij >= 0) & (ij < touched.shape)).all(axis=1))
+    inside = np.zeros(len(xyz), dtype=bool)
+    inside[on] = touched[ij[on, 0], ij[on, 1]]
+    return inside

@@ -26,7 +26,7 @@ from app.io.frame_tiles import FrameTiles
 from app.io.survey import Camera, Survey
 from app.pipelines.clutter.config import ClutterConfig
 from app.pipelines.clutter.evaluation.removal_metrics import survey_removal_counts
-from app.pipelines.clutter.map_budget import frame_map_mb
+from app.pipelines.clutter.map_budget import frame_loads
 from app.pipelines.clutter.maps import maps_offset, write_frame_maps
 from app.pipelines.clutter.pipeline import ClutterPipeline, ClutterResult
 from app.pipelines.clutter.review_units import write_review_units
@@ -272,8 +272,10 @@ def run_clutter_tiled(
     free-space map (None, or no free space: tiles by length only)."""
     halo = clutter_halo(config) if halo is None else halo
     budget = map_mb if config.use_free_space else None
-    weights = None if budget is None else frame_map_mb(survey, config)
-    tiles = FrameTiles.build(survey, length, halo, budget, weights, tile_workers(map_tiles))
+    loads = frame_loads(survey, config)
+    tiles = FrameTiles.build(
+        survey, length, halo, budget, loads.map_mb, tile_workers(map_tiles), loads.work
+    )
     spec = ClutterTileSpec(  # absolute paths: a cluster's workers run elsewhere
         str(Path(survey.source).resolve()), survey.format, config.model_dump_json(),
         str(Path(out).resolve()), tuple(maps_offset(survey).tolist()),
