@@ -1,8 +1,8 @@
 """The labelling workbench in a real browser (issue 20, "what users of the anchor tools
 expect"): standard views, colour modes, the top and side views beside the 3D view, the click
-tools (fill, polygon, measure, inspect), class locks and the shortcut sheet on the sample
-survey; the multi-view layout and colour modes on a real SemanticKITTI sequence. Screenshots go
-to docs/ (see conftest)."""
+tools (fill, polygon, measure, inspect), the free-hand lasso, class locks and the shortcut
+sheet on the sample survey; the multi-view layout and colour modes on a real SemanticKITTI
+sequence. Screenshots go to docs/ (see conftest)."""
 
 from __future__ import annotations
 
@@ -125,6 +125,25 @@ def test_views_colours_and_click_tools_on_the_sample(
     if "selected" in text:
         page.keyboard.press("Enter")
     page.get_by_text("pillars: Phantom (polygon").wait_for()
+
+    # lasso: a free-hand Ctrl-drag round another stretch, its path drawn while it grows
+    pick_option(page, "Unlabelled only", "All pillars")
+    page.keyboard.press("3")
+    page.keyboard.down("Control")
+    loop = [(0.55 + 0.12 * np.cos(a), 0.5 + 0.15 * np.sin(a)) for a in np.linspace(0, 6.0, 25)]
+    page.mouse.move(*canvas_point(page, *loop[0]))
+    page.mouse.down()
+    for fx, fy in loop[1:]:
+        page.mouse.move(*canvas_point(page, fx, fy), steps=2)
+        page.wait_for_timeout(40)
+    save_screenshot(page, artefacts, "lasso-drawn", docs="viewer_lasso.png")
+    page.mouse.up()
+    page.keyboard.up("Control")
+    lassoed = page.get_by_text("(lasso")
+    text = wait_until("the lasso", lambda: lassoed.count() and lassoed.first.inner_text())
+    if "selected" in text:
+        page.keyboard.press("Enter")
+    page.get_by_text("pillars: Short object (lasso").wait_for()
     page.wait_for_timeout(2000)
     close_notifications(page)
     save_screenshot(page, artefacts, "tools", docs="viewer_tools.png")

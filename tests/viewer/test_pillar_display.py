@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 from sqlmodel import Session
-from viser import SceneClickEvent, SceneRectSelectEvent
+from viser import SceneClickEvent, SceneNodeDragEvent, SceneRectSelectEvent
 
 from app.io import open_survey
 from app.io.ply import write_ply
@@ -25,6 +25,7 @@ from app.store.surveys import register_opened_survey
 from app.viewer.colour_modes import HEIGHT, INTENSITY, height_colors, intensity_colors
 from app.viewer.modes.pillar_selection import CONFIRM_ABOVE, PREVIEW_RGB
 from app.viewer.modes.pillars import BRUSH, FILL, INSPECT, MEASURE, POLYGON, PillarMode
+from app.viewer.picking import ScreenCamera
 from tests.viewer.test_modes_common import (
     Connection,
     Driver,
@@ -306,3 +307,53 @@ def test_fill_polygon_measure_inspect_and_class_locks(opened) -> None:
     connection.call(mode.show_shortcuts)
     modal = connection.wait(lambda m: m.get("type") == "GuiModalMessage")
     assert modal["title"] == "Keyboard shortcuts"
+
+
+def test_a_free_hand_lasso_labels_what_it_encircles(opened) -> None:
+    """Ctrl-drag on the map (caught by the invisible plane under it): the path is drawn while
+    it grows, and at release the pillars inside it, as the user sees them, are labelled; a
+    path that encloses nothing is dropped."""
+    connection, engine, survey_id = opened
+    mode: PillarMode = connection.mode
+    session = connection.session
+    connection.call(session.show_preset, "Top")
+    catch = connection.wait(lambda m: m.get("name") == "/pillars/lasso_catch", 0)
+    assert catch["props"]["opacity"] == 0.0  # invisible, but drags start on it
+    before = stored(engine, survey_id)
+    screen = ScreenCamera.of(session.client.camera)
+    size = np.array([screen.width, screen.height], dtype=np.float64)
+    # a hand-drawn loop round (30, 5)-(34, 5)-(32, 9): many small steps, as the pointer moves
+    corners = np.array([[30.0, 5.0, 0.0], [34.0, 5.0, 0.0], [32.0, 9.0, 0.0], [30.0, 5.0, 0.0]])
+    edges = zip(corners[:-1], corners[1:], strict=True)
+    path = np.concatenate([np.linspace(a, b, 12, endpoint=False) for a, b in edges])
+    pixels, _ = screen.project(path)
+    positions = [tuple((p / size).tolist()) for p in pixels]
+
+    def drag(phase: str, k: int) -> SceneNodeDragEvent:
+        return SceneNodeDragEvent(
+            client=session.client, client_id=session.client.client_id, target=mode.catch,
+            phase=phase, instance_index=None, start_position=tuple(path[0].tolist()),
+            start_screen_pos=positions[0], end_position=tuple(path[k].tolist()),
+            end_screen_pos=positions[k], button="left", modifier="cmd/ctrl",
+        )  # fmt: skip
+
+    connection.call(mode._pick, "Short object")
+    connection.call(mode.on_lasso, drag("start", 0))
+    for k in range(1, len(path) - 1):
+        connection.call(mode.on_lasso, drag("update", k))
+    assert "lasso" in mode.marks  # the path drawn while it grows
+    connection.call(mode.on_lasso, drag("end", len(path) - 1))
+    assert "lasso" not in mode.marks and not mode.lasso
+    labels = {c: v for c, v in stored(engine, survey_id).items() if c not in before}
+    centres = STORE_GRID.cell_center(*STORE_GRID.decode(np.array(list(labels))))
+    local = centres - mode.map.origin[:2]
+    assert 60 < len(labels) < 160  # an 8 m^2 triangle of 0.0625 m^2 pillars with points
+    assert set(labels.values()) == {2}  # short object
+    assert (local.min(axis=0) > 29.5).all() and (local.max(axis=0) < 34.5).all()
+    assert (local[:, 1] < 9.5).all()
+    connection.call(mode.undo)
+    # a stroke with no area is dropped, nothing written
+    connection.call(mode.on_lasso, drag("start", 0))
+    connection.call(mode.on_lasso, drag("end", 0))
+    assert "Lasso dropped" in mode.status.content
+    assert stored(engine, survey_id) == before

@@ -6,8 +6,8 @@
   click.
 - Polygon: vertices picked in 3D (so the polygon survives camera moves), projected with the
   camera at closing time; the shown points inside it (and visible, as for the rectangle) give
-  the pillars. CloudCompare's segmentation polygon; viser reports no free-hand drags, so this is
-  also the lasso.
+  the pillars. CloudCompare's segmentation polygon; the free-hand lasso (`pillars.py`, a
+  Ctrl-drag) tests its path the same way.
 - Measure: the distance between two picked points (3D, horizontal, vertical).
 - Inspect: one point's coordinates and attributes.
 """

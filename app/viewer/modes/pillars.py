@@ -11,7 +11,9 @@ brush (every pillar within the radius of the surface point under the cursor, or 
 where there is none; one undoable batch), fill (the pillars connected through small height
 steps), polygon (clicks, Enter closes), measure and inspect; the rectangle (shift-drag: the
 pillars of the shown points inside it that the user can see, within a depth range,
-`pillar_selection`). A selection over CONFIRM_ABOVE pillars is previewed and written on Enter.
+`pillar_selection`) and the free-hand lasso (Ctrl-drag, the same test inside the path drawn:
+the drag is caught by an invisible plane under the map, the only kind of scene node viser
+reports drags on). A selection over CONFIRM_ABOVE pillars is previewed and written on Enter.
 "Apply to" locks pillars: only unlabelled ones, or only one class, are written. Undo / redo
 (Ctrl+Z / Ctrl+Y, the user's own batches in the store); "next uncertain area" (N) flies the
 camera to the area whose unreviewed model pre-labels are least confident and outlines it; H
@@ -76,7 +78,7 @@ from app.viewer.shown_points import ShownPoints
 from app.viewer.view_presets import heading_at
 
 if TYPE_CHECKING:
-    from viser import CameraHandle, SceneClickEvent, SceneRectSelectEvent
+    from viser import CameraHandle, SceneClickEvent, SceneNodeDragEvent, SceneRectSelectEvent
 
     from app.viewer.session import ViewerSession
 
@@ -97,6 +99,7 @@ SHORTCUTS = """| key | action |
 | 1 2 3 4 / 0 | class: ground, high object, short object, phantom / erase |
 | B G P M I | click tool: brush, fill, polygon, measure, inspect |
 | shift-drag | rectangle (what you see; a large one waits for Enter) |
+| Ctrl-drag | lasso: free-hand, what you see inside the path |
 | Enter / Esc | apply / drop a previewed selection; Enter closes a polygon |
 | Ctrl+Z / Ctrl+Y | undo / redo your last labelling action |
 | N | next uncertain area |
@@ -106,6 +109,8 @@ SIDE_LABEL = "Side (from the right, 4 m slab)"
 SECTION_MAX = 30.0  # metres each way from the middle of a measured line's cross-section
 VIEWS_MOVE = 0.5  # metres the focus moves before the top / side views are redrawn
 HEIGHT_SLICE = (-2.0, 40.0)  # metres above the ground: the height slice slider's ends
+LASSO_MARGIN = 1000.0  # metres the lasso's catch plane reaches past the map on every side
+LASSO_BELOW = 1.0  # metres the catch plane lies below the map's lowest point
 
 
 class PillarMode(Mode):
@@ -134,15 +139,19 @@ class PillarMode(Mode):
         self.marks: dict[str, Any] = {}  # line segments: brush ring, polygon, measurement
         self.brush_at: np.ndarray | None = None
         self.polygon: list[np.ndarray] = []  # local vertices of the polygon being drawn
+        self.lasso: list[tuple[float, float]] = []  # screen positions (0-1) of a lasso drag
+        self.lasso_path: list[np.ndarray] = []  # the same, on the drag plane (local, drawn)
         self.measured: list[np.ndarray] = []
         self.section: tuple[np.ndarray, np.ndarray] | None = None  # the last measured line
         self._build_gui()
+        self.catch = self._lasso_catch()
         self._draw("overview", self.map.overview)
         self._focus(session.client.camera.look_at)
         self._draw_views()
 
     def leave(self) -> None:
         self._drop_pending()
+        self.catch.remove()
         for mark in self.marks.values():
             mark.remove()
         self.marks = {}
@@ -189,7 +198,7 @@ class PillarMode(Mode):
             redo = gui.add_button("Redo (Ctrl+Y)", hint="re-apply what you undid")
             jump = gui.add_button("Next uncertain area (N)", hint="least confident model labels")
             shortcuts = gui.add_button("Keyboard shortcuts (H)")
-            self.status = gui.add_markdown("Click: brush. Shift-drag: rectangle.")
+            self.status = gui.add_markdown("Click: brush. Shift-drag: rectangle. Ctrl-drag: lasso.")
             with gui.add_folder("Rectangle", expand_by_default=False):
                 self.through = gui.add_checkbox(
                     "Select hidden points too",
@@ -556,30 +565,77 @@ class PillarMode(Mode):
     def _close_polygon(self) -> None:
         """The pillars of the visible shown points inside the polygon, projected with the
         camera now."""
-        camera = self.session.client.camera
-        screen = ScreenCamera.of(camera)
+        screen = ScreenCamera.of(self.session.client.camera)
         corners_px, depth = screen.project(np.asarray(self.polygon))
         self.polygon = []
         self._mark("polygon", np.zeros((0, 2, 3)))
         if (depth <= 0).any():
             self.status.content = "Polygon dropped: a vertex is behind the camera."
             return
+        self._select_inside(corners_px, screen, "polygon")
+
+    def _select_inside(self, corners_px: np.ndarray, screen: ScreenCamera, how: str) -> None:
+        """The pillars of the visible shown points inside a closed screen polygon (pixels):
+        the rectangle's test (depth, hidden points, depth range) on its bounding box, then the
+        polygon's own outline."""
         size = np.array([screen.width, screen.height])
         shown = self._shown()
         xyz = shown.xyz
         lo, hi = corners_px.min(axis=0) / size, corners_px.max(axis=0) / size
         in_box = rectangle_points(
-            xyz, camera, tuple(lo), tuple(hi), float(self.point_size.value),
-            self._rectangle_options(),
+            xyz, self.session.client.camera, tuple(lo), tuple(hi),
+            float(self.point_size.value), self._rectangle_options(),
         )  # fmt: skip
         idx = np.flatnonzero(in_box)
         px, _ = screen.project(xyz[idx])
         inside = idx[points_in_polygon(px, corners_px)]
         cells = self.map.cells[np.unique(shown.cell[inside])]
         if not len(cells):
-            self.status.content = "No visible points inside the polygon."
+            self.status.content = f"No visible points inside the {how}."
             return
-        self._select(cells, "polygon")
+        self._select(cells, how)
+
+    def _lasso_catch(self) -> Any:
+        """An invisible plane under the whole map that Ctrl-drags start on (viser reports
+        drags on meshes, not on point clouds): the lasso's path is the pointer's."""
+        xyz = np.asarray(self.map.xyz[self.map.overview], dtype=np.float64)
+        low = xyz.min(axis=0) if len(xyz) else np.zeros(3)
+        high = xyz.max(axis=0) if len(xyz) else np.zeros(3)
+        (x0, y0), (x1, y1) = low[:2] - LASSO_MARGIN, high[:2] + LASSO_MARGIN
+        z = float(low[2]) - LASSO_BELOW
+        catch = self.session.client.scene.add_mesh_simple(
+            f"/{self.key}/lasso_catch",
+            vertices=np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]], np.float32),
+            faces=np.array([[0, 1, 2], [0, 2, 3]], dtype=np.uint32),
+            color=(255, 255, 255), opacity=0.0, side="double", cast_shadow=False,
+            receive_shadow=False,
+        )  # fmt: skip
+        catch.on_drag("left", modifier="cmd/ctrl")(
+            lambda event: self.session.submit(self.on_lasso, event)
+        )
+        return catch
+
+    def on_lasso(self, event: SceneNodeDragEvent) -> None:
+        """Ctrl-drag: the free-hand lasso. Its path is drawn as it grows; at release the
+        visible shown points inside it give the pillars (as the polygon's do)."""
+        if event.phase == "start":
+            self.lasso = [event.start_screen_pos]
+            self.lasso_path = []
+        self.lasso.append(event.end_screen_pos)
+        self.lasso_path.append(np.asarray(event.end_position, dtype=np.float64))
+        if event.phase != "end":
+            if len(self.lasso_path) > 1:
+                path = np.asarray(self.lasso_path)
+                self._mark("lasso", np.stack([path[:-1], path[1:]], axis=1))
+            return
+        screen = ScreenCamera.of(self.session.client.camera)
+        corners = np.asarray(self.lasso, dtype=np.float64) * (screen.width, screen.height)
+        self.lasso, self.lasso_path = [], []
+        self._mark("lasso", np.zeros((0, 2, 3)))
+        if len(np.unique(np.round(corners), axis=0)) < 3:
+            self.status.content = "Lasso dropped: draw round what you want (Ctrl-drag)."
+            return
+        self._select_inside(corners, screen, "lasso")
 
     def _measure(self, hit: np.ndarray) -> None:
         """Measure: the distance from the previous point clicked to this one."""
