@@ -18,8 +18,8 @@ colours show wrong):
    class but the street's most common one): per connected group of one class (30 pillars or
    more, largest first) a rectangle (shift-drag round its box) where the group fills most of
    its box or where no other pillar the lock lets through lies in it (what the colours show an
-   annotator), else a polygon (P, clicks round its convex hull, Enter: 8 vertices, 5 for a
-   group under 50 pillars); Enter again where the selection is previewed.
+   annotator), else a lasso (a Ctrl-drag round its convex hull, at a hand's pace); Enter
+   where the selection is previewed.
 3. The majority class in one rectangle over the whole street (unlabelled only), with the
    height slice's lower end dragged to 0.5 m above the ground (so the road the fill did not
    reach is not shown and not selected); then the slice back.
@@ -29,9 +29,6 @@ colours show wrong):
    with one wrong label (or none) that should be one class, largest first: "Apply to" locked
    to that label (its neighbours keep theirs) and the group outlined as in 2 (8 pillars or
    more); then the brush (B, radius 0.4 m) on each such pillar left.
-
-A polygon's vertices are clicked at a person's pace (0.3 s apart), Enter once the page shows
-them all (or three or more, when a click was not taken).
 
 It stops when the corrections are done or after 10 minutes of interaction (the height slice's
 drags count). Per tool: interactions, pillars labelled (given a label or another one), seconds
@@ -65,7 +62,6 @@ from types import SimpleNamespace
 import msgspec
 import numpy as np
 import psutil
-from playwright.sync_api import TimeoutError as PlaywrightTimeout
 from scipy import ndimage
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
@@ -87,14 +83,14 @@ STREET_ALONG, STREET_ACROSS = 50.0, 15.0  # metres each way from the middle pose
 CAMERA_HEIGHT = 80.0  # metres above the street, top view
 BUDGET_S = 600.0  # seconds of interaction
 GROUP_MIN = 30  # pillars: smaller objects of the minority classes are left to the corrections
-VERTEX_PAUSE_MS = 300  # between a polygon's vertex clicks
-VERTEX_WAIT_MS = 5_000  # the longest wait for a polygon's vertices to be shown
+LASSO_STEP_PX = 12.0  # pixels between the pointer's positions along a lasso
+LASSO_STEP_MS = 40  # between them (a 100-pixel loop is drawn in about a second)
+LASSO_OUT_PX = 4.0  # the lasso runs this far outside the group's hull
 CORRECT_MIN = 8  # pillars: a wrong group this large is outlined, smaller ones are brushed
 SLICE_LOW = 0.5  # metres above the ground: the height slice's lower end for the majority class
 APPLY_ALL, APPLY_UNLABELLED = APPLY_TO[:2]
-RECT_FILL = 0.6  # a group filling this share of its box gets a rectangle, else a polygon
+RECT_FILL = 0.6  # a group filling this share of its box gets a rectangle, else a lasso
 SAFE_PX = 6  # pixels round a rectangle where no pillar the lock lets through may be harmed
-SMALL_GROUP = 50  # pillars: a smaller group's polygon has 5 vertices at most
 BRUSH_RADIUS = 0.4
 PANEL_X = 0.72  # share of the canvas width left of the GUI panel (clicks stay left of it)
 ANSWER_TIMEOUT_S = 15.0  # the longest wait for an interaction's colours
@@ -257,6 +253,21 @@ def labelled(api, survey_id: int, cells: np.ndarray) -> dict[int, int]:
     return dict(zip(tile["cell_id"], tile["label"], strict=True))
 
 
+def lasso_path(hull: np.ndarray) -> np.ndarray:
+    """(n, 2) page pixels a hand follows round a convex hull (its vertices in order): the hull
+    pushed LASSO_OUT_PX outwards from its centre, walked every LASSO_STEP_PX, closed."""
+    centre = hull.mean(axis=0)
+    away = hull - centre
+    length = np.maximum(np.linalg.norm(away, axis=1, keepdims=True), 1e-9)
+    pushed = hull + away / length * LASSO_OUT_PX
+    ring = np.vstack([pushed, pushed[:1]])
+    steps = [
+        np.linspace(a, b, max(int(np.linalg.norm(b - a) // LASSO_STEP_PX), 1), endpoint=False)
+        for a, b in zip(ring[:-1], ring[1:], strict=True)
+    ]
+    return np.vstack([*steps, ring[-1:]])
+
+
 def run_session(view: Page, api, survey_id: int, street: dict) -> Tally:
     page, tally = view.page, Tally()
     box = view.canvas()
@@ -353,7 +364,7 @@ def run_session(view: Page, api, survey_id: int, street: dict) -> Tally:
         """A group of pillars (to become class k) by a rectangle where one is safe (no other
         pillar in its box that "Apply to" lets through, `lock`: the label it reaches, -1 for
         unlabelled ones, should become something else) or the group fills most of its box,
-        else a polygon round its convex hull (8 vertices at most, 5 for a small group)."""
+        else a lasso round its convex hull."""
         corners = to_page(street["local"][group])
         lo, hi = corners.min(axis=0) - 2, corners.max(axis=0) + 2
         try:
@@ -367,29 +378,23 @@ def run_session(view: Page, api, survey_id: int, street: dict) -> Tally:
         ):
             rectangle("rectangle", lo, hi)
             return
-        vertices = corners[hull.vertices]
-        most = 8 if len(group) >= SMALL_GROUP else 5
-        vertices = vertices[np.linspace(0, len(vertices) - 1, min(len(vertices), most)).astype(int)]
+        path = lasso_path(corners[hull.vertices])
 
-        def clicks() -> bool:
-            """The vertices at a person's pace, then Enter once the page shows them all (or,
-            when one was not taken, three or more: the polygon a person sees is closed)."""
-            page.keyboard.press("p")
-            for v in vertices:
-                page.mouse.click(*v, delay=20)
-                page.wait_for_timeout(VERTEX_PAUSE_MS)
-            try:
-                text = f"Polygon: {len(vertices)} vertices"
-                page.get_by_text(text).wait_for(timeout=VERTEX_WAIT_MS)
-            except PlaywrightTimeout:
-                taken = [
-                    int(m) for m in re.findall(r"Polygon: (\d+) vertices", " ".join(view.texts()))
-                ]
-                print(f"    {taken[0] if taken else 0} of {len(vertices)} vertices taken")
-                return bool(taken) and taken[0] >= 3
-            return True
+        def draw() -> None:
+            """Ctrl held, the path round the group at a hand's pace (the page reports the
+            pointer at about 20 Hz)."""
+            page.keyboard.down("Control")
+            page.mouse.move(*path[0])
+            page.mouse.down()
+            for p in path[1:]:
+                page.mouse.move(*p)
+                page.wait_for_timeout(LASSO_STEP_MS)
 
-        act("polygon", clicks, lambda: page.keyboard.press("Enter"))
+        def release() -> None:
+            page.mouse.up()
+            page.keyboard.up("Control")
+
+        act("lasso", draw, release)
 
     def safe(lo: np.ndarray, hi: np.ndarray, group: np.ndarray, k: int, lock: int) -> bool:
         """No pillar outside the group within SAFE_PX of the box that the lock lets through
