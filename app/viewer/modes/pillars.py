@@ -29,6 +29,7 @@ the side view is the cross-section along the measured line.
 
 from __future__ import annotations
 
+import time
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -111,6 +112,10 @@ VIEWS_MOVE = 0.5  # metres the focus moves before the top / side views are redra
 HEIGHT_SLICE = (-2.0, 40.0)  # metres above the ground: the height slice slider's ends
 LASSO_MARGIN = 1000.0  # metres the lasso's catch plane reaches past the map on every side
 LASSO_BELOW = 1.0  # metres the catch plane lies below the map's lowest point
+# seconds between redraws of a growing lasso's path: the page reports the pointer at 20 Hz, and
+# every redraw makes the browser draw the whole scene again (a second per frame in software
+# WebGL on a real street: a path redrawn at 20 Hz kept the labels' colours waiting behind it)
+LASSO_REDRAW_S = 0.2
 
 
 class PillarMode(Mode):
@@ -141,6 +146,7 @@ class PillarMode(Mode):
         self.polygon: list[np.ndarray] = []  # local vertices of the polygon being drawn
         self.lasso: list[tuple[float, float]] = []  # screen positions (0-1) of a lasso drag
         self.lasso_path: list[np.ndarray] = []  # the same, on the drag plane (local, drawn)
+        self.lasso_drawn = 0.0  # when the growing path was last drawn (perf_counter)
         self.measured: list[np.ndarray] = []
         self.section: tuple[np.ndarray, np.ndarray] | None = None  # the last measured line
         self._build_gui()
@@ -624,7 +630,9 @@ class PillarMode(Mode):
         self.lasso.append(event.end_screen_pos)
         self.lasso_path.append(np.asarray(event.end_position, dtype=np.float64))
         if event.phase != "end":
-            if len(self.lasso_path) > 1:
+            now = time.perf_counter()
+            if len(self.lasso_path) > 1 and now - self.lasso_drawn >= LASSO_REDRAW_S:
+                self.lasso_drawn = now
                 path = np.asarray(self.lasso_path)
                 self._mark("lasso", np.stack([path[:-1], path[1:]], axis=1))
             return
