@@ -315,6 +315,7 @@ def run_session(view: Page, api, survey_id: int, street: dict) -> Tally:
             mark, shown, timeout=BRUSH_TIMEOUT_S if tool == "brush" else ANSWER_TIMEOUT_S
         )
         if answered is None and "pillars selected" in " ".join(view.texts() - shown):
+            mark = len(view.colours)  # the preview's own colours are not the answer
             page.keyboard.press("Enter")  # a large selection is previewed: apply it
             committed = time.perf_counter()
             answered = view.colours_after(mark, shown, preview_ok=True)
