@@ -114,7 +114,7 @@ LASSO_MARGIN = 1000.0  # metres the lasso's catch plane reaches past the map on 
 LASSO_BELOW = 1.0  # metres the catch plane lies below the map's lowest point
 # seconds between redraws of a growing lasso's path: the page reports the pointer at 20 Hz, and
 # every redraw makes the browser draw the whole scene again (a second per frame in software
-# WebGL on a real street: a path redrawn at 20 Hz kept the labels' colours waiting behind it)
+# WebGL on a real street: a scripted lasso round a group took about 15 s at 20 Hz, 10-13 s so)
 LASSO_REDRAW_S = 0.2
 
 
