@@ -348,18 +348,26 @@ def run_session(view: Page, api, survey_id: int, street: dict) -> Tally:
         page.evaluate("document.activeElement && document.activeElement.blur()")
         state["apply_to"] = choice
 
-    def rectangle(tool: str, lo: np.ndarray, hi: np.ndarray) -> None:
+    def held_drag(tool: str, key: str, path: np.ndarray, steps: int = 1, pause_ms: int = 0):
+        """A drag along `path` (page pixels) with `key` held, committed by its release."""
+
         def drag() -> None:
-            page.keyboard.down("Shift")
-            page.mouse.move(*lo)
+            page.keyboard.down(key)
+            page.mouse.move(*path[0])
             page.mouse.down()
-            page.mouse.move(*hi, steps=4)
+            for p in path[1:]:
+                page.mouse.move(*p, steps=steps)
+                if pause_ms:
+                    page.wait_for_timeout(pause_ms)
 
         def release() -> None:
             page.mouse.up()
-            page.keyboard.up("Shift")
+            page.keyboard.up(key)
 
         act(tool, drag, release)
+
+    def rectangle(tool: str, lo: np.ndarray, hi: np.ndarray) -> None:
+        held_drag(tool, "Shift", np.array([lo, hi]), steps=4)
 
     def outline(group: np.ndarray, k: int, lock: int) -> None:
         """A group of pillars (to become class k) by a rectangle where one is safe (no other
@@ -379,23 +387,8 @@ def run_session(view: Page, api, survey_id: int, street: dict) -> Tally:
         ):
             rectangle("rectangle", lo, hi)
             return
-        path = lasso_path(corners[hull.vertices])
-
-        def draw() -> None:
-            """Ctrl held, the path round the group at a hand's pace (the page reports the
-            pointer at about 20 Hz)."""
-            page.keyboard.down("Control")
-            page.mouse.move(*path[0])
-            page.mouse.down()
-            for p in path[1:]:
-                page.mouse.move(*p)
-                page.wait_for_timeout(LASSO_STEP_MS)
-
-        def release() -> None:
-            page.mouse.up()
-            page.keyboard.up("Control")
-
-        act("lasso", draw, release)
+        # Ctrl held, round the group at a hand's pace (the page reports the pointer at 20 Hz)
+        held_drag("lasso", "Control", lasso_path(corners[hull.vertices]), pause_ms=LASSO_STEP_MS)
 
     def safe(lo: np.ndarray, hi: np.ndarray, group: np.ndarray, k: int, lock: int) -> bool:
         """No pillar outside the group within SAFE_PX of the box that the lock lets through
