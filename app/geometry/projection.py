@@ -63,3 +63,34 @@ def pixel_indices(proj: Projection) -> tuple[np.ndarray, np.ndarray]:
     rows = np.floor(uv[:, 1]).astype(np.int64)
     cols = np.floor(uv[:, 0]).astype(np.int64)
     return rows, cols
+
+
+@dataclass(frozen=True)
+class CameraPose:
+    """Where a camera sits in its scanner's frame and how it images: enough to place its image
+    in a 3D scene so that every pixel lies on the ray it sees (clutter review draws boxes on it).
+    """
+
+    rotation: np.ndarray  # (3, 3) camera -> sensor (OpenCV axes: +X right, +Y down, +Z forward)
+    centre: np.ndarray  # (3,) the optical centre in sensor coordinates
+    K: np.ndarray  # (3, 3) intrinsics
+
+    def pixel_ray(self, u: float, v: float) -> np.ndarray:
+        """(3,) the direction, in camera coordinates at unit depth, that pixel (u, v) sees."""
+        return np.linalg.solve(self.K, np.array([u, v, 1.0]))
+
+
+def camera_pose(P: np.ndarray, T_cam_sensor: np.ndarray) -> CameraPose:
+    """Decompose `P @ T_cam_sensor` (P = K [I | t], rectified; T: sensor -> rectified reference)
+    into the camera's pose in the sensor frame and K. KITTI's rectifying rotation folded into T
+    is not exactly orthonormal in float, so the rotation is its nearest orthonormal matrix."""
+    P = as_matrix(P, (3, 4), "P")
+    T = as_matrix(T_cam_sensor, (4, 4), "T_cam_sensor")
+    K = P[:, :3]
+    if abs(np.linalg.det(K)) < 1e-9:
+        raise ValueError("P: its left 3x3 (the intrinsics) is singular")
+    t_cam = T[:3, 3] + np.linalg.solve(K, P[:, 3])  # camera coordinates of the sensor origin
+    u, _, vt = np.linalg.svd(T[:3, :3])
+    R_cam_sensor = u @ vt
+    rotation = R_cam_sensor.T
+    return CameraPose(rotation=rotation, centre=-rotation @ t_cam, K=K.copy())

@@ -11,15 +11,19 @@ from collections.abc import Sequence
 import numpy as np
 from sqlmodel import Session
 
-from app.core.errors import ConflictError
+from app.core.errors import ConfigError, ConflictError
+from app.geometry.projection import project
+from app.io import open_survey
 from app.pipelines.clutter.review_corrections import (
     ADD,
     REMOVE,
     MembershipCorrection,
     corrected_membership,
 )
+from app.review.box_objects import PixelBox, checked_box, object_in_box, run_camera, run_config
 from app.store import clutter_corrections, clutter_review
 from app.store.clutter_corrections import Corrected, RunMembership
+from app.store.models import Survey as SurveyRecord
 
 __all__ = [
     "ADD",
@@ -27,7 +31,9 @@ __all__ = [
     "Corrected",
     "MembershipCorrection",
     "RunMembership",
+    "PixelBox",
     "add_object",
+    "add_object_in_box",
     "corrected_membership",
     "frame_membership",
     "remove_points",
@@ -98,4 +104,42 @@ def add_object(
         session.rollback()
     return clutter_corrections.add_object(
         session, survey_id, frame_id, class_name, points, membership, user_id, bbox
+    )
+
+
+def add_object_in_box(
+    session: Session,
+    survey_id: int,
+    frame_id: str,
+    class_name: str,
+    box: PixelBox,
+    user_id: int | None,
+) -> Corrected:
+    """A missed object outlined by a 2D box on the frame's camera image (the run's camera):
+    `box_objects.object_in_box` finds its points, `add_object` writes them. ConfigError naming
+    `box` when it covers no pixel of the image or no free object shows in it; ConflictError
+    when the frame has no image of that camera."""
+    clutter_corrections.check_frame(session, survey_id, frame_id)
+    membership = run_membership(session, survey_id, frame_id)
+    record = session.get(SurveyRecord, survey_id)
+    session.rollback()
+    survey = open_survey(record.source_path, record.format)
+    frame = next((f for f in survey.frames if f.frame_id == frame_id), None)
+    camera = run_camera(survey, membership.folder)
+    if frame is None or camera is None or camera.name not in frame.image_paths:
+        raise ConflictError(f"frame {frame_id!r} of survey {survey_id} has no camera image")
+    box = checked_box(box, camera)
+    xyz = frame.points().xyz
+    owner, _ = frame_membership(session, survey_id, membership)
+    session.rollback()
+    if len(owner) != len(xyz):
+        raise ConflictError(f"frame {frame_id!r}: the clutter run's membership is out of date")
+    projection = project(xyz, camera.P, camera.T_cam_sensor, camera.width, camera.height)
+    points = object_in_box(xyz, projection, owner, box, run_config(membership.folder))
+    if not len(points):
+        raise ConfigError(
+            "box", "shows no object free of an instance above the ground (draw it round one)"
+        )
+    return add_object(
+        session, survey_id, frame_id, class_name, points, user_id, membership, box.as_bbox()
     )

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from app.geometry.projection import pixel_indices, project
+from app.geometry.projection import camera_pose, pixel_indices, project
 from app.geometry.transforms import make_transform
 
 FX, CX, CY, TX = 721.5377, 609.5593, 172.854, 44.85728
@@ -107,3 +107,25 @@ def test_bad_shapes_are_rejected() -> None:
         project(np.zeros((3, 3)), np.eye(3), np.eye(4), W, H)
     with pytest.raises(ValueError, match="xyz must have shape"):
         project(np.zeros((3, 4)), P, np.eye(4), W, H)
+
+
+def test_camera_pose_reprojects_as_the_projection_matrix() -> None:
+    """The decomposed pose (centre, rotation, K) gives the pixels `project` gives, with the
+    stereo baseline in P's last column and a rectifying rotation that is slightly off."""
+    tilt = np.array([[1.0, 0.0, 0.0], [0.0, 0.9999, -0.0141], [0.0, 0.0141, 0.9999]])
+    T = make_transform(tilt, np.array([0.27, -0.08, -0.06])) @ T_CAM_VELO
+    pose = camera_pose(P, T)
+    assert np.allclose(pose.rotation.T @ pose.rotation, np.eye(3))
+    # the optical centre sits TX / FX to the left of the reference camera (its baseline)
+    reference = -np.linalg.solve(T[:3, :3], T[:3, 3])
+    assert np.linalg.norm(pose.centre - reference) == pytest.approx(TX / FX, rel=1e-2)
+    rng = np.random.default_rng(0)
+    xyz = np.column_stack(
+        [rng.uniform(5, 60, 500), rng.uniform(-20, 20, 500), rng.normal(0, 1, 500)]
+    )
+    proj = project(xyz, P, T, W, H)
+    cam = (xyz - pose.centre) @ pose.rotation
+    uvw = cam @ pose.K.T
+    np.testing.assert_allclose(uvw[:, :2] / uvw[:, 2:], proj.uv, atol=0.05)
+    with pytest.raises(ValueError, match="singular"):
+        camera_pose(np.zeros((3, 4)), T)

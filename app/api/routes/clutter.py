@@ -11,7 +11,9 @@ Reviewers also correct an instance's extent: POST .../instances/{id}/remove-poin
 listed points (indices in the frame) out of the instance, which keeps them (with the version
 seen: the instance's version goes up, a stale one is 409); POST .../frames/{frame}/objects
 makes a missed object of the listed points that belong to no instance, a new instance of a
-clutter class, approved. Recompute applies both (`app.store.clutter_corrections`).
+clutter class, approved; POST .../frames/{frame}/objects/box does the same from a 2D box on the
+frame's camera image (`app.review.box_objects`: the object the camera sees most in the box).
+Recompute applies both (`app.store.clutter_corrections`).
 """
 
 from __future__ import annotations
@@ -121,6 +123,21 @@ class AddObjectIn(BaseModel):
         max_length=MAX_POINTS,
         description="point indices in the frame; those already in an instance are left to it",
     )
+
+
+PixelCoordinate = Annotated[float, Field(ge=0, le=100_000, allow_inf_nan=False)]
+
+
+class ImageBox(BaseModel):
+    u0: PixelCoordinate = Field(description="left edge, pixels from the image's left")
+    v0: PixelCoordinate = Field(description="top edge, pixels from the image's top")
+    u1: PixelCoordinate = Field(description="right edge")
+    v1: PixelCoordinate = Field(description="bottom edge")
+
+
+class AddBoxObjectIn(BaseModel):
+    class_name: ObjectClass = Field(description="what the missed object is")  # type: ignore[valid-type]
+    box: ImageBox = Field(description="the object's box on the frame's camera image")
 
 
 class CorrectionOut(BaseModel):
@@ -244,6 +261,34 @@ def post_object(
     done = clutter_corrections.add_object(
         session, survey_id, frame_id, body.class_name, body.points, user.id
     )
+    wake_viewer(request)
+    return CorrectionOut.of(done)
+
+
+@router.post(
+    "/frames/{frame_id}/objects/box",
+    response_model=CorrectionOut,
+    status_code=201,
+    responses=errors(403, 409, 422),
+)
+def post_box_object(
+    survey_id: Id,
+    frame_id: FrameId,
+    body: AddBoxObjectIn,
+    user: Reviewer,
+    session: SessionDep,
+    request: Request,
+) -> CorrectionOut:
+    """A missed object outlined by a box on the frame's camera image (the clutter run's camera):
+    the points of the object the camera sees most inside the box that belong to no instance
+    become a new approved instance of `class_name`. 404 for an unknown frame; 409 when the frame
+    has no camera image; 422 when the box covers no pixel or shows no free object."""
+    get_survey(session, survey_id)
+    b = body.box
+    done = clutter_corrections.add_object_in_box(
+        session, survey_id, frame_id, body.class_name,
+        clutter_corrections.PixelBox.spanning((b.u0, b.v0), (b.u1, b.v1)), user.id,
+    )  # fmt: skip
     wake_viewer(request)
     return CorrectionOut.of(done)
 

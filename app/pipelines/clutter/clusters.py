@@ -73,8 +73,10 @@ def frame_clusters(
     ground_cell: float,
     ground_tolerance: float,
     max_range: float,
+    subset: np.ndarray | None = None,
 ) -> FrameClusters:
-    """Clusters of the points more than `ground_tolerance` above the ground, within range."""
+    """Clusters of the points more than `ground_tolerance` above the ground, within range;
+    with `subset` (bool per point) only of those points, on the ground of all of them."""
     label = np.full(len(xyz), -1, dtype=np.int32)
     above = np.zeros(len(xyz))
     if len(xyz) == 0:
@@ -82,7 +84,10 @@ def frame_clusters(
     ground = estimate_ground(xyz, cell=ground_cell)
     above = xyz[:, 2] - ground.height(xyz)
     near = np.einsum("ij,ij->i", xyz[:, :2], xyz[:, :2]) <= max_range**2
-    objects = np.flatnonzero(near & (above > ground_tolerance))
+    objects = near & (above > ground_tolerance)
+    if subset is not None:
+        objects &= subset
+    objects = np.flatnonzero(objects)
     label[objects] = voxel_components(xyz[objects], voxel)
     return FrameClusters(label, above)
 

@@ -29,22 +29,30 @@ object" makes the points inside it that belong to no instance a new instance of 
 class on this frame, approved. Both are versioned, audited store writes attributed to the user
 (`app.review.clutter_corrections`, the API's too); other clients follow through the label feed
 and `clutter:recompute` applies them.
+
+The camera image in 3D (`clutter_camera`): "Camera image in 3D" draws the overlay image in the
+scene on the rays its pixels see, and the view "Through the camera" looks from the camera's
+optical centre, where each pixel covers the points it sees. A Ctrl-drag on that image is a 2D box
+(CVAT's, SUSTechPOINTS'): "Add missed object" makes the object the camera sees most in the box a
+new instance (`app.review.box_objects`: above the ground, the facade behind it left out), and
+"Remove from instance" takes the selected instance's points in the box out of it.
 """
 
 from __future__ import annotations
 
-import json
+import time
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from app.core.errors import ConflictError, StaleWriteError
-from app.geometry.projection import pixel_indices, project
+from app.geometry.projection import Projection, camera_pose, pixel_indices, project
 from app.io import open_survey
-from app.io.survey import Camera, Frame, Survey
+from app.io.survey import Frame, Survey
 from app.jobs.queue import enqueue
 from app.review import clutter_corrections
+from app.review.box_objects import PixelBox, object_in_box, run_camera, run_config
 from app.review.clutter_corrections import RunMembership
 from app.store import clutter_review
 from app.store.clutter_corrections import OBJECT_CLASSES
@@ -53,6 +61,7 @@ from app.store.models import Decision, Role
 from app.store.models import Survey as SurveyRecord
 from app.viewer.label_feed import CLUTTER_CORRECTIONS, CLUTTER_DECISIONS, CLUTTER_RUN
 from app.viewer.modes.base import Mode
+from app.viewer.modes.clutter_camera import ImagePlane
 from app.viewer.modes.clutter_images import (
     IMAGE_WIDTHS,
     blank_image,
@@ -72,9 +81,10 @@ from app.viewer.modes.clutter_states import (
 )
 from app.viewer.modes.common import checked_user, evenly, legend_html, may, pick_clicked
 from app.viewer.modes.pillar_selection import RectangleOptions, rectangle_points
+from app.viewer.picking import ScreenCamera
 
 if TYPE_CHECKING:
-    from viser import SceneClickEvent, SceneRectSelectEvent
+    from viser import SceneClickEvent, SceneNodeDragEvent, SceneRectSelectEvent
 
     from app.viewer.session import ViewerSession
 
@@ -87,6 +97,9 @@ DEFAULT_WIDTH = "Medium"
 REMOVE_FROM_INSTANCE = "Remove from instance"
 ADD_OBJECT = "Add missed object"
 RECTANGLE = RectangleOptions(through=False, near=0.0, far=float("inf"))  # what the user sees
+VIEWS = ("Behind the car", "Through the camera")  # where a frame's 3D view looks from
+BOX_REDRAW_S = 0.1  # seconds between redraws of a growing box (each is a scene draw)
+MIN_BOX_PX = 3.0  # pixels: a narrower box is a slip, dropped
 
 
 class ClutterMode(Mode):
@@ -105,6 +118,13 @@ class ClutterMode(Mode):
         self.frame_index = 0
         self.panel_width = DEFAULT_WIDTH
         self.raw_photo: np.ndarray | None = None
+        self.projection: Projection | None = None
+        self.plane: ImagePlane | None = None  # the frame's camera image in the scene
+        self.image_node: Any = None
+        self.box_node: Any = None
+        self.box_from: tuple[float, float] | None = None  # pixel where a box drag started
+        self.box_drawn = 0.0
+        self.view_fov = float(session.client.camera.fov)  # restored when leaving the camera
         gui = session.client.gui
         self.folder = run_folder(session, self.survey_id)
         if self.folder is None:
@@ -124,7 +144,11 @@ class ClutterMode(Mode):
             return
         self.survey: Survey = open_survey(record.source_path, record.format)
         self.by_id: dict[str, Frame] = {f.frame_id: f for f in self.survey.frames}
-        self.camera = self._camera()
+        self.camera = run_camera(self.survey, self.folder)
+        self.camera_pose = (
+            None if self.camera is None else camera_pose(self.camera.P, self.camera.T_cam_sensor)
+        )
+        self.run_config = run_config(self.folder)
         self.reviewer = may(session, Role.reviewer)
         self._build_gui()
         start = next((i for i, f in enumerate(self.frames) if f.pending), None)
@@ -136,20 +160,13 @@ class ClutterMode(Mode):
         if self.cloud is not None:
             self.cloud.remove()
             self.cloud = None
+        for node in (getattr(self, "image_node", None), getattr(self, "box_node", None)):
+            if node is not None:
+                node.remove()
+        if getattr(self, "view", VIEWS[0]) != VIEWS[0]:
+            self.session.client.camera.fov = self.view_fov
         if getattr(self, "panel_width", DEFAULT_WIDTH) != DEFAULT_WIDTH:
             self._apply_width(DEFAULT_WIDTH)  # the other modes get the default panel back
-
-    def _camera(self) -> Camera | None:
-        """The camera the run segmented (its report's config), else the survey's first."""
-        name = None
-        try:
-            config = json.loads((self.folder / "report.json").read_text()).get("config") or {}
-            name = config.get("camera") if config.get("use_camera", True) else None
-        except (OSError, ValueError):
-            pass
-        if name is None and self.survey.cameras:
-            name = next(iter(self.survey.cameras))
-        return self.survey.cameras.get(name) if name else None
 
     # --- GUI ----------------------------------------------------------------------------------
 
@@ -162,6 +179,13 @@ class ClutterMode(Mode):
             nav = gui.add_button_group("Frame", ("Previous", "Next", "Next pending"))
             self.width_control = gui.add_button_group("Panel width", tuple(PANEL_WIDTHS))
             self.image = gui.add_image(blank_image(), label="Camera", format="jpeg")
+            self.view_control = gui.add_button_group("3D view", VIEWS)
+            self.image_in_3d = gui.add_checkbox(
+                "Camera image in 3D", False,
+                hint="The camera image in the scene on the rays its pixels see; Ctrl-drag a "
+                "box on it to add a missed object or cut the selected one",
+            )  # fmt: skip
+            self.view = VIEWS[0]
             legend = [(n, STATE_RGB[s]) for n, s in LEGEND] + [("selected", SELECTED_RGB)]
             gui.add_html(legend_html(legend))
             self.all_pending = gui.add_button_group(
@@ -173,11 +197,12 @@ class ClutterMode(Mode):
                 self.selected_image = gui.add_image(
                     np.zeros((8, 8, 3), np.uint8), label="Mask", format="png", visible=False
                 )
-            with gui.add_folder("Correct (shift-drag)", visible=self.reviewer):
+            with gui.add_folder("Correct (shift-drag, Ctrl-drag a box)", visible=self.reviewer):
                 self.correct_mode = gui.add_dropdown(
                     "Shift-drag", (REMOVE_FROM_INSTANCE, ADD_OBJECT),
-                    hint="Remove the selected instance's points inside the rectangle from it, "
-                    "or make the points inside it that belong to no instance a new object",
+                    hint="Remove the selected instance's points inside the rectangle (or the "
+                    "box on the camera image) from it, or make the points inside it that belong "
+                    "to no instance (on the image: the object seen most in the box) a new object",
                 )  # fmt: skip
                 self.object_class = gui.add_dropdown(
                     "New object class", OBJECT_CLASSES, initial_value="car"
@@ -194,6 +219,8 @@ class ClutterMode(Mode):
             self.status = gui.add_markdown(note + "Click a point to select its instance.")
         nav.on_click(lambda event: submit(self._navigate, event.target.value))
         self.width_control.on_click(lambda event: submit(self.set_panel_width, event.target.value))
+        self.view_control.on_click(lambda event: submit(self.set_view, event.target.value))
+        self.image_in_3d.on_update(lambda _: submit(self._draw_image_3d))
         self.all_pending.on_click(
             lambda event: submit(self.decide_pending, ACTIONS[event.target.value])
         )
@@ -227,7 +254,20 @@ class ClutterMode(Mode):
         self._apply_width(width)
         if self.raw_photo is not None:
             self.photo = masked_photo(self.raw_photo, self.states, IMAGE_WIDTHS[width])
-            self.image.image = self._overlay()
+            self._draw_images()
+        self.session.client.flush()
+
+    def set_view(self, view: str) -> None:
+        """Where the 3D view looks from: behind the car, or through the camera (its image
+        in the scene, each pixel over the points it sees)."""
+        if view not in VIEWS:
+            raise ConflictError(f"no 3D view {view!r}")
+        if view == VIEWS[1] and self.plane is None:
+            self.status.content = "This frame has no camera image to look through."
+            return
+        self.view = view
+        self._draw_image_3d()
+        self._look_at_frame(self.by_id[self.frames[self.frame_index].frame_id])
         self.session.client.flush()
 
     # --- one frame ----------------------------------------------------------------------------
@@ -252,7 +292,15 @@ class ClutterMode(Mode):
         rest = evenly(others, max(self.cap - int((self.owner >= 0).sum()), self.cap // 3))
         owned = evenly(np.flatnonzero(self.owner >= 0), self.cap - len(rest))
         self.shown = np.sort(np.concatenate([owned, rest]))
-        self.pixels = self._project(frame)
+        self.projection = self._project(frame)
+        self.pixels = None if self.projection is None else self._pixels(self.projection)
+        self.plane = (
+            None
+            if self.projection is None or self.camera_pose is None
+            else ImagePlane.of(
+                self.camera_pose, frame.pose, self.origin, self.camera.width, self.camera.height
+            )
+        )
         self._reload_states()
         self.raw_photo = None if self.pixels is None else frame.image(self.camera.name)
         self.photo = (
@@ -297,14 +345,18 @@ class ClutterMode(Mode):
                 db, self.survey_id, self.membership
             )
 
-    def _project(self, frame: Frame) -> tuple[np.ndarray, np.ndarray] | None:
-        """(row, col) pixel of each point in the camera image (-1 outside), or None."""
+    def _project(self, frame: Frame) -> Projection | None:
+        """Where the frame's points land in the camera image; None without one."""
         camera = self.camera
         if camera is None or camera.name not in frame.image_paths:
             return None
-        proj = project(self.sensor_xyz, camera.P, camera.T_cam_sensor, camera.width, camera.height)
-        row = np.full(len(self.sensor_xyz), -1, dtype=np.int64)
-        col = np.full(len(self.sensor_xyz), -1, dtype=np.int64)
+        return project(self.sensor_xyz, camera.P, camera.T_cam_sensor, camera.width, camera.height)
+
+    @staticmethod
+    def _pixels(proj: Projection) -> tuple[np.ndarray, np.ndarray]:
+        """(row, col) pixel of each point in the camera image (-1 outside)."""
+        row = np.full(len(proj.depth), -1, dtype=np.int64)
+        col = np.full(len(proj.depth), -1, dtype=np.int64)
         row[proj.in_image], col[proj.in_image] = pixel_indices(proj)
         return row, col
 
@@ -328,6 +380,16 @@ class ClutterMode(Mode):
         return state_colors(self.state[shown], self.xyz[shown, 2], selected)
 
     def _look_at_frame(self, frame: Frame) -> None:
+        """The 3D view chosen ("3D view"): behind and above the car, or through the camera."""
+        camera = self.session.client.camera
+        if self.view == VIEWS[1] and self.plane is not None:
+            forward = self.plane.rotation[:, 2]
+            self.session.move_camera(self.plane.centre + 10.0 * forward, -10.0 * forward)
+            screen = ScreenCamera.of(camera)
+            camera.fov = self.plane.viewing_fov(screen.width / screen.height)
+            return
+        if abs(float(camera.fov) - self.view_fov) > 1e-6:
+            camera.fov = self.view_fov
         sensor = frame.pose[:3, 3] - self.origin
         heading = frame.pose[:3, 0].copy()
         heading[2] = 0.0
@@ -340,10 +402,40 @@ class ClutterMode(Mode):
     def _draw_panel(self) -> None:
         """Heading, camera image, instance list and selection for the current state."""
         self._draw_heading()
-        self.image.image = self._overlay()
+        self._draw_images()
         self.image.visible = self.pixels is not None
         self._draw_list()
         self._draw_selected()
+
+    def _draw_images(self) -> None:
+        """The overlay image in the panel and, when asked, in the scene."""
+        image = self._overlay()
+        self.image.image = image
+        self._draw_image_3d(image)
+
+    def _draw_image_3d(self, image: np.ndarray | None = None) -> None:
+        """The overlay image in the scene on the camera's rays ("Camera image in 3D", always
+        when looking through the camera); removed without a camera image or when unticked."""
+        wanted = self.plane is not None and (self.image_in_3d.value or self.view == VIEWS[1])
+        if not wanted:
+            if self.image_node is not None:
+                self.image_node.remove()
+                self.image_node = None
+            return
+        image = self._overlay() if image is None else image
+        wxyz, position, width, height = self.plane.node_pose()
+        if self.image_node is None:
+            self.image_node = self.session.client.scene.add_image(
+                f"/{self.key}/camera_image", image, width, height, format="jpeg",
+                wxyz=wxyz, position=position, cast_shadow=False, receive_shadow=False,
+            )  # fmt: skip
+            self.image_node.on_drag("left", modifier="cmd/ctrl")(
+                lambda event: self.session.submit(self.on_box, event)
+            )
+            return
+        self.image_node.image = image
+        self.image_node.wxyz, self.image_node.position = wxyz, position
+        self.image_node.render_width, self.image_node.render_height = width, height
 
     def _draw_heading(self) -> None:
         count = self.frames[self.frame_index]
@@ -429,7 +521,7 @@ class ClutterMode(Mode):
         if self.cloud is not None:
             self.cloud.colors = self._colors()
         self._draw_heading()
-        self.image.image = self._overlay()
+        self._draw_images()
         self._relabel_rows()
         self._draw_selected()
         self.session.client.flush()
@@ -482,6 +574,65 @@ class ClutterMode(Mode):
         else:
             self.remove_from_selected(points)
 
+    def on_box(self, event: SceneNodeDragEvent) -> None:
+        """Ctrl-drag on the camera image in 3D: a 2D box, drawn as it grows; at release it
+        adds the object the camera sees most in it, or cuts the selected instance (the mode
+        "Shift-drag" names)."""
+        plane = self.plane
+        if plane is None:
+            return
+        screen = ScreenCamera.of(self.session.client.camera)
+        if event.phase == "start":
+            self.box_from = plane.pixel_of(np.asarray(event.start_position, dtype=np.float64))
+        end = plane.pixel_under(screen, event.end_screen_pos)
+        if self.box_from is None or end is None:
+            return
+        if event.phase != "end":
+            now = time.perf_counter()
+            if now - self.box_drawn >= BOX_REDRAW_S:
+                self.box_drawn = now
+                self._draw_box(plane.box_outline(self.box_from, end))
+            return
+        box = PixelBox.spanning(self.box_from, end).clipped(plane.width, plane.height)
+        self.box_from = None
+        self._draw_box(np.zeros((0, 2, 3)))
+        if min(box.u1 - box.u0, box.v1 - box.v0) < MIN_BOX_PX:
+            self.status.content = "Box dropped: Ctrl-drag across the object on the image."
+            return
+        self.correct_in_box(box)
+
+    def _draw_box(self, segments: np.ndarray) -> None:
+        if self.box_node is not None:
+            self.box_node.remove()
+            self.box_node = None
+        if len(segments):
+            self.box_node = self.session.client.scene.add_line_segments(
+                f"/{self.key}/box", points=segments.astype(np.float32), colors=SELECTED_RGB,
+                thickness=3.0, thickness_units="screen",
+            )  # fmt: skip
+
+    def correct_in_box(self, box: PixelBox) -> None:
+        """A box on the camera image (pixels): add the object seen most in it, or take the
+        selected instance's points in it out of it."""
+        checked_user(self.session, Role.reviewer, "correcting clutter instances")
+        if self.projection is None:
+            self.status.content = "This frame has no camera image."
+            return
+        if self.correct_mode.value == ADD_OBJECT:
+            found = object_in_box(
+                self.sensor_xyz, self.projection, self.owner, box, self.run_config
+            )
+            if not len(found):
+                self.status.content = (
+                    "No object free of an instance above the ground in the box: draw it round "
+                    "a missed one."
+                )
+                return
+            self.add_object(found, self.object_class.value, box.as_bbox())
+            return
+        inside = np.flatnonzero(self.projection.in_image & box.holds(self.projection.uv))
+        self.remove_from_selected(inside)
+
     def remove_from_selected(self, points: np.ndarray) -> None:
         """Take the selected instance's points among `points` (frame indices) out of it."""
         user = checked_user(self.session, Role.reviewer, "correcting clutter instances")
@@ -491,7 +642,7 @@ class ClutterMode(Mode):
             return
         mine = points[self.owner[points] == state.instance_index]
         if not len(mine):
-            self.status.content = f"No point of #{state.instance_index} inside the rectangle."
+            self.status.content = f"No point of #{state.instance_index} inside the selection."
             return
         try:
             with self.session.db() as db:
@@ -507,15 +658,19 @@ class ClutterMode(Mode):
         )
         self._refresh()
 
-    def add_object(self, points: np.ndarray, class_name: str) -> None:
+    def add_object(
+        self, points: np.ndarray, class_name: str, bbox: list[int] | None = None
+    ) -> None:
         """A missed object: the points among `points` that belong to no instance become a new
-        instance of `class_name` on this frame, approved, and selected."""
+        instance of `class_name` on this frame, approved, and selected; `bbox` its box on the
+        image (else its points' box)."""
         user = checked_user(self.session, Role.reviewer, "adding clutter objects")
         free = points[self.owner[points] < 0]
         if not len(free):
-            self.status.content = "No point inside the rectangle is free of an instance."
+            self.status.content = "No point inside the selection is free of an instance."
             return
-        bbox = None if self.pixels is None else pixel_bbox(self.pixels, free)
+        if bbox is None and self.pixels is not None:
+            bbox = pixel_bbox(self.pixels, free)
         frame_id = self.frames[self.frame_index].frame_id
         try:
             with self.session.db() as db:
