@@ -11,10 +11,11 @@ cluster scores the box's cells it is seen in (cells of `VOTE_CELL_PX`; in each t
 nearest the camera is the one seen there: an object hides what lies behind it inside its own
 outline) times the share of its points around the box that lie inside it (the box was drawn
 round the object; a facade or a wall runs on past it) times how well its own outline on the
-image fills the box (intersection over union: a pole or an advertising column in front of a van
-is seen in many cells, but is narrower than the box drawn round the van). The best is the object; its points in
-the box that belong to no instance are the new object; when it is an instance already, nothing
-is (never the facade behind it).
+image fills the box (intersection over union: a pole or an advertising column in front of a
+van is seen in many cells, but is narrower than the box drawn round the van). The best is the
+object; its points in the box that belong to no instance are the new object, unless at least
+`OWNED_SHARE` of them belong to instances already (then it is one: nothing is added, never the
+facade behind it).
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from app.pipelines.clutter.clusters import frame_clusters
 from app.pipelines.clutter.config import ClutterConfig
 
 VOTE_CELL_PX = 8  # pixels: a cell of the visible-surface vote (a few HDL-64E rings tall at 20 m)
+OWNED_SHARE = 0.5  # an object this much in instances already is one: nothing to add
 AROUND = 0.5  # share of the box's width and height by which it grows on each side: its context
 
 
@@ -140,7 +142,11 @@ def object_in_box(
     score = np.bincount(label[seen], minlength=n) * in_box / np.maximum(near, 1)
     score *= _outline_fit(projection.uv[label >= 0], label[label >= 0], n, box)
     winner = int(np.argmax(score))
-    return above[(label[above] == winner) & (owner[above] < 0)]
+    mine = above[label[above] == winner]
+    free = mine[owner[mine] < 0]
+    if len(free) < OWNED_SHARE * len(mine):
+        return np.zeros(0, dtype=np.int64)  # an instance already (a few stray points aside)
+    return free
 
 
 def _outline_fit(uv: np.ndarray, label: np.ndarray, n: int, box: PixelBox) -> np.ndarray:

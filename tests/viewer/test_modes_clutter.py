@@ -4,7 +4,7 @@ reject through the store with versions (a stale one reloads), a click selects th
 under it, approve-all, next pending frame, recompute queued, read-only for annotators; the panel
 width, the selection on the camera image, and shift-drag corrections of an instance's extent
 (remove points from it, add a missed object) written through the store and seen by another
-client."""
+client; the camera image in 3D and the Ctrl-drag box on it."""
 
 from __future__ import annotations
 
@@ -17,11 +17,12 @@ import numpy as np
 import pytest
 from sqlalchemy.engine import Engine
 from sqlmodel import Session, select
-from viser import SceneRectSelectEvent
+from viser import SceneNodeDragEvent, SceneRectSelectEvent
 
 from app.core.errors import PermissionDeniedError
 from app.io import open_survey
 from app.jobs.registry import task_for
+from app.review.box_objects import PixelBox, object_in_box
 from app.simulate.survey import SimulationConfig, simulate
 from app.store.clutter_corrections import frame_corrections
 from app.store.clutter_review import DecisionWrite, decide, frame_counts, get_instance
@@ -395,3 +396,106 @@ def test_panel_width_and_shift_drag_corrections(review: Review) -> None:
     connection.switch("Guardrail review")
     theme = connection.wait(lambda m: m.get("type") == "ThemeConfigurationMessage", mark)
     assert theme["control_width"] == "medium"
+
+
+def test_a_box_on_the_camera_image_in_3d_corrects_and_adds(review: Review) -> None:
+    """ "Through the camera": the image in the scene on its pixels' rays, the view at its optical
+    centre. A Ctrl-drag on it is a pixel box (the pointer's ray meets the image): drawn while it
+    grows; at release, "Remove from instance" takes the selected instance's points in it out of
+    it, "Add missed object" adds the object seen most in it (as `object_in_box` finds it);
+    a slip is dropped."""
+    connection, mode = open_mode(review, "rev")
+    session = connection.session
+    mark = connection.mark()
+    connection.call(mode.set_view, "Through the camera")
+    node = connection.wait(lambda m: m.get("name") == "/clutter/camera_image", mark)
+    plane = mode.plane
+    wxyz, position, width, height = plane.node_pose()
+    assert np.allclose(node["props"]["render_width"], width)
+    camera = session.client.camera
+    assert np.allclose(camera.position, plane.centre, atol=1e-3)
+    # a point the camera sees lands, seen from its centre, on the pixel it has in the image
+    seen = np.flatnonzero(mode.projection.in_image)[0]
+    screen = ScreenCamera.of(camera)
+    size = np.array([screen.width, screen.height], dtype=np.float64)
+    px, _ = screen.project(mode.xyz[seen][None].astype(np.float64))
+    under = plane.pixel_under(screen, tuple(px[0] / size))
+    assert np.allclose(under, mode.projection.uv[seen], atol=0.5)
+
+    def drag_events(a: tuple[float, float], b: tuple[float, float]) -> list[SceneNodeDragEvent]:
+        """A Ctrl-drag from pixel a to pixel b on the image, in 6 pointer moves."""
+        start = plane.scene_point(*a)
+        steps = [
+            plane.scene_point(*(np.asarray(a) + k / 6 * (np.subtract(b, a)))) for k in range(7)
+        ]
+        pos = [tuple((screen.project(p[None])[0][0] / size).tolist()) for p in steps]
+        phases = ["start"] + ["update"] * 5 + ["end"]
+        return [
+            SceneNodeDragEvent(
+                client=session.client,
+                client_id=session.client.client_id,
+                target=mode.image_node,
+                phase=phase,
+                instance_index=None,
+                start_position=tuple(start.tolist()),
+                start_screen_pos=pos[0],
+                end_position=tuple(steps[k].tolist()),
+                end_screen_pos=pos[k],
+                button="left",
+                modifier="cmd/ctrl",
+            )  # fmt: skip
+            for k, phase in enumerate(phases)
+        ]
+
+    # the selected instance's points in the box's upper half leave it
+    row, col = mode.pixels
+    in_image = np.bincount(mode.owner[(mode.owner >= 0) & (row >= 0)], minlength=1)
+    target = mode.by_index[int(np.argmax(in_image))]
+    connection.call(mode.select, target.instance_index)
+    uv = mode.projection.uv[(mode.owner == target.instance_index) & mode.projection.in_image]
+    (u0, v0), (u1, v1) = uv.min(axis=0) - 2, uv.max(axis=0) + 2
+    middle = 0.5 * (v0 + v1)
+    events = drag_events((u1, v0), (u0, middle))  # drawn from the top right corner
+    for event in events[:-1]:
+        connection.call(mode.on_box, event)
+    assert mode.box_node is not None  # drawn while it grows
+    expected = np.flatnonzero(
+        (mode.owner == target.instance_index)
+        & mode.projection.in_image
+        & PixelBox(u0, v0, u1, middle).holds(mode.projection.uv)
+    )
+    assert 0 < len(expected) < target.point_count
+    connection.call(mode.on_box, events[-1])
+    assert mode.box_node is None
+    with Session(review.engine) as db:
+        now = get_instance(db, review.survey_id, target.id)
+    assert now.point_count == target.point_count - len(expected)
+    assert (mode.owner[expected] == -1).all()
+
+    # add: a box round free points above the ground gives the object object_in_box finds
+    connection.call(lambda: setattr(mode.correct_mode, "value", ADD_OBJECT))
+    connection.call(lambda: setattr(mode.object_class, "value", "bicycle"))
+    free = np.flatnonzero((mode.owner < 0) & mode.projection.in_image)
+    for k in free[np.argsort(mode.projection.depth[free])]:
+        centre = mode.projection.uv[k]
+        box = PixelBox(*(centre - 25), *(centre + 25)).clipped(plane.width, plane.height)
+        wanted = object_in_box(mode.sensor_xyz, mode.projection, mode.owner, box, mode.run_config)
+        if len(wanted) >= 20:
+            break
+    else:
+        pytest.fail("no free object above the ground in the simulated frame's image")
+    before = len(mode.states)
+    for event in drag_events((box.u0, box.v0), (box.u1, box.v1)):
+        connection.call(mode.on_box, event)
+    assert len(mode.states) == before + 1
+    added = mode.by_index[mode.selected]
+    assert added.class_name == "bicycle" and added.decision == Decision.approved
+    assert set(np.flatnonzero(mode.owner == added.instance_index)) == set(wanted)
+    assert added.bbox == box.as_bbox()
+    # a slip (a box a pixel wide) is dropped
+    for event in drag_events((100.0, 100.0), (101.0, 160.0)):
+        connection.call(mode.on_box, event)
+    assert "Box dropped" in mode.status.content and len(mode.states) == before + 1
+    # behind the car again: the image leaves the scene with the view's own field of view
+    connection.call(mode.set_view, "Behind the car")
+    assert mode.image_node is None and camera.fov == pytest.approx(mode.view_fov)
