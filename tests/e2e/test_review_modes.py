@@ -22,8 +22,11 @@ import numpy as np
 import pytest
 import trimesh
 
+from app.geometry.projection import camera_pose
+from app.io import open_survey
 from app.pipelines.clutter.segmenter import WEIGHTS_FILE
 from app.simulate.survey import SimulationConfig, simulate
+from app.viewer.modes.clutter_camera import ImagePlane
 from tests.api.server import Server
 from tests.e2e.conftest import (
     VIEWER_OVERVIEW_POINTS,
@@ -172,13 +175,29 @@ def test_approve_a_clutter_instance(open_viewer, viewer_server: Server, street, 
     save_screenshot(page, artefacts, "clutter", docs="viewer_clutter.png")
 
 
+def image_on_canvas(server: Server, canvas: dict) -> tuple[float, float, float, float]:
+    """(left, top, right, bottom) page pixels of the street's camera image seen through the
+    camera: the view's field of view is the one `ImagePlane.viewing_fov` gives the canvas."""
+    survey = open_survey(server.data_dir / "street", "sim")
+    camera = next(iter(survey.cameras.values()))
+    pose = camera_pose(camera.P, camera.T_cam_sensor)
+    plane = ImagePlane(pose.rotation, pose.centre, pose.K, camera.width, camera.height)
+    fov = plane.viewing_fov(canvas["width"] / canvas["height"])
+    focal = 0.5 * canvas["height"] / np.tan(fov / 2)
+    (fx, _, cx), (_, fy, cy) = pose.K[0], pose.K[1]
+    x = canvas["x"] + canvas["width"] / 2 + focal * (np.array([0, camera.width]) - cx) / fx
+    y = canvas["y"] + canvas["height"] / 2 + focal * (np.array([0, camera.height]) - cy) / fy
+    return float(x[0]), float(y[0]), float(x[1]), float(y[1])
+
+
 @pytest.mark.e2e
 def test_shift_drag_takes_points_out_of_a_clutter_instance(
-    open_viewer, viewer_server: Server, street
+    open_viewer, viewer_server: Server, street, artefacts
 ) -> None:
     """Correcting an instance's extent in Chromium (issue 20: "an instance's extent can be
     corrected"): the selected instance is drawn magenta; a shift-drag over the upper half of
-    the magenta pixels takes those points out of it, a versioned write by this reviewer."""
+    the magenta pixels takes those points out of it, a versioned write by this reviewer; then,
+    looking through the camera, a Ctrl-drag box on the camera image round the rest of it."""
     reviewer = viewer_server.add_user("extentrev", "reviewer", PASSWORD)
     frames = reviewer.get(f"/surveys/{street}/clutter/frames").json()
     index, frame = next((i, f) for i, f in enumerate(frames) if f["pending"])
@@ -213,6 +232,34 @@ def test_shift_drag_takes_points_out_of_a_clutter_instance(
     )
     now = reviewer.get(f"/surveys/{street}/clutter/instances/{target['id']}").json()
     assert now["version"] == target["version"] + 1
+
+    # through the camera: its image in the scene, the rest of the instance magenta on it; a
+    # Ctrl-drag box on the image round it (within the image: drags start on it) takes those
+    # points out too
+    row_button(page, "3D view", "Through the camera").click()
+    page.wait_for_timeout(1500)  # the image drawn where the points were
+    r0, c0, r1, c1 = wait_until("the instance magenta on the camera image", magenta)
+    left, top, right, bottom = image_on_canvas(viewer_server, box)
+    x0, y0 = max(box["x"] + (c0 - 6) * scale, left + 2), max(box["y"] + (r0 - 6) * scale, top + 2)
+    x1 = min(box["x"] + (c1 + 6) * scale, right - 2)
+    y1 = min(box["y"] + (r1 + 6) * scale, bottom - 2)
+    page.keyboard.down("Control")
+    page.mouse.move(x0, y0)
+    page.mouse.down()
+    for k in range(1, 7):
+        page.mouse.move(x0 + k / 6 * (x1 - x0), y0 + k / 6 * (y1 - y0))
+        page.wait_for_timeout(80)  # the page reports the pointer at about 20 Hz
+    page.wait_for_timeout(300)
+    save_screenshot(page, artefacts, "clutter-box", docs="viewer_clutter_box.png")
+    page.mouse.up()
+    page.keyboard.up("Control")
+    wait_until(
+        "the box's correction",
+        lambda: (
+            reviewer.get(f"/surveys/{street}/clutter/instances/{target['id']}").json()["version"]
+            == now["version"] + 1
+        ),
+    )
 
 
 def slices(api: httpx.Client) -> dict[int, tuple[int, int, int | None]]:

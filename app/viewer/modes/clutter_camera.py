@@ -20,7 +20,8 @@ import viser.transforms as vtf
 from app.geometry.projection import CameraPose
 from app.viewer.picking import ScreenCamera
 
-IMAGE_DEPTH = 4.0  # metres in front of the camera: nearer than the objects a box outlines
+IMAGE_DEPTH = 1.0  # metres in front of the camera: nearer than any point it sees (the
+# scanner never sees its own car), so looking through the camera nothing covers the image
 BOX_LIFT = 0.995  # the box's outline is drawn this share of the image's depth (in front of it)
 
 
