@@ -9,13 +9,14 @@ estimated on all its points (a tight box holds little road) and the points more 
 every side) are clustered (the run's `cluster_voxel`, `clutter.clusters.frame_clusters`). Each
 cluster scores the box's cells it is seen in (cells of `VOTE_CELL_PX`; in each the point
 nearest the camera is the one seen there: an object hides what lies behind it inside its own
-outline) times the share of its points around the box that lie inside it (the box was drawn
-round the object; a facade or a wall runs on past it) times how well its own outline on the
-image fills the box (intersection over union: a pole or an advertising column in front of a
-van is seen in many cells, but is narrower than the box drawn round the van). The best is the
-object; its points in the box that belong to no instance are the new object, unless at least
-`OWNED_SHARE` of them belong to instances already (then it is one: nothing is added, never the
-facade behind it).
+outline) times the square of the share of its points around the box that lie inside it (the
+box was drawn round the object; a facade, a wall or a nearer truck runs on past it: squared, a
+far car boxed beside a truck's edge is not lost to the truck's many cells) times how well its
+own outline on the image fills the box (intersection over union: a pole or an advertising
+column in front of a van is seen in many cells, but is narrower than the box drawn round the
+van). The best is the object; its points in the box that belong to no instance are the new
+object, unless at least `OWNED_SHARE` of them belong to instances already (then it is one:
+nothing is added, never the facade behind it).
 """
 
 from __future__ import annotations
@@ -139,7 +140,7 @@ def object_in_box(
     n = int(label.max()) + 1
     in_box = np.bincount(label[above], minlength=n)
     near = np.bincount(label[label >= 0], minlength=n)
-    score = np.bincount(label[seen], minlength=n) * in_box / np.maximum(near, 1)
+    score = np.bincount(label[seen], minlength=n) * (in_box / np.maximum(near, 1)) ** 2
     score *= _outline_fit(projection.uv[label >= 0], label[label >= 0], n, box)
     winner = int(np.argmax(score))
     mine = above[label[above] == winner]
