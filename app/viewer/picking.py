@@ -87,12 +87,18 @@ def surface_slack(depth: np.ndarray | float) -> np.ndarray | float:
     return np.maximum(absolute, relative * np.asarray(depth))
 
 
-def visible(points: np.ndarray, camera: ScreenCamera, point_size: float) -> np.ndarray:
+def visible(
+    points: np.ndarray,
+    camera: ScreenCamera,
+    point_size: float,
+    projected: tuple[np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
     """(n,) bool: the point is in front of the camera, on the canvas and not hidden behind a
     nearer shown point. Every point is splatted into a depth buffer of DEPTH_BIN_PX cells as
     the disc viser draws (radius point_size * focal / depth pixels); a point is visible when
-    its depth is within `surface_slack` of the nearest depth drawn over its cell."""
-    px, depth = camera.project(points)
+    its depth is within `surface_slack` of the nearest depth drawn over its cell. `projected`:
+    the points' (pixels, depth) by `camera.project`, when the caller has them."""
+    px, depth = camera.project(points) if projected is None else projected
     cols = -(-camera.width // DEPTH_BIN_PX)
     rows = -(-camera.height // DEPTH_BIN_PX)
     cell = np.floor(px / DEPTH_BIN_PX).astype(np.int64)
@@ -106,8 +112,12 @@ def visible(points: np.ndarray, camera: ScreenCamera, point_size: float) -> np.n
     radius_px = point_size * camera.focal_px / d
     reach = np.clip(np.ceil(radius_px / DEPTH_BIN_PX - 0.5), 0, MAX_SPLAT_BINS).astype(np.int64)
     nearest = np.full(rows * cols, np.inf)
-    for r in np.unique(reach).tolist():
+    flat = c[:, 1] * cols + c[:, 0]
+    for r in np.flatnonzero(np.bincount(reach)).tolist():
         group = reach == r
+        if r == 0:  # the common case (points smaller than a cell): each its own cell
+            np.minimum.at(nearest, flat[group], d[group])
+            continue
         gc, gd = c[group], d[group]
         for dx in range(-r, r + 1):
             for dy in range(-r, r + 1):
@@ -116,7 +126,7 @@ def visible(points: np.ndarray, camera: ScreenCamera, point_size: float) -> np.n
                 x, y = gc[:, 0] + dx, gc[:, 1] + dy
                 ok = (x >= 0) & (x < cols) & (y >= 0) & (y < rows)
                 np.minimum.at(nearest, y[ok] * cols + x[ok], gd[ok])
-    own = nearest[c[:, 1] * cols + c[:, 0]]
+    own = nearest[flat]
     result[idx] = d <= own + surface_slack(own)
     return result
 

@@ -139,6 +139,26 @@ def test_polygon_contains_by_the_even_odd_rule() -> None:
     ]
 
 
+def test_polygon_test_of_a_free_hand_loop_matches_the_edge_by_edge_rule() -> None:
+    """A lasso's hundreds of edges, points on whole pixel rows and on its vertices' rows: the
+    row-sorted test gives what testing every point against every edge gives."""
+    rng = np.random.default_rng(1)
+    uv = rng.uniform(0, 1000, (20_000, 2))
+    uv[:500] = np.round(uv[:500])
+    t = np.linspace(0, 6, 200)
+    loop = np.round(np.stack([500 + 300 * np.cos(t) + rng.normal(0, 20, 200),
+                              500 + 300 * np.sin(2 * t)], axis=1))  # fmt: skip
+    u, v = uv[:, 0], uv[:, 1]
+    expected = np.zeros(len(uv), dtype=bool)
+    for a, b in zip(loop, np.roll(loop, -1, axis=0), strict=True):
+        crosses = (a[1] > v) != (b[1] > v)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = a[0] + (v - a[1]) * (b[0] - a[0]) / (b[1] - a[1])
+        expected ^= crosses & (u < x)
+    assert 3_000 < expected.sum() < 17_000
+    assert np.array_equal(points_in_polygon(uv, loop), expected)
+
+
 def test_measure_reports_3d_horizontal_and_vertical() -> None:
     text = measure_text(np.array([0.0, 0.0, 0.0]), np.array([3.0, 4.0, -12.0]))
     assert "**13.00 m**" in text and "horizontal 5.00 m" in text and "vertical -12.00 m" in text

@@ -216,7 +216,10 @@ class ClutterMode(Mode):
                 "Point size", min=0.01, max=0.3, step=0.01, initial_value=0.05
             )
             note = "" if self.reviewer else "Read only: deciding needs the reviewer role. "
-            self.status = gui.add_markdown(note + "Click a point to select its instance.")
+            self.status = gui.add_markdown(
+                note + "Click a point to select its instance. Shift-drag: rectangle; Ctrl-drag "
+                "on the camera image in 3D: box."
+            )
         nav.on_click(lambda event: submit(self._navigate, event.target.value))
         self.width_control.on_click(lambda event: submit(self.set_panel_width, event.target.value))
         self.view_control.on_click(lambda event: submit(self.set_view, event.target.value))

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from app.viewer.modes.pillar_tools import points_in_polygon
 from app.viewer.picking import (
     DEPTH_BIN_PX,
     MAX_SPLAT_BINS,
@@ -40,9 +41,12 @@ def rectangle_points(
     corner_max: tuple[float, float],
     point_size: float,
     options: RectangleOptions,
+    outline: np.ndarray | None = None,
 ) -> np.ndarray:
-    """(n,) bool over `xyz` (the shown points): inside the rectangle, within the depth range
-    and, unless `options.through`, visible (`picking.visible`)."""
+    """(n,) bool over `xyz` (the shown points): inside the rectangle (and inside `outline`, a
+    closed polygon in screen pixels within it: the polygon's and the lasso's test), within the
+    depth range and, unless `options.through`, visible (`picking.visible`). The points are
+    projected once."""
     screen = ScreenCamera.of(camera)
     size = np.array([screen.width, screen.height], dtype=np.float64)
     lo = np.minimum(corner_min, corner_max) * size  # pixels
@@ -55,9 +59,13 @@ def rectangle_points(
     near_rect &= (v >= lo[1] - margin) & (v <= hi[1] + margin)
     near_rect &= (depth > 1e-6) & (depth >= options.near) & (depth <= options.far)
     idx = np.flatnonzero(near_rect)
-    inside = (px[idx] >= lo).all(axis=1) & (px[idx] <= hi).all(axis=1)
+    u, v = u[idx], v[idx]
+    inside = (u >= lo[0]) & (u <= hi[0]) & (v >= lo[1]) & (v <= hi[1])
+    if outline is not None:
+        k = np.flatnonzero(inside)
+        inside[k] = points_in_polygon(px[idx[k]], outline)
     if not options.through:
-        inside &= visible(xyz[idx], screen, point_size)
+        inside &= visible(xyz[idx], screen, point_size, (px[idx], depth[idx]))
     result = np.zeros(len(xyz), dtype=bool)
     result[idx[inside]] = True
     return result

@@ -72,18 +72,26 @@ def fill_region(
 
 
 def points_in_polygon(uv: np.ndarray, polygon: np.ndarray) -> np.ndarray:
-    """(n,) bool: screen points `uv` (n, 2) inside the closed `polygon` (k, 2), even-odd rule
-    (a loop over the polygon's few edges, vectorised over the points)."""
+    """(n,) bool: screen points `uv` (n, 2) inside the closed `polygon` (k, 2), even-odd rule.
+    The points sorted by row once, each edge tests only those whose row it spans (a contiguous
+    run of the sorted points): a free-hand lasso has hundreds of edges, a street 100,000 points,
+    and a row of the screen crosses only a few edges."""
     uv = np.asarray(uv, dtype=np.float64)
     poly = np.asarray(polygon, dtype=np.float64)
+    order = np.argsort(uv[:, 1], kind="stable")
+    u, v = uv[order, 0], uv[order, 1]
     inside = np.zeros(len(uv), dtype=bool)
-    u, v = uv[:, 0], uv[:, 1]
     for a, b in zip(poly, np.roll(poly, -1, axis=0), strict=True):
-        crosses = (a[1] > v) != (b[1] > v)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            x = a[0] + (v - a[1]) * (b[0] - a[0]) / (b[1] - a[1])
-        inside ^= crosses & (u < x)
-    return inside
+        if a[1] == b[1]:
+            continue  # a level edge crosses no row
+        # the edge crosses the rows v with min <= v < max (one end above v, the other not)
+        first, stop = np.searchsorted(v, sorted((a[1], b[1])), side="left")
+        run = slice(first, stop)
+        x = a[0] + (v[run] - a[1]) * (b[0] - a[0]) / (b[1] - a[1])
+        inside[run] ^= u[run] < x
+    result = np.zeros(len(uv), dtype=bool)
+    result[order] = inside
+    return result
 
 
 def measure_text(a: np.ndarray, b: np.ndarray) -> str:

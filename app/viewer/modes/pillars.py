@@ -65,7 +65,6 @@ from app.viewer.modes.pillar_tools import (
     fill_region,
     measure_text,
     pillar_tops,
-    points_in_polygon,
 )
 from app.viewer.picking import (
     ScreenCamera,
@@ -580,6 +579,13 @@ class PillarMode(Mode):
             return
         self._select_inside(corners_px, screen, "polygon")
 
+    def _cells_of(self, pillar: np.ndarray) -> np.ndarray:
+        """Store cell ids (sorted, unique) of points' pillar indices into the map's pillars: a
+        mark per pillar, not a sort of the points (a street-wide rectangle holds 500,000)."""
+        marked = np.zeros(len(self.map.cells), dtype=bool)
+        marked[pillar] = True
+        return self.map.cells[marked]
+
     def _select_inside(self, corners_px: np.ndarray, screen: ScreenCamera, how: str) -> None:
         """The pillars of the visible shown points inside a closed screen polygon (pixels):
         the rectangle's test (depth, hidden points, depth range) on its bounding box, then the
@@ -588,14 +594,11 @@ class PillarMode(Mode):
         shown = self._shown()
         xyz = shown.xyz
         lo, hi = corners_px.min(axis=0) / size, corners_px.max(axis=0) / size
-        in_box = rectangle_points(
+        inside = rectangle_points(
             xyz, self.session.client.camera, tuple(lo), tuple(hi),
-            float(self.point_size.value), self._rectangle_options(),
+            float(self.point_size.value), self._rectangle_options(), outline=corners_px,
         )  # fmt: skip
-        idx = np.flatnonzero(in_box)
-        px, _ = screen.project(xyz[idx])
-        inside = idx[points_in_polygon(px, corners_px)]
-        cells = self.map.cells[np.unique(shown.cell[inside])]
+        cells = self._cells_of(shown.cell[inside])
         if not len(cells):
             self.status.content = f"No visible points inside the {how}."
             return
@@ -692,7 +695,7 @@ class PillarMode(Mode):
             shown.xyz, event.client.camera, event.screen_min, event.screen_max,
             float(self.point_size.value), options,
         )  # fmt: skip
-        cells = self.map.cells[np.unique(shown.cell[inside])]
+        cells = self._cells_of(shown.cell[inside])
         if not len(cells):
             self.session.notify("Rectangle", "No visible points inside the rectangle.")
             return
