@@ -24,6 +24,7 @@ import numpy as np
 from laspy.vlrs.known import WktCoordinateSystemVlr
 
 from app.core.errors import InputError
+from app.io.las_crs import header_crs
 from app.io.las_layout import check_las_layout
 from app.io.laz_chunks import LazJoin, LazPart
 from app.io.point_files import (
@@ -149,19 +150,9 @@ def _has_wkt(header: laspy.LasHeader) -> bool:
 
 
 def las_crs(path: str | Path) -> tuple[str | None, str]:
-    """The coordinate system a LAS / LAZ header records, as (WKT or None, what was found): a
-    WKT VLR is taken as it is; GeoTIFF keys alone are not converted (that needs PROJ, which
-    mmsclean does not use), so they give None and say so."""
-    header = _read_header(Path(path))
-    wkt = next((v.string for v in header.vlrs if isinstance(v, WktCoordinateSystemVlr)), "")
-    if wkt.strip():
-        return wkt, f"WKT from the header of {Path(path).name}"
-    if any(getattr(v, "record_id", None) == 34735 for v in header.vlrs):
-        return None, (
-            f"{Path(path).name} records its CRS as GeoTIFF keys only; mmsclean does not convert "
-            "them to WKT, so none is written"
-        )
-    return None, f"the header of {Path(path).name} records no CRS"
+    """The coordinate system a LAS / LAZ header records, as (WKT or None, what was found):
+    `las_crs.header_crs` (a WKT VLR as it is, GeoTIFF keys' EPSG codes through PROJ)."""
+    return header_crs(_read_header(Path(path)), Path(path).name)
 
 
 def las_point_count(path: Path) -> int:

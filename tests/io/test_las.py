@@ -8,6 +8,7 @@ from pathlib import Path
 import laspy
 import numpy as np
 import pytest
+from laspy.vlrs.known import GeoKeyDirectoryVlr, GeoKeyEntryStruct
 
 from app.core.errors import InputError
 from app.io import las as las_module
@@ -552,3 +553,49 @@ def test_appender_writes_a_wkt_crs_and_las_crs_reads_it(tmp_path: Path) -> None:
         assert las.header.global_encoding.wkt and len(las.points) == 2_030
         assert np.array_equal(las.X, np.r_[laspy.read(parts[0]).X, laspy.read(parts[1]).X])
         assert las_crs(tmp_path / name) == (wkt, f"WKT from the header of {name}")
+
+
+def _geotiff_keys(*keys: tuple[int, int, int]) -> GeoKeyDirectoryVlr:
+    """A GeoKeyDirectory VLR holding (id, tiff_tag_location, value) keys."""
+    vlr = GeoKeyDirectoryVlr()
+    vlr.geo_keys = [
+        GeoKeyEntryStruct(id=k, tiff_tag_location=loc, count=1, value_offset=v)
+        for k, loc, v in [(1024, 0, 1), *keys]  # GTModelTypeGeoKey: projected
+    ]
+    vlr.geo_keys_header.number_of_keys = len(vlr.geo_keys)
+    return vlr
+
+
+def test_geotiff_keys_become_the_wkt_the_exports_carry(tmp_path: Path) -> None:
+    """A LAS 1.2 file (as older tools write) recording ETRS89 / UTM 32N with DHHN2016 heights as
+    GeoTIFF keys: its CRS is that compound CRS as WKT 1, which a joined map then carries; a
+    user-defined CRS, an unknown code and a key held elsewhere give none, each saying why."""
+    rng = np.random.default_rng(2)
+    source = write_laz(tmp_path / "keys.laz", rng.uniform(0, 9, (50, 3)), offset=np.zeros(3))
+
+    def with_keys(name: str, vlr: GeoKeyDirectoryVlr) -> Path:
+        las = laspy.read(source)
+        las.header.vlrs.append(vlr)
+        las.write(tmp_path / name)
+        return tmp_path / name
+
+    utm = with_keys("utm.laz", _geotiff_keys((3072, 0, 25832), (4096, 0, 7837)))
+    wkt, line = las_crs(utm)
+    assert line == "EPSG:25832 + EPSG:7837 from the GeoTIFF keys of utm.laz, as WKT"
+    assert wkt.startswith("COMPD_CS[") and "ETRS89 / UTM zone 32N" in wkt and "DHHN2016" in wkt
+    appender = LasAppender(tmp_path / "joined.laz", wkt)
+    appender.append(utm)
+    appender.close()
+    assert las_crs(tmp_path / "joined.laz") == (wkt, "WKT from the header of joined.laz")
+
+    geographic = with_keys("wgs.laz", _geotiff_keys((2048, 0, 4326)))
+    wkt, line = las_crs(geographic)
+    assert wkt.startswith('GEOGCS["WGS 84"') and "EPSG:4326 from the GeoTIFF keys" in line
+    cases = {
+        "own.laz": (_geotiff_keys((3072, 0, 32767)), "define their own CRS (code 32767)"),
+        "unknown.laz": (_geotiff_keys((3072, 0, 30000)), "EPSG:30000, which PROJ does not know"),
+        "elsewhere.laz": (_geotiff_keys((3072, 34736, 0)), "name no EPSG CRS"),
+    }
+    for name, (vlr, words) in cases.items():
+        wkt, line = las_crs(with_keys(name, vlr))
+        assert wkt is None and words in line, line
