@@ -26,7 +26,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from pydantic import ValidationError
 
 from app.core.errors import ConfigError
 from app.geometry.projection import Projection
@@ -81,27 +80,30 @@ class PixelBox:
                 int(np.ceil(self.v1))]  # fmt: skip
 
 
+def _report_config(folder: Path | None) -> dict:
+    """The config a clutter run's report records ({} without a readable one)."""
+    if folder is None:
+        return {}
+    try:
+        config = json.loads((folder / "report.json").read_text()).get("config")
+    except (OSError, ValueError, AttributeError):
+        return {}
+    return config if isinstance(config, dict) else {}
+
+
 def run_config(folder: Path | None) -> ClutterConfig:
     """The clutter run's own settings (its report), else the defaults: the box clusters as the
     run did."""
-    if folder is not None:
-        try:
-            config = json.loads((folder / "report.json").read_text()).get("config") or {}
-            return ClutterConfig(**config)
-        except (OSError, ValueError, TypeError, ValidationError):
-            pass
-    return ClutterConfig()
+    try:
+        return ClutterConfig(**_report_config(folder))
+    except (TypeError, ValueError):  # pydantic's ValidationError is a ValueError
+        return ClutterConfig()
 
 
 def run_camera(survey: Survey, folder: Path | None) -> Camera | None:
     """The camera the run segmented (its report's config), else the survey's first."""
-    name = None
-    if folder is not None:
-        try:
-            config = json.loads((folder / "report.json").read_text()).get("config") or {}
-            name = config.get("camera") if config.get("use_camera", True) else None
-        except (OSError, ValueError, AttributeError):
-            pass
+    config = _report_config(folder)
+    name = config.get("camera") if config.get("use_camera", True) else None
     if name is None and survey.cameras:
         name = next(iter(survey.cameras))
     return survey.cameras.get(name) if name else None

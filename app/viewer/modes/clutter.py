@@ -584,10 +584,19 @@ class ClutterMode(Mode):
         plane = self.plane
         if plane is None:
             return
-        screen = ScreenCamera.of(self.session.client.camera)
         if event.phase == "start":
+            if not self.reviewer:
+                self.status.content = "Correcting instances needs the reviewer role."
+                return
             self.box_from = plane.pixel_of(np.asarray(event.start_position, dtype=np.float64))
+        screen = ScreenCamera.of(self.session.client.camera)
         end = plane.pixel_under(screen, event.end_screen_pos)
+        if event.phase == "end" and (self.box_from is None or end is None):
+            self.box_from = None
+            self._draw_box(np.zeros((0, 2, 3)))
+            if self.reviewer:
+                self.status.content = "Box dropped: it ended off the camera image."
+            return
         if self.box_from is None or end is None:
             return
         if event.phase != "end":
