@@ -37,3 +37,10 @@ def is_selected_magenta(rgb: np.ndarray) -> np.ndarray:
     """The clutter mode's selected instance (255, 0, 255): red and blue high, green low."""
     r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
     return (r > 150) & (b > 150) & (g < 80)
+
+
+def is_hover_yellow(rgb: np.ndarray) -> np.ndarray:
+    """viser's outline of a clickable mesh under the pointer (0xfbff00 at 0.8 opacity, drawn
+    as about (234, 232, 135) on the software renderer): red and green high, blue well below."""
+    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
+    return (r > 200) & (g > 200) & (b < 170) & (r - b > 70)

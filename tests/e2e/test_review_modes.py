@@ -36,7 +36,13 @@ from tests.e2e.conftest import (
     shift_drag,
     wait_until,
 )
-from tests.e2e.pixels import canvas_pixels, count_pixels, is_selected_magenta, is_target_red
+from tests.e2e.pixels import (
+    canvas_pixels,
+    count_pixels,
+    is_hover_yellow,
+    is_selected_magenta,
+    is_target_red,
+)
 
 PASSWORD = "password-123"
 JOB_TIMEOUT_S = 600.0  # two pipeline runs on two shared cores
@@ -240,6 +246,16 @@ def test_shift_drag_takes_points_out_of_a_clutter_instance(
     page.wait_for_timeout(1500)  # the image drawn where the points were
     r0, c0, r1, c1 = wait_until("the instance magenta on the camera image", magenta)
     left, top, right, bottom = image_on_canvas(viewer_server, box)
+    # hover: the pointer over the instance on the image outlines its box there (in the browser)
+    before = count_pixels(page, is_hover_yellow)
+    page.mouse.move(
+        min(max(box["x"] + (c0 + c1) / 2 * scale, left + 4), right - 4),
+        min(max(box["y"] + (r0 + r1) / 2 * scale, top + 4), bottom - 4),
+    )
+    wait_until(
+        "the hovered instance outlined", lambda: count_pixels(page, is_hover_yellow) > before + 50
+    )
+    save_screenshot(page, artefacts, "clutter-hover", docs="viewer_clutter_hover.png")
     x0, y0 = max(box["x"] + (c0 - 6) * scale, left + 2), max(box["y"] + (r0 - 6) * scale, top + 2)
     x1 = min(box["x"] + (c1 + 6) * scale, right - 2)
     y1 = min(box["y"] + (r1 + 6) * scale, bottom - 2)

@@ -447,6 +447,22 @@ def test_a_box_on_the_camera_image_in_3d_corrects_and_adds(review: Review) -> No
             for k, phase in enumerate(phases)
         ]
 
+    # hover targets: an invisible clickable box round each instance in 3D and a quad over its
+    # box on the image (the browser outlines them under the pointer); a click on one selects it
+    assert mode.targets.quads
+    connection.wait(lambda m: m.get("name") == mode.targets.quads[-1].name, mark)
+    names = {m["name"] for m in connection.since(0, lambda m: "/targets/" in m.get("name", ""))}
+    owners = set(np.unique(mode.owner[mode.owner >= 0]).tolist())
+    assert {f"/clutter/targets/box{k}" for k in owners} <= names
+    on_image = set(np.unique(mode.owner[(mode.owner >= 0) & mode.projection.in_image]).tolist())
+    assert on_image and {f"/clutter/targets/image{k}" for k in on_image} <= names
+    k = min(on_image)
+    box = next(b for b in mode.targets.boxes if b.name == f"/clutter/targets/box{k}")
+    inside = mode.xyz[mode.owner == k]
+    assert (inside >= np.asarray(box.position) - np.asarray(box.dimensions) / 2 - 1e-3).all()
+    connection.call(mode.select_target, k)
+    assert mode.selected == k and f"Selected #{k}" in mode.status.content
+
     # the selected instance's points in the box's upper half leave it
     row, col = mode.pixels
     in_image = np.bincount(mode.owner[(mode.owner >= 0) & (row >= 0)], minlength=1)

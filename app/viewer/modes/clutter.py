@@ -19,7 +19,10 @@ and the panel's own width, per client; medium when the mode is left) makes the c
 beside the 3D view as large as the reviewer wants. Selecting an instance (a click on one of its
 points, or *Select* in the list) draws it magenta in both views: its points in 3D, and on the
 camera image its projected points, its mask outlined and its box. viser reports no hover events
-to the server, so the selection stands in for hovering over an object.
+to the server, but the browser outlines a clickable mesh under the pointer: each instance has an
+invisible box round its points in 3D and, while the camera image is in the scene, a quad over
+its box there (`clutter_hover`), so hovering an instance lights it up where the pointer is and a
+click selects it in both views.
 
 Correcting an instance's extent (reviewers), with a shift-drag rectangle in the 3D view (the
 shown points inside it that the camera sees, depth-aware as the pillar mode's rectangle,
@@ -62,6 +65,7 @@ from app.store.models import Survey as SurveyRecord
 from app.viewer.label_feed import CLUTTER_CORRECTIONS, CLUTTER_DECISIONS, CLUTTER_RUN
 from app.viewer.modes.base import Mode
 from app.viewer.modes.clutter_camera import ImagePlane
+from app.viewer.modes.clutter_hover import HoverTargets
 from app.viewer.modes.clutter_images import (
     IMAGE_WIDTHS,
     blank_image,
@@ -125,6 +129,11 @@ class ClutterMode(Mode):
         self.box_from: tuple[float, float] | None = None  # pixel where a box drag started
         self.box_drawn = 0.0
         self.view_fov = float(session.client.camera.fov)  # restored when leaving the camera
+        self.targets = HoverTargets(
+            session.client.scene, self.key,
+            lambda k: session.submit(self.select_target, k),
+            lambda event: session.submit(self.on_box, event),
+        )  # fmt: skip
         gui = session.client.gui
         self.folder = run_folder(session, self.survey_id)
         if self.folder is None:
@@ -163,6 +172,8 @@ class ClutterMode(Mode):
         for node in (getattr(self, "image_node", None), getattr(self, "box_node", None)):
             if node is not None:
                 node.remove()
+        if hasattr(self, "targets"):
+            self.targets.remove()
         if getattr(self, "view", VIEWS[0]) != VIEWS[0]:
             self.session.client.camera.fov = self.view_fov
         if getattr(self, "panel_width", DEFAULT_WIDTH) != DEFAULT_WIDTH:
@@ -322,6 +333,7 @@ class ClutterMode(Mode):
             point_shading="flat",
         )
         self._draw_panel()
+        self._draw_targets()
         if move_camera:
             self._look_at_frame(frame)
         self.session.client.flush()
@@ -424,6 +436,7 @@ class ClutterMode(Mode):
             if self.image_node is not None:
                 self.image_node.remove()
                 self.image_node = None
+                self._draw_targets()
             return
         image = self._overlay() if image is None else image
         wxyz, position, width, height = self.plane.node_pose()
@@ -435,10 +448,22 @@ class ClutterMode(Mode):
             self.image_node.on_drag("left", modifier="cmd/ctrl")(
                 lambda event: self.session.submit(self.on_box, event)
             )
+            self._draw_targets()
             return
         self.image_node.image = image
         self.image_node.wxyz, self.image_node.position = wxyz, position
         self.image_node.render_width, self.image_node.render_height = width, height
+
+    def _draw_targets(self) -> None:
+        """The instances' hover targets (`clutter_hover`): boxes in 3D, quads on the camera
+        image while it is in the scene."""
+        if self.cloud is None:
+            return
+        shown = self.image_node is not None and self.projection is not None
+        self.targets.draw(
+            self.xyz, self.owner, self.plane if shown else None,
+            self.projection.uv if shown else None, self.projection.in_image if shown else None,
+        )  # fmt: skip
 
     def _draw_heading(self) -> None:
         count = self.frames[self.frame_index]
@@ -525,6 +550,7 @@ class ClutterMode(Mode):
             self.cloud.colors = self._colors()
         self._draw_heading()
         self._draw_images()
+        self._draw_targets()
         self._relabel_rows()
         self._draw_selected()
         self.session.client.flush()
@@ -545,6 +571,13 @@ class ClutterMode(Mode):
     def select(self, instance_index: int | None) -> None:
         self.selected = instance_index
         self._refresh()
+
+    def select_target(self, instance_index: int) -> None:
+        """A click on an instance's hover target (its box in 3D, its box on the image)."""
+        self.select(instance_index)
+        state = self.by_index.get(instance_index)
+        if state is not None:
+            self.status.content = f"Selected #{instance_index} ({state.class_name})."
 
     def on_click(self, event: SceneClickEvent) -> None:
         """Select the instance of the clicked point (the nearest shown point along the ray)."""
