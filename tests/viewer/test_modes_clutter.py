@@ -447,19 +447,38 @@ def test_a_box_on_the_camera_image_in_3d_corrects_and_adds(review: Review) -> No
             for k, phase in enumerate(phases)
         ]
 
-    # hover targets: an invisible clickable box round each instance in 3D and a quad over its
-    # box on the image (the browser outlines them under the pointer); a click on one selects it
-    assert mode.targets.quads
+    # hover targets: per instance an invisible clickable box round its points in 3D and a
+    # quad over its box on the image (the browser outlines them under the pointer); a click on
+    # one selects it
+    assert mode.targets.boxes and mode.targets.quads
     connection.wait(lambda m: m.get("name") == mode.targets.quads[-1].name, mark)
-    names = {m["name"] for m in connection.since(0, lambda m: "/targets/" in m.get("name", ""))}
+    boxes = {int(m.name.rsplit("box", 1)[1]): m for m in mode.targets.boxes}
+    quads = {int(m.name.rsplit("image", 1)[1]): m for m in mode.targets.quads}
     owners = set(np.unique(mode.owner[mode.owner >= 0]).tolist())
-    assert {f"/clutter/targets/box{k}" for k in owners} <= names
     on_image = set(np.unique(mode.owner[(mode.owner >= 0) & mode.projection.in_image]).tolist())
-    assert on_image and {f"/clutter/targets/image{k}" for k in on_image} <= names
-    k = min(on_image)
-    box = next(b for b in mode.targets.boxes if b.name == f"/clutter/targets/box{k}")
+    assert set(quads) == on_image and set(boxes) <= owners
+    for k in owners - set(boxes):  # left out: its box would reach in front of the image
+        near = (mode.xyz[mode.owner == k] - plane.centre) @ plane.rotation[:, 2]
+        assert near.min() < 1.5 * plane.depth
+    k = min(set(boxes) & on_image)
+    corners = np.asarray(boxes[k].vertices, dtype=np.float64)
     inside = mode.xyz[mode.owner == k]
-    assert (inside >= np.asarray(box.position) - np.asarray(box.dimensions) / 2 - 1e-3).all()
+    assert (inside >= corners.min(axis=0) - 1e-3).all()
+    assert (inside <= corners.max(axis=0) + 1e-3).all()
+    quad = np.asarray(quads[k].vertices, dtype=np.float64)  # a slab just in front of the image
+    depth = (quad - plane.centre) @ plane.rotation[:, 2]
+    assert (depth < plane.depth).all() and all(plane.holds(p) for p in quad)
+    uv = mode.projection.uv[(mode.owner == k) & mode.projection.in_image]
+    seen = np.array([plane.pixel_of(p) for p in quad])
+    assert np.allclose(seen.min(axis=0), uv.min(axis=0), atol=0.5)
+    assert np.allclose(seen.max(axis=0), uv.max(axis=0), atol=0.5)
+    # front faces outwards: only they catch the pointer
+    for mesh in (boxes[k], quads[k]):
+        v = np.asarray(mesh.vertices, dtype=np.float64)
+        faces = np.asarray(mesh.faces)
+        normal = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
+        out = v[faces].mean(axis=1) - v.mean(axis=0)
+        assert (np.einsum("ij,ij->i", normal, out) > 0).all()
     connection.call(mode.select_target, k)
     assert mode.selected == k and f"Selected #{k}" in mode.status.content
 

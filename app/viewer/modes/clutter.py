@@ -617,13 +617,19 @@ class ClutterMode(Mode):
         plane = self.plane
         if plane is None:
             return
+        start = np.asarray(event.start_position, dtype=np.float64)
         if event.phase == "start":
+            self.box_from = None
+            if not plane.holds(start):
+                return  # a drag from an instance's box in 3D, not from the image: no 2D box
             if not self.reviewer:
                 self.status.content = "Correcting instances needs the reviewer role."
                 return
-            self.box_from = plane.pixel_of(np.asarray(event.start_position, dtype=np.float64))
+            self.box_from = plane.pixel_of(start)
         screen = ScreenCamera.of(self.session.client.camera)
         end = plane.pixel_under(screen, event.end_screen_pos)
+        if event.phase == "end" and not plane.holds(start):
+            return
         if event.phase == "end" and (self.box_from is None or end is None):
             self.box_from = None
             self._draw_box(np.zeros((0, 2, 3)))

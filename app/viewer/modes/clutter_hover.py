@@ -3,12 +3,16 @@
 viser reports no hover to the server, but the browser outlines a clickable mesh while the
 pointer is over it (its own yellow outline, drawn without a round trip). So each instance gets
 an invisible clickable box round its points in 3D and, while the camera image is in the scene,
-an invisible clickable quad over its box on the image: hovering an instance outlines it where
-the pointer is, a click selects it (magenta in both views, as a click on one of its points
-does), and a Ctrl-drag that starts on an image target draws a 2D box as one started on the
-image does. Transparent meshes are drawn after the points, so the invisible boxes hide none;
-the boxes show their outer faces only, so one round the camera (a wrongly merged structure
-along the street) catches no pointer from inside it.
+an invisible clickable slab over its box on the image (a few millimetres thick: the browser
+outlines no flat face seen square on): hovering an instance outlines it where the pointer is (in
+3D, or on the camera image), a click selects it (magenta in both views, as a click on one of
+its points does), and a Ctrl-drag that starts on a slab draws a 2D box as one started on the
+image does. Boxes and slabs are separate meshes: the browser draws transparent meshes far to
+near by their geometry's centre, and an invisible face drawn before the image hides the image
+behind it, so a slab (in front of the image) must be its own mesh, drawn after the image, and
+while the image is in the scene a box that reaches near the camera (an object beside the car)
+is left out. Faces point outwards and only they catch the pointer, so a box round the camera (a
+wrongly merged structure along the street) catches nothing from inside it.
 """
 
 from __future__ import annotations
@@ -21,7 +25,16 @@ import numpy as np
 from app.viewer.modes.clutter_camera import BOX_LIFT, ImagePlane
 
 MIN_BOX = 0.2  # metres: a box edge at least this long (a one-point piece is still a target)
+REACH = 1.5  # with the image in the scene, a box nearer the camera than this x its depth has
+# no target (it would hide the image)
 TARGET_RGB = (255, 255, 255)
+# the 12 triangles of a box over its corners (bit 0: x high, bit 1: y high, bit 2: z high)
+BOX_FACES = np.array([
+    [0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6], [0, 1, 4], [1, 5, 4],
+    [2, 6, 3], [3, 6, 7], [0, 4, 2], [2, 4, 6], [1, 3, 5], [3, 7, 5],
+], dtype=np.uint32)  # fmt: skip
+# shares of the image's depth between which an image target (a slab) lies, in front of it
+SLAB = (BOX_LIFT, 0.999)
 
 
 def instance_extents(
@@ -42,23 +55,51 @@ def instance_extents(
     return has, low[has], high[has]
 
 
+def facing(vertices: np.ndarray, faces: np.ndarray, towards: np.ndarray) -> np.ndarray:
+    """`faces` with each triangle wound counter-clockwise as seen from `towards` (n, 3): a
+    point on the side its front should face."""
+    a, b, c = (vertices[faces[:, i]] for i in range(3))
+    normal = np.cross(b - a, c - a)
+    flip = np.einsum("ij,ij->i", normal, towards - a) < 0
+    out = faces.copy()
+    out[flip] = out[flip][:, [0, 2, 1]]
+    return out
+
+
+def box_mesh(low: np.ndarray, high: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices, faces) of a box round `low`-`high`, at least MIN_BOX a side, faces outwards."""
+    centre = (low + high) / 2
+    half = np.maximum(high - low, MIN_BOX) / 2
+    bits = np.arange(8)[:, None] >> np.arange(3) & 1
+    corners = centre + np.where(bits == 1, half, -half)
+    outward = corners[BOX_FACES].mean(axis=1) * 2 - centre  # beyond each face, away from centre
+    return corners, facing(corners, BOX_FACES, outward)
+
+
+def reaches_image(plane: ImagePlane, low: np.ndarray, high: np.ndarray) -> bool:
+    """Whether a box comes nearer the camera than REACH x the image's depth (or behind it)."""
+    bits = np.arange(8)[:, None] >> np.arange(3) & 1
+    depth = (np.where(bits == 1, high, low) - plane.centre) @ plane.rotation[:, 2]
+    return bool((depth < REACH * plane.depth).any())
+
+
 class HoverTargets:
-    """The frame's invisible instance boxes (3D) and image quads, redrawn when they move."""
+    """The frame's invisible instance targets, redrawn when they move."""
 
     def __init__(
         self,
         scene: Any,
         key: str,
         on_select: Callable[[int], None],
-        on_image_drag: Callable[[Any], None],
+        on_drag: Callable[[Any], None],
     ):
         self.scene = scene
         self.key = key
         self.on_select = on_select
-        self.on_image_drag = on_image_drag
+        self.on_drag = on_drag
         self.boxes: list[Any] = []
         self.quads: list[Any] = []
-        self.drawn: tuple[bytes, bytes] = (b"", b"")
+        self.drawn = b""
 
     def draw(
         self,
@@ -68,45 +109,50 @@ class HoverTargets:
         uv: np.ndarray | None,
         in_image: np.ndarray | None,
     ) -> None:
-        """Boxes round each instance's points `xyz` (scene) and, with a `plane` shown, quads over
-        its box on the image (`uv` pixels, `in_image`); nothing is resent when nothing moved."""
+        """Boxes round each instance's points `xyz` (scene) and, with a `plane` shown, slabs
+        over its box on the image (`uv` pixels, `in_image`); nothing is resent when nothing
+        moved."""
         boxes = instance_extents(xyz, owner)
+        if plane is not None:
+            near = [reaches_image(plane, a, b) for _, a, b in zip(*boxes, strict=True)]
+            boxes = tuple(x[~np.asarray(near, dtype=bool)] for x in boxes)
         quads = (np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2)))
         if plane is not None and uv is not None and in_image is not None:
             quads = instance_extents(uv, owner, in_image)
-        key = (
-            b"".join(np.round(a, 2).tobytes() for a in boxes),
-            b"".join(np.round(a, 1).tobytes() for a in quads),
-        )
+        key = b"".join(np.round(a, 2).tobytes() for a in (*boxes, *quads))
         if key == self.drawn:
             return
         self.remove()
         self.drawn = key
         for k, a, b in zip(*boxes, strict=True):
-            box = self.scene.add_box(
-                f"/{self.key}/targets/box{k}", color=TARGET_RGB,
-                dimensions=tuple(np.maximum(b - a, MIN_BOX)), position=tuple((a + b) / 2),
-                opacity=0.0, side="front", cast_shadow=False, receive_shadow=False,
-            )  # fmt: skip
-            box.on_click(lambda _, k=int(k): self.on_select(k))
-            self.boxes.append(box)
+            self.boxes.append(self._target(f"box{k}", int(k), *box_mesh(a, b)))
         if plane is None:
             return
-        depth = plane.depth * (1.0 + BOX_LIFT) / 2  # on the image, under a box being drawn
         for k, (u0, v0), (u1, v1) in zip(*quads, strict=True):
-            corners = [(u0, v0), (u1, v0), (u1, v1), (u0, v1)]
-            quad = self.scene.add_mesh_simple(
-                f"/{self.key}/targets/image{k}",
-                vertices=np.array([plane.scene_point(u, v, depth) for u, v in corners], np.float32),
-                faces=np.array([[0, 1, 2], [0, 2, 3]], dtype=np.uint32), color=TARGET_RGB,
-                opacity=0.0, side="double", cast_shadow=False, receive_shadow=False,
-            )  # fmt: skip
-            quad.on_click(lambda _, k=int(k): self.on_select(k))
-            quad.on_drag("left", modifier="cmd/ctrl")(self.on_image_drag)
-            self.quads.append(quad)
+            bits = np.arange(8)[:, None] >> np.arange(3) & 1  # u high, v high, deeper
+            corners = np.array([
+                plane.scene_point(u1 if bu else u0, v1 if bv else v0, SLAB[bd] * plane.depth)
+                for bu, bv, bd in bits
+            ])  # fmt: skip
+            faces = facing(
+                corners, BOX_FACES, corners[BOX_FACES].mean(axis=1) * 2 - corners.mean(0)
+            )
+            target = self._target(f"image{k}", int(k), corners, faces)
+            target.on_drag("left", modifier="cmd/ctrl")(self.on_drag)
+            self.quads.append(target)
+
+    def _target(
+        self, name: str, k: int, vertices: np.ndarray, faces: np.ndarray, side: str = "front"
+    ) -> Any:
+        mesh = self.scene.add_mesh_simple(
+            f"/{self.key}/targets/{name}", vertices=vertices.astype(np.float32), faces=faces,
+            color=TARGET_RGB, opacity=0.0, side=side, cast_shadow=False, receive_shadow=False,
+        )  # fmt: skip
+        mesh.on_click(lambda _: self.on_select(k))
+        return mesh
 
     def remove(self) -> None:
         for node in self.boxes + self.quads:
             node.remove()
         self.boxes, self.quads = [], []
-        self.drawn = (b"", b"")
+        self.drawn = b""
