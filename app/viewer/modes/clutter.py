@@ -20,7 +20,7 @@ beside the 3D view as large as the reviewer wants. Selecting an instance (a clic
 points, or *Select* in the list) draws it magenta in both views: its points in 3D, and on the
 camera image its projected points, its mask outlined and its box. viser reports no hover events
 to the server, but the browser outlines a clickable mesh under the pointer: each instance has an
-invisible box round its points in 3D and, while the camera image is in the scene, a quad over
+invisible box round its points in 3D and, while the camera image is in the scene, a slab over
 its box there (`clutter_hover`), so hovering an instance lights it up where the pointer is and a
 click selects it in both views.
 
