@@ -26,7 +26,7 @@ from app.geometry.projection import project
 from app.io import open_survey
 from app.pipelines.clutter.clusters import frame_clusters
 from app.pipelines.clutter.config import ClutterConfig
-from app.review.box_objects import VOTE_CELL_PX, PixelBox, object_in_box
+from app.review.box_objects import VOTE_CELL_PX, PixelBox, nearest_per_cell, object_in_box
 from bench.common import append_results, markdown_table
 
 SEQUENCES = ("04", "05", "08")
@@ -48,11 +48,8 @@ def seen_share(proj, labels: np.ndarray, mine: np.ndarray) -> float:
     key = cell[:, 0] * (1 << 20) + cell[:, 1]
     own = np.unique(key[mine[idx]])
     near = np.isin(key, own)
-    idx, key = idx[near], key[near]
-    order = np.lexsort((proj.depth[idx], key))
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = key[order][1:] != key[order][:-1]
-    return float(mine[idx[order[first]]].mean())
+    idx = idx[near]
+    return float(mine[idx[nearest_per_cell(proj.uv[idx], proj.depth[idx])]].mean())
 
 
 def box_baseline(xyz: np.ndarray, proj, box: PixelBox, config: ClutterConfig) -> np.ndarray:

@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from app.core.errors import ConfigError
+from app.geometry.extents import label_extents
 from app.geometry.projection import Projection
 from app.io.survey import Camera, Survey
 from app.pipelines.clutter.clusters import frame_clusters
@@ -132,13 +133,7 @@ def object_in_box(
     above = np.flatnonzero((label >= 0) & inside)
     if not len(above):
         return np.zeros(0, dtype=np.int64)
-    # the visible surface: per cell the point nearest the camera
-    cell = np.floor(projection.uv[above] / VOTE_CELL_PX).astype(np.int64)
-    key = cell[:, 0] * (1 << 20) + cell[:, 1]
-    order = np.lexsort((projection.depth[above], key))
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = key[order][1:] != key[order][:-1]
-    seen = above[order[first]]
+    seen = above[nearest_per_cell(projection.uv[above], projection.depth[above])]
     n = int(label.max()) + 1
     in_box = np.bincount(label[above], minlength=n)
     near = np.bincount(label[label >= 0], minlength=n)
@@ -152,12 +147,20 @@ def object_in_box(
     return free
 
 
+def nearest_per_cell(uv: np.ndarray, depth: np.ndarray, cell_px: int = VOTE_CELL_PX) -> np.ndarray:
+    """Indices of the points the camera sees: per image cell of `cell_px` pixels, the one
+    nearest the camera (`uv` pixels, `depth` along the view)."""
+    cell = np.floor(uv / cell_px).astype(np.int64)
+    key = cell[:, 0] * (1 << 20) + cell[:, 1]
+    order = np.lexsort((depth, key))
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = key[order][1:] != key[order][:-1]
+    return order[first]
+
+
 def _outline_fit(uv: np.ndarray, label: np.ndarray, n: int, box: PixelBox) -> np.ndarray:
     """Per cluster: intersection over union of its points' box on the image with `box`."""
-    lo = np.full((n, 2), np.inf)
-    hi = np.full((n, 2), -np.inf)
-    np.minimum.at(lo, label, uv)
-    np.maximum.at(hi, label, uv)
+    lo, hi = label_extents(uv, label, n)
     inter = np.clip(np.minimum(hi, [box.u1, box.v1]) - np.maximum(lo, [box.u0, box.v0]), 0, None)
     inter_area = inter[:, 0] * inter[:, 1]
     own = np.clip(hi - lo, 0, None)

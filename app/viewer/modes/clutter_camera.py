@@ -63,10 +63,13 @@ class ImagePlane:
         ray = np.linalg.solve(self.K, np.array([u, v, 1.0]))
         return self.centre + self.rotation @ (ray * (self.depth if depth is None else depth))
 
+    def depth_of(self, points: np.ndarray) -> np.ndarray:
+        """Depth along the camera's view of scene points (..., 3)."""
+        return (np.asarray(points, dtype=np.float64) - self.centre) @ self.rotation[:, 2]
+
     def holds(self, point: np.ndarray, tolerance: float = 0.01) -> bool:
         """Whether a scene point lies on the image's plane (within `tolerance` of its depth)."""
-        cam = self.rotation.T @ (np.asarray(point, dtype=np.float64) - self.centre)
-        return abs(float(cam[2]) - self.depth) <= tolerance * self.depth
+        return abs(float(self.depth_of(point)) - self.depth) <= tolerance * self.depth
 
     def node_pose(self) -> tuple[np.ndarray, np.ndarray, float, float]:
         """(wxyz, position, render width, render height) of the viser image that shows it: an

@@ -22,12 +22,14 @@ from typing import Any
 
 import numpy as np
 
+from app.geometry.extents import label_extents
 from app.viewer.modes.clutter_camera import BOX_LIFT, ImagePlane
 
 MIN_BOX = 0.2  # metres: a box edge at least this long (a one-point piece is still a target)
 REACH = 1.5  # with the image in the scene, a box nearer the camera than this x its depth has
 # no target (it would hide the image)
 TARGET_RGB = (255, 255, 255)
+CORNER_BITS = np.arange(8)[:, None] >> np.arange(3) & 1  # a box's corner k: k's bits, x y z
 # the 12 triangles of a box over its corners (bit 0: x high, bit 1: y high, bit 2: z high)
 BOX_FACES = np.array([
     [0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6], [0, 1, 4], [1, 5, 4],
@@ -45,12 +47,7 @@ def instance_extents(
     keep = owner >= 0
     if seen is not None:
         keep &= seen
-    values = np.asarray(values, dtype=np.float64)
-    n = int(owner[keep].max(initial=-1)) + 1
-    low = np.full((n, values.shape[1]), np.inf)
-    high = np.full((n, values.shape[1]), -np.inf)
-    np.minimum.at(low, owner[keep], values[keep])
-    np.maximum.at(high, owner[keep], values[keep])
+    low, high = label_extents(values[keep], owner[keep], int(owner[keep].max(initial=-1)) + 1)
     has = np.flatnonzero(np.isfinite(low[:, 0]))
     return has, low[has], high[has]
 
@@ -66,20 +63,24 @@ def facing(vertices: np.ndarray, faces: np.ndarray, towards: np.ndarray) -> np.n
     return out
 
 
+def outward_faces(corners: np.ndarray) -> np.ndarray:
+    """BOX_FACES wound so that each faces away from the middle of the 8 `corners` (in
+    CORNER_BITS order)."""
+    outward = corners[BOX_FACES].mean(axis=1) * 2 - corners.mean(axis=0)  # beyond each face
+    return facing(corners, BOX_FACES, outward)
+
+
 def box_mesh(low: np.ndarray, high: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(vertices, faces) of a box round `low`-`high`, at least MIN_BOX a side, faces outwards."""
     centre = (low + high) / 2
     half = np.maximum(high - low, MIN_BOX) / 2
-    bits = np.arange(8)[:, None] >> np.arange(3) & 1
-    corners = centre + np.where(bits == 1, half, -half)
-    outward = corners[BOX_FACES].mean(axis=1) * 2 - centre  # beyond each face, away from centre
-    return corners, facing(corners, BOX_FACES, outward)
+    corners = centre + np.where(CORNER_BITS == 1, half, -half)
+    return corners, outward_faces(corners)
 
 
 def reaches_image(plane: ImagePlane, low: np.ndarray, high: np.ndarray) -> bool:
     """Whether a box comes nearer the camera than REACH x the image's depth (or behind it)."""
-    bits = np.arange(8)[:, None] >> np.arange(3) & 1
-    depth = (np.where(bits == 1, high, low) - plane.centre) @ plane.rotation[:, 2]
+    depth = plane.depth_of(np.where(CORNER_BITS == 1, high, low))
     return bool((depth < REACH * plane.depth).any())
 
 
@@ -129,15 +130,11 @@ class HoverTargets:
         if plane is None:
             return
         for k, (u0, v0), (u1, v1) in zip(*quads, strict=True):
-            bits = np.arange(8)[:, None] >> np.arange(3) & 1  # u high, v high, deeper
-            corners = np.array([
+            corners = np.array([  # CORNER_BITS: u high, v high, deeper
                 plane.scene_point(u1 if bu else u0, v1 if bv else v0, SLAB[bd] * plane.depth)
-                for bu, bv, bd in bits
+                for bu, bv, bd in CORNER_BITS
             ])  # fmt: skip
-            faces = facing(
-                corners, BOX_FACES, corners[BOX_FACES].mean(axis=1) * 2 - corners.mean(0)
-            )
-            target = self._target(f"image{k}", int(k), corners, faces)
+            target = self._target(f"image{k}", int(k), corners, outward_faces(corners))
             target.on_drag("left", modifier="cmd/ctrl")(self.on_drag)
             self.quads.append(target)
 
